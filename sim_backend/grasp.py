@@ -1,0 +1,76 @@
+"""Grasp planning for the procedural hand: a pinch between the thumb and the three fingers.
+
+With the wrist angles at zero the palm faces down and the fingers point along world +x; the
+fingertips close on the object from +x and the thumb from -x, so the squeeze runs along world x
+and gravity is held by friction alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .kinematics import Kinematics
+from .objects import ObjectSpec
+
+__all__ = ["PINCH_OFFSET", "Grasp", "plan_pinch"]
+
+PINCH_OFFSET = np.array([0.045, 0.0, -0.11])
+"""Where the pinch centre sits relative to the palm origin (world frame, wrist angles zero) [m]."""
+_TIP_RADIUS = 0.012
+_FINGER_Y = (0.03, 0.0, -0.03)
+
+
+@dataclass(frozen=True)
+class Grasp:
+    """A planned pinch: where the object goes and the joint positions that hold it."""
+
+    object_pose: np.ndarray
+    """Object pose at grasp, shape (7,): position [m], quaternion (x, y, z, w)."""
+    q_touch: np.ndarray
+    """Joint positions with the pads just touching the object, shape (D,)."""
+    q_squeeze: np.ndarray
+    """Joint targets that press the pads into the object, shape (D,)."""
+    half_width: float
+    """Half the object's width along the squeeze [m]."""
+
+
+def _yaw_quat(yaw: float) -> np.ndarray:
+    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+
+
+def plan_pinch(kin: Kinematics, obj: ObjectSpec, wrist_q: np.ndarray | None = None, squeeze: float = 0.15) -> Grasp:
+    """Plan a pinch of ``obj`` by the hand at ``wrist_q`` (6,: x, y, z [m], then zero angles).
+
+    The object is turned about z so its narrower horizontal side lies along the squeeze; the
+    pads touch it at its mid-length cross-section; ``squeeze`` [rad] is how far beyond touching
+    the flexion targets go.
+    """
+    lay = kin.layout
+    q = lay.default_q.copy()
+    if wrist_q is not None:
+        q[:6] = wrist_q
+    ext = obj.mesh.extents
+    yaw = math.pi / 2 if ext[0] > ext[1] else 0.0
+    c, s = math.cos(yaw), math.sin(yaw)
+    verts = obj.surface_points(4096).astype(np.float64) @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    mid = verts[np.abs(verts[:, 1]) < 0.1 * np.ptp(verts[:, 1]) + 1e-3]
+    half_width = float(np.abs(mid[:, 0]).max())
+    centre_z = float(0.5 * (mid[:, 2].min() + mid[:, 2].max()))
+    centre = q[:3] + PINCH_OFFSET
+    x_finger, x_thumb = centre[0] + half_width + _TIP_RADIUS, centre[0] - half_width - _TIP_RADIUS
+    targets = np.array([[x_finger, centre[1] + y, centre[2]] for y in _FINGER_Y] + [[x_thumb, centre[1], centre[2]]])
+    start = q.copy()
+    start[[7, 11, 15]] = 0.8
+    start[6 + 12] = 1.3
+    active = np.zeros(lay.dof_count, bool)
+    active[6:] = True
+    q_touch = kin.solve_tips(start, targets, active=active)
+    q_squeeze = q_touch.copy()
+    flexion = [7, 8, 11, 12, 15, 16, 20, 21]  # proximal and middle flexion joints of every digit
+    q_squeeze[flexion] += squeeze
+    q_squeeze = np.clip(q_squeeze, lay.lower, lay.upper)
+    pose = np.concatenate([centre - np.array([0.0, 0.0, centre_z]), _yaw_quat(yaw)])
+    return Grasp(object_pose=pose, q_touch=q_touch, q_squeeze=q_squeeze, half_width=half_width)

@@ -1,0 +1,102 @@
+"""Forward and inverse kinematics of one robot, off the hot path.
+
+Used to turn a real robot's joint positions into sensor poses, and to plan grasps for tests and
+scripted demos. It runs on a private single-world model on the CPU, so it never touches the
+population's memory.
+"""
+
+from __future__ import annotations
+
+import newton
+import numpy as np
+import warp as wp
+
+from .robots import RobotLayout, RobotSpec, add_robot
+
+__all__ = ["Kinematics"]
+
+
+def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors ``v`` (..., 3) by unit quaternions ``q`` (..., 4) in (x, y, z, w) order."""
+    u, w = q[..., :3], q[..., 3:4]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
+class Kinematics:
+    """Forward kinematics of the sensor frames, and damped least-squares IK for the fingertips."""
+
+    def __init__(self, spec: RobotSpec):
+        builder = newton.ModelBuilder()
+        newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
+        self.layout: RobotLayout = add_robot(builder, spec)
+        self._model = builder.finalize(device="cpu")
+        self._state = self._model.state()
+
+    def body_poses(self, q: np.ndarray) -> np.ndarray:
+        """Poses of all robot bodies for joint positions ``q`` (D,), shape (B, 7) [m, quat xyzw]."""
+        q = np.asarray(q, dtype=np.float32)
+        if q.shape != (self.layout.dof_count,):
+            raise ValueError(f"q: expected shape ({self.layout.dof_count},), got {q.shape}")
+        joint_q = self._model.joint_q.numpy()
+        joint_q[self.layout.coord_indices] = q
+        self._state.joint_q.assign(joint_q)
+        newton.eval_fk(self._model, self._state.joint_q, self._state.joint_qd, self._state)
+        return self._state.body_q.numpy().astype(np.float64)
+
+    def sensor_poses(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor positions (L, 3) [m] and orientations (L, 4) [quat xyzw] for joints ``q`` (D,)."""
+        bodies = self.body_poses(q)[self.layout.sensor_bodies]
+        off = self.layout.sensor_offsets
+        pos = bodies[:, :3] + _quat_rotate(bodies[:, 3:], off[:, :3])
+        rot = _quat_mul(bodies[:, 3:], off[:, 3:])
+        return pos, rot
+
+    def solve_tips(
+        self,
+        q_start: np.ndarray,
+        targets: np.ndarray,
+        *,
+        active: np.ndarray,
+        iterations: int = 60,
+        damping: float = 1e-3,
+        weights: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Joint positions near ``q_start`` that put the sensor origins at ``targets`` (L, 3) [m].
+
+        Only joints with ``active`` (D,) True move; results stay inside the joint limits. Sensors
+        with zero ``weights`` (L,) are ignored.
+        """
+        lay = self.layout
+        q = np.clip(np.asarray(q_start, dtype=np.float64), lay.lower, lay.upper)
+        w = np.ones(lay.sensor_count) if weights is None else np.asarray(weights, dtype=np.float64)
+        w3 = np.repeat(w, 3)
+        idx = np.flatnonzero(active)
+        eps = 1e-4
+        for _ in range(iterations):
+            p0 = self.sensor_poses(q)[0]
+            err = (targets - p0).reshape(-1) * w3
+            if np.abs(err).max() < 1e-5:
+                break
+            jac = np.empty((err.size, idx.size))
+            for c, j in enumerate(idx):
+                dq = q.copy()
+                dq[j] += eps
+                jac[:, c] = (self.sensor_poses(dq)[0] - p0).reshape(-1) * w3 / eps
+            step = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(err.size), err)
+            q[idx] = np.clip(q[idx] + step, lay.lower[idx], lay.upper[idx])
+        return q

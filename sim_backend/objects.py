@@ -1,0 +1,171 @@
+"""Objects: a catalog shaped like the paper's YCB objects, and any mesh file trimesh reads.
+
+Every object is a surface mesh (used for ADD points and for viewing) plus a collision shape made
+of convex primitives, which the collision pipeline handles analytically and fast: a box, a chain
+of capsules (the banana), or the convex hull of a user's mesh. Colliding as a raw triangle mesh
+gave hundreds of contacts per world and lost the grasp. The body frame is the centre of mass.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+__all__ = ["CATALOG", "ObjectSpec", "catalog_object", "load_mesh_object", "make_banana"]
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A graspable rigid object and the range its unknown physics may take."""
+
+    name: str
+    mesh: trimesh.Trimesh
+    """Surface mesh in the body frame (origin at the centre of mass) [m]."""
+    mass: float
+    """Default mass [kg]."""
+    mass_range: tuple[float, float]
+    """Allowed mass [kg]: priors and perturbations are clipped to it."""
+    friction: float = 0.8
+    """Default Coulomb friction coefficient against the fingertips [1]."""
+    friction_range: tuple[float, float] = (0.3, 1.5)
+    box_half_extents: tuple[float, float, float] | None = None
+    """Collide as this box [m]."""
+    capsules: tuple[tuple[float, ...], ...] = ()
+    """Else collide as these capsules, each (x0, y0, z0, x1, y1, z1, radius) in the body frame [m];
+    with neither, the mesh's convex hull."""
+
+    def __post_init__(self) -> None:
+        lo, hi = self.mass_range
+        if not (0.0 < lo <= self.mass <= hi):
+            raise ValueError(f"object '{self.name}' mass: need 0 < {lo} <= {self.mass} <= {hi} kg")
+        lo, hi = self.friction_range
+        if not (0.0 <= lo <= self.friction <= hi):
+            raise ValueError(f"object '{self.name}' friction: need 0 <= {lo} <= {self.friction} <= {hi}")
+
+    def surface_points(self, count: int = 1024, seed: int = 0) -> np.ndarray:
+        """``count`` points drawn uniformly by area over the surface, shape (count, 3) [m], for ADD."""
+        points, _ = trimesh.sample.sample_surface(self.mesh, count, seed=seed)
+        return np.asarray(points, dtype=np.float32)
+
+    @property
+    def radius(self) -> float:
+        """Distance from the centre of mass to the farthest surface point [m]."""
+        return float(np.linalg.norm(self.mesh.vertices, axis=1).max())
+
+
+def make_banana(
+    arc_radius: float = 0.15,
+    arc_angle: float = 1.25,
+    tube_radius: float = 0.018,
+    rings: int = 24,
+    sides: int = 16,
+    segments: int = 6,
+) -> tuple[trimesh.Trimesh, tuple[tuple[float, ...], ...]]:
+    """A toy banana: a curved, tapered tube along a circular arc, closed at both ends, and the
+    chain of ``segments`` capsules along the same arc that it collides as."""
+    angles = np.linspace(-arc_angle / 2, arc_angle / 2, rings)
+    s = np.linspace(-1.0, 1.0, rings)
+    radii = tube_radius * np.sqrt(np.clip(1.0 - s**4, 0.08, None))  # blunt tapered ends
+    phi = np.linspace(0.0, 2 * math.pi, sides, endpoint=False)
+    verts = []
+    for a, r in zip(angles, radii, strict=True):
+        centre = np.array([arc_radius * math.sin(a), 0.0, arc_radius * (1.0 - math.cos(a))])
+        normal = np.array([-math.sin(a), 0.0, math.cos(a)])  # towards the arc's centre
+        binormal = np.array([0.0, 1.0, 0.0])
+        ring = centre + r * (np.cos(phi)[:, None] * normal + np.sin(phi)[:, None] * binormal)
+        verts.append(ring)
+    verts = np.concatenate(verts)
+    faces = []
+    for i in range(rings - 1):
+        for j in range(sides):
+            a, b = i * sides + j, i * sides + (j + 1) % sides
+            c, d = a + sides, b + sides
+            faces += [(a, c, b), (b, c, d)]
+    tip0, tip1 = len(verts), len(verts) + 1
+    verts = np.vstack([verts, verts[:sides].mean(0), verts[-sides:].mean(0)])
+    last = (rings - 1) * sides
+    for j in range(sides):
+        faces.append((tip0, j, (j + 1) % sides))
+        faces.append((tip1, last + (j + 1) % sides, last + j))
+    mesh = trimesh.Trimesh(verts, np.asarray(faces), process=True)
+    if mesh.volume < 0:  # outward normals, so volume and centre of mass come out right
+        mesh.invert()
+    com = mesh.center_mass
+    mesh.apply_translation(-com)
+    knots = np.linspace(-arc_angle / 2, arc_angle / 2, segments + 1)
+    centres = np.stack([arc_radius * np.sin(knots), 0 * knots, arc_radius * (1 - np.cos(knots))], 1) - com
+    knot_s = np.linspace(-1.0, 1.0, segments + 1)
+    knot_r = tube_radius * np.sqrt(np.clip(1.0 - knot_s**4, 0.08, None))
+    capsules = tuple(
+        (*centres[i], *centres[i + 1], float(min(knot_r[i], knot_r[i + 1]))) for i in range(segments)
+    )
+    return mesh, capsules
+
+
+def _centred(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    mesh = mesh.copy()
+    mesh.apply_translation(-mesh.center_mass if mesh.is_volume else -mesh.centroid)
+    return mesh
+
+
+def _box(name: str, size: tuple[float, float, float], **kw) -> ObjectSpec:
+    half = tuple(0.5 * s for s in size)
+    return ObjectSpec(name=name, mesh=trimesh.creation.box(extents=size), box_half_extents=half, **kw)  # type: ignore[arg-type]
+
+
+_BANANA_MESH, _BANANA_CAPSULES = make_banana()
+
+# Shapes and masses of the paper's three YCB objects. The spam can was emptied in the paper to
+# make it light enough for a fingertip grasp; 0.1 kg stands for that.
+CATALOG: dict[str, ObjectSpec] = {
+    "spam_can": _box("spam_can", (0.097, 0.056, 0.082), mass=0.1, mass_range=(0.05, 0.2), friction=0.8),
+    "foam_brick": _box("foam_brick", (0.05, 0.075, 0.05), mass=0.028, mass_range=(0.015, 0.05), friction=1.0),
+    "toy_banana": ObjectSpec(
+        "toy_banana", _BANANA_MESH, mass=0.066, mass_range=(0.04, 0.1), friction=0.6, capsules=_BANANA_CAPSULES
+    ),
+}
+
+
+def catalog_object(name: str) -> ObjectSpec:
+    """The catalog object ``name``; a ValueError lists the known names."""
+    try:
+        return CATALOG[name]
+    except KeyError:
+        raise ValueError(f"object: unknown name '{name}', known: {sorted(CATALOG)}") from None
+
+
+def load_mesh_object(
+    name: str,
+    path: str,
+    *,
+    mass: float,
+    mass_range: tuple[float, float],
+    friction: float = 0.8,
+    friction_range: tuple[float, float] = (0.3, 1.5),
+    scale: float = 1.0,
+) -> ObjectSpec:
+    """An object from any mesh file trimesh reads (STL, OBJ, PLY, GLB, ...), in metres after ``scale``."""
+    if not os.path.isfile(path):
+        raise ValueError(f"object '{name}' mesh: no such file '{path}'")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as exc:  # trimesh raises many kinds for bad files
+        raise ValueError(f"object '{name}' mesh: cannot read '{path}': {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"object '{name}' mesh: '{path}' holds no triangles")
+    mesh.apply_scale(scale)
+    extent = float(np.max(mesh.extents))
+    if not (0.005 <= extent <= 0.5):
+        raise ValueError(f"object '{name}' mesh: largest extent {extent:.4g} m is outside [0.005, 0.5] m; check scale")
+    return ObjectSpec(
+        name=name,
+        mesh=_centred(mesh),
+        mass=mass,
+        mass_range=mass_range,
+        friction=friction,
+        friction_range=friction_range,
+    )

@@ -1,0 +1,224 @@
+"""Observation kernels: what each world's robot would sense, computed on the device.
+
+All kernels run inside the captured frame graph after the last substep. Per world ``w`` and
+sensor ``l`` they produce the paper's observation o_t: joint positions, sensor poses, the contact
+force in the sensor frame, translational slip (flag + unit direction in the sensor's tangent
+plane) and rotational slip (flag + sense), plus the object pose and a health flag.
+
+Sensor frame convention: z is the pad's outward normal, x points along the finger (distal), so
+the tangent plane is the sensor's x-y plane.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+__all__ = [
+    "HEALTH_LOST",
+    "HEALTH_NAN",
+    "HEALTH_OK",
+    "accumulate_contacts",
+    "finish_observation",
+    "gather_joints",
+    "object_health",
+    "sensor_poses",
+]
+
+HEALTH_OK = 0
+HEALTH_NAN = 1
+"""A world's state holds NaN or Inf."""
+HEALTH_LOST = 2
+"""A world's object left the workspace around the hand (dropped, flung, or exploded)."""
+
+
+@wp.kernel(enable_backward=False)
+def gather_joints(
+    joint_q: wp.array[float],
+    coords_per_world: int,
+    coord_index: wp.array[wp.int32],
+    q_out: wp.array2d[float],
+):
+    """q_out[w, d] = joint_q of actuated joint d in world w. Launch dim (W, D)."""
+    w, d = wp.tid()
+    q_out[w, d] = joint_q[w * coords_per_world + coord_index[d]]
+
+
+@wp.kernel(enable_backward=False)
+def sensor_poses(
+    body_q: wp.array[wp.transform],
+    bodies_per_world: int,
+    sensor_body: wp.array[wp.int32],
+    sensor_offset: wp.array[wp.transform],
+    pos_out: wp.array2d[wp.vec3],
+    rot_out: wp.array2d[wp.quat],
+    force_acc: wp.array2d[wp.vec3],
+    slip_acc: wp.array2d[wp.vec3],
+    spin_acc: wp.array2d[wp.vec3],
+    weight_acc: wp.array2d[float],
+):
+    """World pose of every sensor frame; clears the contact accumulators. Launch dim (W, L)."""
+    w, l = wp.tid()
+    x = wp.transform_multiply(body_q[w * bodies_per_world + sensor_body[l]], sensor_offset[l])
+    pos_out[w, l] = wp.transform_get_translation(x)
+    rot_out[w, l] = wp.transform_get_rotation(x)
+    force_acc[w, l] = wp.vec3(0.0)
+    slip_acc[w, l] = wp.vec3(0.0)
+    spin_acc[w, l] = wp.vec3(0.0)
+    weight_acc[w, l] = 0.0
+
+
+@wp.func
+def _point_velocity(body_q: wp.transform, body_qd: wp.spatial_vector, com: wp.vec3, p: wp.vec3) -> wp.vec3:
+    # body_qd holds the COM's linear velocity and the angular velocity, both in the world frame.
+    com_world = wp.transform_point(body_q, com)
+    return wp.spatial_top(body_qd) + wp.cross(wp.spatial_bottom(body_qd), p - com_world)
+
+
+@wp.kernel(enable_backward=False)
+def accumulate_contacts(
+    contact_count: wp.array[wp.int32],
+    shape0: wp.array[wp.int32],
+    shape1: wp.array[wp.int32],
+    point0: wp.array[wp.vec3],
+    normal: wp.array[wp.vec3],
+    contact_force: wp.array[wp.spatial_vector],
+    shape_body: wp.array[wp.int32],
+    body_q: wp.array[wp.transform],
+    body_qd: wp.array[wp.spatial_vector],
+    body_com: wp.array[wp.vec3],
+    sensor_row: wp.array[wp.int32],
+    object_world: wp.array[wp.int32],
+    sensor_count: int,
+    force_acc: wp.array2d[wp.vec3],
+    slip_acc: wp.array2d[wp.vec3],
+    spin_acc: wp.array2d[wp.vec3],
+    weight_acc: wp.array2d[float],
+):
+    """Sum, per sensor, the force from its world's object and the force-weighted slip velocity.
+
+    ``sensor_row[b]`` is w * L + l when body b carries sensor l of world w, else -1;
+    ``object_world[b]`` is w when body b is world w's object, else -1. Launch dim: contact capacity.
+    """
+    c = wp.tid()
+    if c >= contact_count[0]:
+        return
+    b0 = shape_body[shape0[c]]
+    b1 = shape_body[shape1[c]]
+    if b0 < 0 or b1 < 0:
+        return
+    # contact_force is the force on shape 0; flip it when the sensor is shape 1.
+    f = wp.spatial_top(contact_force[c])
+    sensor = b0
+    obj = b1
+    sign = 1.0
+    if sensor_row[b0] < 0:
+        sensor = b1
+        obj = b0
+        sign = -1.0
+    row = sensor_row[sensor]
+    if row < 0 or object_world[obj] < 0:
+        return
+    f = sign * f
+    weight = wp.length(f)
+    if weight == 0.0:  # inside the detection gap, not touching
+        return
+    w = row // sensor_count
+    l = row - w * sensor_count
+    p = wp.transform_point(body_q[b0], point0[c])
+    v_rel = _point_velocity(body_q[sensor], body_qd[sensor], body_com[sensor], p) - _point_velocity(
+        body_q[obj], body_qd[obj], body_com[obj], p
+    )
+    n = wp.normalize(normal[c])
+    v_tan = v_rel - wp.dot(v_rel, n) * n
+    omega_rel = wp.spatial_bottom(body_qd[sensor]) - wp.spatial_bottom(body_qd[obj])
+    wp.atomic_add(force_acc, w, l, f)
+    wp.atomic_add(slip_acc, w, l, weight * v_tan)
+    wp.atomic_add(spin_acc, w, l, weight * omega_rel)
+    wp.atomic_add(weight_acc, w, l, weight)
+
+
+@wp.kernel(enable_backward=False)
+def finish_observation(
+    rot: wp.array2d[wp.quat],
+    force_acc: wp.array2d[wp.vec3],
+    slip_acc: wp.array2d[wp.vec3],
+    spin_acc: wp.array2d[wp.vec3],
+    weight_acc: wp.array2d[float],
+    slip_speed: float,
+    spin_speed: float,
+    force_out: wp.array2d[wp.vec3],
+    slip_out: wp.array2d[float],
+    slip_dir_out: wp.array2d[wp.vec2],
+    spin_out: wp.array2d[float],
+    spin_sense_out: wp.array2d[float],
+):
+    """Rotate into the sensor frame and threshold the slip speeds. Launch dim (W, L)."""
+    w, l = wp.tid()
+    r = rot[w, l]
+    force_out[w, l] = wp.quat_rotate_inv(r, force_acc[w, l])
+    slip = 0.0
+    d = wp.vec2(0.0, 0.0)
+    spin = 0.0
+    sense = 0.0
+    total = weight_acc[w, l]
+    if total > 0.0:
+        v = wp.quat_rotate_inv(r, slip_acc[w, l] / total)
+        speed = wp.length(wp.vec2(v[0], v[1]))
+        if speed > slip_speed:
+            slip = 1.0
+            d = wp.vec2(v[0], v[1]) / speed
+        # Spin of the pad against the object about the pad normal (sensor z); the sense is 1 for
+        # counter-clockwise (right hand about +z), else 0, as the paper's r in {0, 1}.
+        s = wp.quat_rotate_inv(r, spin_acc[w, l] / total)[2]
+        if wp.abs(s) > spin_speed:
+            spin = 1.0
+            if s > 0.0:
+                sense = 1.0
+    slip_out[w, l] = slip
+    slip_dir_out[w, l] = d
+    spin_out[w, l] = spin
+    spin_sense_out[w, l] = sense
+
+
+@wp.kernel(enable_backward=False)
+def object_health(
+    body_q: wp.array[wp.transform],
+    body_qd: wp.array[wp.spatial_vector],
+    joint_q: wp.array[float],
+    bodies_per_world: int,
+    coords_per_world: int,
+    object_body: int,
+    sensor_pos: wp.array2d[wp.vec3],
+    sensor_count: int,
+    floor_z: float,
+    lost_distance: float,
+    lost_speed: float,
+    pose_out: wp.array2d[float],
+    health_out: wp.array[wp.int32],
+):
+    """Object pose (x, y, z, qx, qy, qz, qw) and health of each world. Launch dim (W,)."""
+    w = wp.tid()
+    x = body_q[w * bodies_per_world + object_body]
+    qd = body_qd[w * bodies_per_world + object_body]
+    p = wp.transform_get_translation(x)
+    q = wp.transform_get_rotation(x)
+    pose_out[w, 0] = p[0]
+    pose_out[w, 1] = p[1]
+    pose_out[w, 2] = p[2]
+    pose_out[w, 3] = q[0]
+    pose_out[w, 4] = q[1]
+    pose_out[w, 5] = q[2]
+    pose_out[w, 6] = q[3]
+    finite = wp.isfinite(p) and wp.isfinite(wp.vec4(q[0], q[1], q[2], q[3])) and wp.isfinite(qd)
+    for i in range(coords_per_world):
+        finite = finite and wp.isfinite(joint_q[w * coords_per_world + i])
+    centre = wp.vec3(0.0)
+    for l in range(sensor_count):
+        centre += sensor_pos[w, l]
+    centre = centre / float(sensor_count)
+    health = HEALTH_OK
+    if not finite:
+        health = HEALTH_NAN
+    elif p[2] < floor_z or wp.length(p - centre) > lost_distance or wp.length(wp.spatial_top(qd)) > lost_speed:
+        health = HEALTH_LOST
+    health_out[w] = health

@@ -1,0 +1,635 @@
+"""The population: G groups x K worlds of hand + object in one Newton model, stepped as one graph.
+
+World ``w = g * K + k`` is world ``k`` of group ``g``. Every per-world quantity is exposed as a
+torch view of the Warp array it lives in (``wp.to_torch``, no copy), shaped (G, K, ...), so the
+tracker's cost and resampling are torch ops on the simulation's own memory.
+
+One control frame (all substeps, the collision pipeline, the observation kernels) is captured
+once as a graph and replayed by :meth:`Population.step`, on CUDA and on Warp's CPU device alike.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass, field
+
+import newton
+import numpy as np
+import torch
+import warp as wp
+
+from . import observe
+from .objects import ObjectSpec
+from .robots import RobotLayout, RobotSpec, add_robot
+
+__all__ = ["Observation", "Population", "PopulationConfig", "resolve_device"]
+
+
+@dataclass(frozen=True)
+class PopulationConfig:
+    """Size, stepping and sensing settings of a population."""
+
+    groups: int = 1
+    """G: independent tracks stepped together."""
+    worlds: int = 40
+    """K: worlds per group."""
+    substeps: int = 8
+    """Physics substeps per control frame; even, so the state buffers come back to the captured ones."""
+    frame_rate: float = 30.0
+    """Control frames per second [Hz]."""
+    device: str = "auto"
+    """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
+    use_graph: bool = True
+    """Replay a captured graph per frame (False steps eagerly, for debugging)."""
+    iterations: int = 20
+    ls_iterations: int = 10
+    contacts_per_world: int = 48
+    """MuJoCo contact capacity per world (nconmax)."""
+    contact_gap: float = 0.005
+    """Shapes closer than this make (speculative) contacts [m]."""
+    constraints_per_world: int = 320
+    """MuJoCo constraint rows per world (njmax)."""
+    slip_speed: float = 0.01
+    """Tangential speed of a pad against the object above which it slips [m/s]."""
+    spin_speed: float = 0.3
+    """Spin of a pad against the object about the pad normal above which it slips [rad/s]."""
+    lost_distance: float = 0.35
+    """An object farther than this from the centre of the sensors is lost [m]."""
+    lost_speed: float = 5.0
+    """An object faster than this has exploded [m/s]."""
+    floor_z: float = -0.05
+    """An object below this height has fallen through the table [m]."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("groups", "worlds", "substeps", "iterations", "ls_iterations"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"population {name}: expected a positive integer, got {value!r}")
+        if self.substeps % 2:
+            raise ValueError(f"population substeps: expected an even number, got {self.substeps}")
+        if not (0.0 < self.frame_rate <= 1000.0):
+            raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
+
+    @property
+    def world_count(self) -> int:
+        return self.groups * self.worlds
+
+    @property
+    def frame_dt(self) -> float:
+        return 1.0 / self.frame_rate
+
+
+def resolve_device(name: str = "auto") -> wp.context.Device:
+    """The Warp device for ``name``; "auto" picks CUDA when present, else the CPU."""
+    if name == "auto":
+        return wp.get_device("cuda:0" if wp.is_cuda_available() else "cpu")
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"population device: '{name}' requested but no CUDA device is available")
+    try:
+        return wp.get_device(name)
+    except Exception as exc:
+        raise ValueError(f"population device: unknown device '{name}'") from exc
+
+
+@dataclass
+class Observation:
+    """What every world's robot senses after a frame; torch views of device memory.
+
+    G groups, K worlds, D actuated joints, L touch sensors. Frames follow
+    :mod:`sim_backend.observe`: sensor z is the pad normal, the tangent plane its x-y plane.
+    """
+
+    q: torch.Tensor
+    """Joint positions, shape (G, K, D) [rad or m]."""
+    sensor_pos: torch.Tensor
+    """Sensor positions in the world frame, shape (G, K, L, 3) [m]."""
+    sensor_rot: torch.Tensor
+    """Sensor orientations in the world frame, shape (G, K, L, 4), quaternion (x, y, z, w)."""
+    force: torch.Tensor
+    """Contact force of the object on each sensor, in the sensor frame, shape (G, K, L, 3) [N]."""
+    slip: torch.Tensor
+    """Translational slip flag, shape (G, K, L), 1.0 slipping / 0.0 not."""
+    slip_dir: torch.Tensor
+    """Unit slip direction of the pad over the object in the tangent plane, shape (G, K, L, 2); zero when not slipping."""
+    spin: torch.Tensor
+    """Rotational slip flag, shape (G, K, L), 1.0 / 0.0."""
+    spin_sense: torch.Tensor
+    """Rotational slip sense about the pad normal, shape (G, K, L): 1.0 counter-clockwise, else 0.0."""
+    object_pose: torch.Tensor
+    """Object pose in the world frame, shape (G, K, 7): position [m], quaternion (x, y, z, w)."""
+    health: torch.Tensor
+    """Per-world health, shape (G, K), int32: observe.HEALTH_OK, HEALTH_NAN or HEALTH_LOST."""
+
+
+@dataclass
+class _Buffers:
+    """Warp arrays behind :class:`Observation` and the contact accumulators, leading axis W."""
+
+    q: wp.array
+    sensor_pos: wp.array
+    sensor_rot: wp.array
+    force: wp.array
+    slip: wp.array
+    slip_dir: wp.array
+    spin: wp.array
+    spin_sense: wp.array
+    object_pose: wp.array
+    health: wp.array
+    force_acc: wp.array
+    slip_acc: wp.array
+    spin_acc: wp.array
+    weight_acc: wp.array
+    wrench: wp.array = field(default=None)  # type: ignore[assignment]
+
+
+def _capsule_xform(p0: np.ndarray, p1: np.ndarray) -> tuple[wp.transform, float]:
+    """Transform putting a capsule's z axis from ``p0`` to ``p1``, and its half height."""
+    axis = p1 - p0
+    length = float(np.linalg.norm(axis))
+    z = np.array([0.0, 0.0, 1.0])
+    cross = np.cross(z, axis / length)
+    angle = math.atan2(float(np.linalg.norm(cross)), float(axis[2] / length))
+    rot = wp.quat_from_axis_angle(wp.vec3(*(cross / max(np.linalg.norm(cross), 1e-12))), angle)
+    return wp.transform(wp.vec3(*(0.5 * (p0 + p1))), rot), 0.5 * length
+
+
+@wp.kernel(enable_backward=False)
+def _apply_wrench(
+    wrench: wp.array[wp.spatial_vector],
+    bodies_per_world: int,
+    object_body: int,
+    body_f0: wp.array[wp.spatial_vector],
+    body_f1: wp.array[wp.spatial_vector],
+):
+    # Both state buffers: substeps alternate between them.
+    w = wp.tid()
+    b = w * bodies_per_world + object_body
+    body_f0[b] = wrench[w]
+    body_f1[b] = wrench[w]
+
+
+class Population:
+    """G x K worlds of one robot and one object type, stepped in lock-step.
+
+    Typical frame: :meth:`set_targets` with the robot's controls, then :meth:`step`; read
+    :attr:`obs`. Between frames: :meth:`resample`, :meth:`set_params`, :meth:`set_wrench`.
+    """
+
+    def __init__(self, robot: RobotSpec, obj: ObjectSpec, config: PopulationConfig | None = None):
+        self.config = cfg = config or PopulationConfig()
+        self.device = resolve_device(cfg.device)
+        self.object = obj
+        self.G, self.K, self.W = cfg.groups, cfg.worlds, cfg.world_count
+        torch_device = wp.device_to_torch(self.device)
+        self.torch_device = torch.device(torch_device)
+        self._torch_stream = wp.stream_to_torch(self.device.stream) if self.device.is_cuda else None
+
+        world = newton.ModelBuilder()
+        newton.solvers.SolverMuJoCo.register_custom_attributes(world)
+        # Newton's default detection gap (0.1 m) turns every shape pair within 10 cm into contacts;
+        # a few millimetres is plenty at 240 Hz substeps and keeps the buffers small.
+        world.rigid_gap = cfg.contact_gap
+        self.layout: RobotLayout = add_robot(world, robot)
+        self._object_body = self._add_object(world, obj)
+        self.D, self.L = self.layout.dof_count, self.layout.sensor_count
+
+        builder = newton.ModelBuilder()
+        newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
+        builder.rigid_gap = cfg.contact_gap
+        builder.add_ground_plane()
+        builder.replicate(world, self.W)
+        with wp.ScopedDevice(self.device):
+            self.model = builder.finalize(device=self.device)
+        self._bodies = world.body_count
+        self._coords = world.joint_coord_count
+        self._dofs = world.joint_dof_count
+        self._nominal_mass = float(world.body_mass[self._object_body])
+        self._nominal_inertia = torch.tensor(np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32).reshape(3, 3)
+
+        with wp.ScopedDevice(self.device):
+            self.solver = newton.solvers.SolverMuJoCo(
+                self.model,
+                use_mujoco_contacts=False,
+                solver="newton",
+                integrator="implicitfast",
+                cone="elliptic",
+                impratio=10.0,
+                iterations=cfg.iterations,
+                ls_iterations=cfg.ls_iterations,
+                nconmax=cfg.contacts_per_world,
+                njmax=cfg.constraints_per_world,
+            )
+            self.pipeline = newton.CollisionPipeline(
+                self.model, rigid_contact_max=self.solver.get_max_contact_count(), soft_contact_max=0
+            )
+            self.contacts = self.pipeline.contacts()
+            self._observables = self.solver.observables(kinds=["contact_f"], contacts=self.contacts)
+            self.state_0 = self.model.state()
+            self.state_1 = self.model.state()
+            self.control = self.model.control()
+            self._buf = self._allocate_buffers()
+            self._static = self._static_arrays()
+
+        self._views()
+        self.obs = self._observation()
+        self.reset_state()
+        self.set_params(
+            mass=torch.full((self.G, self.K), obj.mass), friction=torch.full((self.G, self.K), obj.friction)
+        )
+        self.set_targets(np.broadcast_to(self.layout.default_q, (self.G, self.D)))
+        self._graph = None
+        if cfg.use_graph:
+            self._capture()
+
+    # ------------------------------------------------------------------ build
+    def _add_object(self, world: newton.ModelBuilder, obj: ObjectSpec) -> int:
+        # The object's friction rules in contacts with the hand (MuJoCo takes the max otherwise).
+        attrs = {"mujoco:geom_priority": 1}
+        body = world.add_body(label=f"object/{obj.name}")  # comes with a free joint
+        volume = float(abs(obj.mesh.volume))
+        cfg = newton.ModelBuilder.ShapeConfig(density=obj.mass / volume, mu=obj.friction)
+        if obj.box_half_extents is not None:
+            hx, hy, hz = obj.box_half_extents
+            world.add_shape_box(body, hx=hx, hy=hy, hz=hz, cfg=cfg, label=obj.name, custom_attributes=attrs)
+        elif obj.capsules:
+            # Mass comes from the surface mesh's volume; the capsules only collide.
+            cfg.density = 0.0
+            for i, cap in enumerate(obj.capsules):
+                xform, half = _capsule_xform(np.asarray(cap[:3]), np.asarray(cap[3:6]))
+                world.add_shape_capsule(body, xform=xform, radius=cap[6], half_height=half, cfg=cfg,
+                                        label=f"{obj.name}/{i}", custom_attributes=attrs)  # fmt: skip
+            inertia = (obj.mass * np.asarray(obj.mesh.moment_inertia) / abs(obj.mesh.volume)).astype(np.float32)
+            world.body_mass[body] = obj.mass
+            world.body_inertia[body] = wp.mat33(*inertia.ravel())
+        else:
+            hull = obj.mesh.convex_hull
+            mesh = newton.Mesh(np.asarray(hull.vertices, np.float32), np.asarray(hull.faces, np.int32).ravel())
+            world.add_shape_convex_hull(body, mesh=mesh, cfg=cfg, label=obj.name, custom_attributes=attrs)
+        return body
+
+    def _allocate_buffers(self) -> _Buffers:
+        W, D, L = self.W, self.D, self.L
+        z = wp.zeros
+        return _Buffers(
+            q=z((W, D), dtype=float),
+            sensor_pos=z((W, L), dtype=wp.vec3),
+            sensor_rot=z((W, L), dtype=wp.quat),
+            force=z((W, L), dtype=wp.vec3),
+            slip=z((W, L), dtype=float),
+            slip_dir=z((W, L), dtype=wp.vec2),
+            spin=z((W, L), dtype=float),
+            spin_sense=z((W, L), dtype=float),
+            object_pose=z((W, 7), dtype=float),
+            health=z(W, dtype=wp.int32),
+            force_acc=z((W, L), dtype=wp.vec3),
+            slip_acc=z((W, L), dtype=wp.vec3),
+            spin_acc=z((W, L), dtype=wp.vec3),
+            weight_acc=z((W, L), dtype=float),
+            wrench=z(W, dtype=wp.spatial_vector),
+        )
+
+    def _static_arrays(self) -> dict[str, wp.array]:
+        lay, W, nb = self.layout, self.W, self._bodies
+        sensor_row = np.full(self.model.body_count, -1, np.int32)
+        object_world = np.full(self.model.body_count, -1, np.int32)
+        worlds = np.arange(W)
+        for l, b in enumerate(lay.sensor_bodies):
+            sensor_row[worlds * nb + b] = worlds * self.L + l
+        object_world[worlds * nb + self._object_body] = worlds
+        offsets = [wp.transform(wp.vec3(*o[:3]), wp.quat(*o[3:])) for o in lay.sensor_offsets]
+        return {
+            "coord_index": wp.array(lay.coord_indices.astype(np.int32), dtype=wp.int32),
+            "sensor_body": wp.array(lay.sensor_bodies.astype(np.int32), dtype=wp.int32),
+            "sensor_offset": wp.array(offsets, dtype=wp.transform),
+            "sensor_row": wp.array(sensor_row, dtype=wp.int32),
+            "object_world": wp.array(object_world, dtype=wp.int32),
+        }
+
+    def _views(self) -> None:
+        """Torch views (no copies) of the per-world simulation arrays, leading axes (G, K)."""
+        G, K, nb = self.G, self.K, self._bodies
+        t = wp.to_torch
+        self._state_views = {
+            "joint_q": lambda s: t(s.joint_q).view(G, K, self._coords),
+            "joint_qd": lambda s: t(s.joint_qd).view(G, K, self._dofs),
+            "body_q": lambda s: t(s.body_q).view(G, K, nb * 7),
+            "body_qd": lambda s: t(s.body_qd).view(G, K, nb * 6),
+        }
+        self._warmstart = t(self.solver.mjw_data.qacc_warmstart).view(G, K, -1)
+        # Position targets live in joint-coordinate layout, like joint_q.
+        dof = self.layout.coord_indices
+        targets = t(self.control.joint_target_q).view(G, K, self._coords)
+        contiguous = np.array_equal(dof, np.arange(dof[0], dof[0] + len(dof)))
+        self._target_view = targets[..., dof[0] : dof[0] + len(dof)] if contiguous else None
+        self._targets_all = targets
+        self._target_index = torch.as_tensor(dof, device=self.torch_device)
+        self._target_stage = torch.zeros((G, self.D), dtype=torch.float32, device=self.torch_device)
+        self._lower = torch.as_tensor(self.layout.lower, dtype=torch.float32, device=self.torch_device)
+        self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
+        o = self._object_body
+        self._mass = t(self.model.body_mass)[o::nb].view(G, K)
+        self._inv_mass = t(self.model.body_inv_mass)[o::nb].view(G, K)
+        self._inertia = t(self.model.body_inertia)[o::nb].view(G, K, 3, 3)
+        self._inv_inertia = t(self.model.body_inv_inertia)[o::nb].view(G, K, 3, 3)
+        # The object's shapes sit at the same offset in every world: view them as (W, n).
+        shape_body = self.model.shape_body.numpy()
+        obj_shapes = np.flatnonzero((shape_body >= 0) & (shape_body % nb == o)).reshape(self.W, -1)
+        per_world = int(obj_shapes[1, 0] - obj_shapes[0, 0]) if self.W > 1 else 0
+        expected = obj_shapes[0] + per_world * np.arange(self.W)[:, None]
+        if not np.array_equal(obj_shapes, expected) or np.any(np.diff(obj_shapes[0]) != 1):
+            raise ValueError("object shapes: expected the same contiguous shapes in every world")
+        mu = t(self.model.shape_material_mu)
+        n = obj_shapes.shape[1]
+        self._shape_mu = torch.as_strided(mu, (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))
+        self._friction = self._shape_mu[..., 0]
+        self._wrench = t(self._buf.wrench).view(G, K, 6)
+
+    def _observation(self) -> Observation:
+        G, K = self.G, self.K
+        b, t = self._buf, wp.to_torch
+        return Observation(
+            q=t(b.q).view(G, K, self.D),
+            sensor_pos=t(b.sensor_pos).view(G, K, self.L, 3),
+            sensor_rot=t(b.sensor_rot).view(G, K, self.L, 4),
+            force=t(b.force).view(G, K, self.L, 3),
+            slip=t(b.slip).view(G, K, self.L),
+            slip_dir=t(b.slip_dir).view(G, K, self.L, 2),
+            spin=t(b.spin).view(G, K, self.L),
+            spin_sense=t(b.spin_sense).view(G, K, self.L),
+            object_pose=t(b.object_pose).view(G, K, 7),
+            health=t(b.health).view(G, K),
+        )
+
+    # ------------------------------------------------------------------ frame
+    def _simulate(self) -> None:
+        """One control frame: wrench, substeps, observation. Captured once, replayed per frame."""
+        cfg, b, s = self.config, self._buf, self._static
+        wp.launch(
+            _apply_wrench,
+            dim=self.W,
+            inputs=[b.wrench, self._bodies, self._object_body],
+            outputs=[self.state_0.body_f, self.state_1.body_f],
+        )
+        dt = cfg.frame_dt / cfg.substeps
+        for i in range(cfg.substeps):
+            s_in, s_out = (self.state_0, self.state_1) if i % 2 == 0 else (self.state_1, self.state_0)
+            self.pipeline.collide(s_in, self.contacts)
+            self.solver.step(s_in, s_out, self.control, self.contacts, dt, observables=self._observables)
+        b.wrench.zero_()  # a perturbation lasts one frame
+        st = self.state_0
+        wp.launch(observe.gather_joints, dim=(self.W, self.D), inputs=[st.joint_q, self._coords, s["coord_index"]],
+                  outputs=[b.q])  # fmt: skip
+        wp.launch(
+            observe.sensor_poses,
+            dim=(self.W, self.L),
+            inputs=[st.body_q, self._bodies, s["sensor_body"], s["sensor_offset"]],
+            outputs=[b.sensor_pos, b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
+        )
+        c = self.contacts
+        wp.launch(
+            observe.accumulate_contacts,
+            dim=c.rigid_contact_max,
+            inputs=[
+                c.rigid_contact_count,
+                c.rigid_contact_shape0,
+                c.rigid_contact_shape1,
+                c.rigid_contact_point0,
+                c.rigid_contact_normal,
+                self._observables.contact_f,
+                self.model.shape_body,
+                st.body_q,
+                st.body_qd,
+                self.model.body_com,
+                s["sensor_row"],
+                s["object_world"],
+                self.L,
+            ],
+            outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
+        )
+        wp.launch(
+            observe.finish_observation,
+            dim=(self.W, self.L),
+            inputs=[b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, cfg.slip_speed, cfg.spin_speed],
+            outputs=[b.force, b.slip, b.slip_dir, b.spin, b.spin_sense],
+        )
+        wp.launch(
+            observe.object_health,
+            dim=self.W,
+            inputs=[
+                st.body_q,
+                st.body_qd,
+                st.joint_q,
+                self._bodies,
+                self._coords,
+                self._object_body,
+                b.sensor_pos,
+                self.L,
+                cfg.floor_z,
+                cfg.lost_distance,
+                cfg.lost_speed,
+            ],
+            outputs=[b.object_pose, b.health],
+        )
+
+    def _capture(self) -> None:
+        with wp.ScopedDevice(self.device):
+            # Compile every kernel once outside capture, then record; the eager frame is undone.
+            saved = self._snapshot()
+            self._simulate()
+            self._restore(saved)
+            with wp.ScopedCapture(device=self.device) as capture:
+                self._simulate()
+            self._graph = capture.graph
+
+    def _state_tensors(self) -> list[torch.Tensor]:
+        """Every tensor that carries a world's dynamic state from one frame to the next."""
+        views = [view(s) for s in (self.state_0, self.state_1) for view in self._state_views.values()]
+        return [*views, self._warmstart]
+
+    def _snapshot(self) -> list[torch.Tensor]:
+        with self._stream():
+            return [t.clone() for t in self._state_tensors()]
+
+    def _restore(self, saved: list[torch.Tensor]) -> None:
+        with self._stream():
+            for t, s in zip(self._state_tensors(), saved, strict=True):
+                t.copy_(s)
+
+    def step(self) -> None:
+        """Advance every world by one control frame (one graph replay)."""
+        with wp.ScopedDevice(self.device):
+            if self._graph is not None:
+                wp.capture_launch(self._graph)
+            else:
+                self._simulate()
+
+    def step_eager(self) -> None:
+        """The same frame launched kernel by kernel (for checking the graph)."""
+        with wp.ScopedDevice(self.device):
+            self._simulate()
+
+    @contextlib.contextmanager
+    def _stream(self):
+        """Run torch work on Warp's stream so it is ordered with the graph replays."""
+        if self._torch_stream is None:
+            yield
+        else:
+            with torch.cuda.stream(self._torch_stream):
+                yield
+
+    # ------------------------------------------------------------------ inputs
+    def set_targets(self, targets: np.ndarray | torch.Tensor) -> None:
+        """Joint position targets per group, shape (G, D) [rad or m], clipped to the joint limits."""
+        if isinstance(targets, torch.Tensor) and targets.device != torch.device("cpu"):
+            src = targets  # already on the device: the caller validated it
+        else:
+            arr = np.asarray(targets.cpu() if isinstance(targets, torch.Tensor) else targets, dtype=np.float32)
+            if arr.shape != (self.G, self.D):
+                raise ValueError(f"targets: expected shape ({self.G}, {self.D}), got {arr.shape}")
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                g, d = np.argwhere(bad)[0]
+                raise ValueError(
+                    f"targets: {int(bad.sum())} non-finite values, first at group {g} joint "
+                    f"'{self.layout.joint_names[d]}' = {arr[g, d]}"
+                )
+            src = torch.from_numpy(arr)
+        with self._stream():
+            self._target_stage.copy_(src, non_blocking=True)
+            torch.clamp(self._target_stage, self._lower, self._upper, out=self._target_stage)
+            if self._target_view is not None:
+                self._target_view.copy_(self._target_stage[:, None, :].expand(self.G, self.K, self.D))
+            else:
+                self._targets_all[..., self._target_index] = self._target_stage[:, None, :]
+
+    def set_wrench(self, wrench: torch.Tensor) -> None:
+        """Perturbation wrench on each world's object for the next frame, shape (G, K, 6):
+        force [N] then torque [N m], world frame, at the centre of mass."""
+        if tuple(wrench.shape) != (self.G, self.K, 6):
+            raise ValueError(f"wrench: expected shape ({self.G}, {self.K}, 6), got {tuple(wrench.shape)}")
+        with self._stream():
+            self._wrench.copy_(wrench, non_blocking=True)
+
+    def reset_state(self, object_pose: np.ndarray | torch.Tensor | None = None, joint_q=None) -> None:
+        """Put every world at rest with its object at ``object_pose`` and its robot at ``joint_q``.
+
+        object_pose: shape (G, K, 7) or (G, 7) or (7,): position [m], quaternion (x, y, z, w); the
+        quaternion is normalised. Default: on the table in front of the robot.
+        joint_q: shape (G, K, D), (G, D) or (D,) [rad or m]; default the robot's start pose.
+        """
+        G, K, D = self.G, self.K, self.D
+        if object_pose is None:
+            z = -float(self.object.mesh.bounds[0, 2])
+            object_pose = np.array([0.1, 0.0, z, 0.0, 0.0, 0.0, 1.0])
+        pose = self._check("object_pose", object_pose, 7)
+        norm = torch.linalg.vector_norm(pose[..., 3:], dim=-1, keepdim=True)
+        if bool((norm < 1e-6).any()):
+            raise ValueError("object_pose: quaternion (x, y, z, w) of zero length")
+        pose = torch.cat([pose[..., :3], pose[..., 3:] / norm], dim=-1)
+        q = self._check("joint_q", self.layout.default_q if joint_q is None else joint_q, D)
+        q = torch.clamp(q, self._lower.cpu(), self._upper.cpu())
+        with self._stream():
+            for state in (self.state_0, self.state_1):
+                jq = self._state_views["joint_q"](state)
+                jq[..., self._free_coords()] = pose.to(self.torch_device)
+                jq[..., torch.as_tensor(self.layout.coord_indices)] = q.to(self.torch_device)
+                self._state_views["joint_qd"](state).zero_()
+                self._state_views["body_qd"](state).zero_()
+                state.body_f.zero_()
+            self._warmstart.zero_()
+            self._wrench.zero_()
+        with wp.ScopedDevice(self.device):
+            for state in (self.state_0, self.state_1):
+                newton.eval_fk(self.model, state.joint_q, state.joint_qd, state)
+            # flags=0: clear MuJoCo's warm start and applied forces, keep the state just written.
+            self.solver.reset(self.state_0, flags=0)
+        self.obs.health.zero_()
+
+    def _free_coords(self) -> slice:
+        start = self._coords - 7  # the object's free joint is the last joint of a world
+        return slice(start, start + 7)
+
+    def _check(self, name: str, value, width: int) -> torch.Tensor:
+        """Broadcast ``value`` to (G, K, width) on the CPU, with a clear error when it cannot."""
+        arr = torch.as_tensor(np.asarray(value.cpu() if isinstance(value, torch.Tensor) else value), dtype=torch.float32)
+        G, K = self.G, self.K
+        if arr.shape not in ((G, K, width), (G, width), (width,)):
+            raise ValueError(f"{name}: expected shape ({G}, {K}, {width}), ({G}, {width}) or ({width},), got {tuple(arr.shape)}")
+        if not torch.isfinite(arr).all():
+            raise ValueError(f"{name}: {int((~torch.isfinite(arr)).sum())} non-finite values")
+        if arr.dim() == 2:
+            arr = arr[:, None, :]
+        return arr.expand(G, K, width).contiguous()
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def mass(self) -> torch.Tensor:
+        """Object mass per world, shape (G, K) [kg] (a view: change it with :meth:`set_params`)."""
+        return self._mass
+
+    @property
+    def friction(self) -> torch.Tensor:
+        """Object friction coefficient per world, shape (G, K) (a view: change it with :meth:`set_params`)."""
+        return self._friction
+
+    def set_params(self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None) -> None:
+        """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K)."""
+        with self._stream():
+            if mass is not None:
+                mass = self._check_param("mass", mass, self.object.mass_range)
+                scale = (mass / self._nominal_mass)[..., None, None]
+                inertia = self._nominal_inertia.to(self.torch_device)
+                self._mass.copy_(mass)
+                self._inv_mass.copy_(1.0 / mass)
+                self._inertia.copy_(inertia * scale)
+                self._inv_inertia.copy_(torch.linalg.inv(inertia) / scale)
+            if friction is not None:
+                friction = self._check_param("friction", friction, self.object.friction_range)
+                self._shape_mu.copy_(friction[..., None].expand_as(self._shape_mu))
+        self._notify(mass is not None, friction is not None)
+
+    def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
+        value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
+        if tuple(value.shape) != (self.G, self.K):
+            raise ValueError(f"{name}: expected shape ({self.G}, {self.K}), got {tuple(value.shape)}")
+        lo, hi = bounds
+        if value.device.type == "cpu":  # device tensors come from the tracker, already in range
+            bad = ~((value >= lo) & (value <= hi))
+            if bool(bad.any()):
+                raise ValueError(f"{name}: {int(bad.sum())} values outside [{lo}, {hi}], e.g. {value[bad][0].item():.4g}")
+        return value
+
+    def _notify(self, inertial: bool, shape: bool) -> None:
+        flags = 0
+        if inertial:
+            flags |= newton.ModelFlags.BODY_INERTIAL_PROPERTIES
+        if shape:
+            flags |= newton.ModelFlags.SHAPE_PROPERTIES
+        if flags:
+            with wp.ScopedDevice(self.device):
+                self.solver.notify_model_changed(flags)
+
+    # ------------------------------------------------------------------ resampling
+    def resample(self, index: torch.Tensor) -> None:
+        """World k of group g becomes a copy of world ``index[g, k]`` of the same group.
+
+        Copies all state (positions, velocities, body poses, the solver's warm start) and the
+        physics parameters in place, so a copy evolves bit for bit like its source.
+        index: shape (G, K), integer, values in [0, K).
+        """
+        if tuple(index.shape) != (self.G, self.K):
+            raise ValueError(f"index: expected shape ({self.G}, {self.K}), got {tuple(index.shape)}")
+        if index.dtype not in (torch.int32, torch.int64):
+            raise ValueError(f"index: expected an integer tensor, got {index.dtype}")
+        index = index.to(self.torch_device, torch.int64)
+        if index.device.type == "cpu" and bool(((index < 0) | (index >= self.K)).any()):
+            raise ValueError(f"index: values must lie in [0, {self.K}), got min {int(index.min())} max {int(index.max())}")
+        with self._stream():
+            tensors = [view(self.state_0) for view in self._state_views.values()]
+            tensors += [self._warmstart, self._mass[..., None], self._inv_mass[..., None], self._shape_mu]
+            tensors += [self._inertia.view(self.G, self.K, 9), self._inv_inertia.view(self.G, self.K, 9)]
+            for t in tensors:
+                t.copy_(torch.gather(t, 1, index[..., None].expand(-1, -1, t.shape[-1])))
+        self._notify(True, True)
