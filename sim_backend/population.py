@@ -46,6 +46,9 @@ class PopulationConfig:
     ls_iterations: int = 10
     contacts_per_world: int = 48
     """MuJoCo contact capacity per world (nconmax)."""
+    broad_phase: str = "explicit"
+    """Collision broad phase: "explicit" tests the model's precomputed shape pairs (the hand never
+    collides with itself, so that list is short), "sap" or "nxn" search all shapes."""
     contact_gap: float = 0.005
     """Shapes closer than this make (speculative) contacts [m]."""
     constraints_per_world: int = 320
@@ -222,7 +225,10 @@ class Population:
                 njmax=cfg.constraints_per_world,
             )
             self.pipeline = newton.CollisionPipeline(
-                self.model, rigid_contact_max=self.solver.get_max_contact_count(), soft_contact_max=0
+                self.model,
+                rigid_contact_max=self.solver.get_max_contact_count(),
+                soft_contact_max=0,
+                broad_phase=cfg.broad_phase,
             )
             self.contacts = self.pipeline.contacts()
             self._observables = self.solver.observables(kinds=["contact_f"], contacts=self.contacts)

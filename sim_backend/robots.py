@@ -124,6 +124,8 @@ class FileRobotSpec:
     kd: float = 0.1
     effort: float = 1.0
     floating: bool = False
+    base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    """Pose of the robot's root in the world: position [m], quaternion (x, y, z, w)."""
     default_q: tuple[float, ...] = ()
 
 
@@ -316,11 +318,14 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
         raise ValueError(f"robot '{spec.name}' path: no such file '{spec.path}'")
     body_start, joint_start = builder.body_count, builder.joint_count
     ext = os.path.splitext(spec.path)[1].lower()
+    if len(spec.base) != 7:
+        raise ValueError(f"robot '{spec.name}' base: expected 7 values (x, y, z, qx, qy, qz, qw), got {len(spec.base)}")
+    base = wp.transform(wp.vec3(*spec.base[:3]), wp.normalize(wp.quat(*spec.base[3:])))
     try:
         if ext == ".urdf":
-            builder.add_urdf(spec.path, floating=spec.floating)
+            builder.add_urdf(spec.path, xform=base, floating=spec.floating)
         elif ext in (".xml", ".mjcf"):
-            builder.add_mjcf(spec.path, floating=spec.floating)
+            builder.add_mjcf(spec.path, xform=base, floating=spec.floating)
         else:
             raise ValueError(f"robot '{spec.name}' path: expected .urdf, .xml or .mjcf, got '{ext}'")
     except ValueError:
@@ -334,9 +339,10 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
     if missing:
         raise ValueError(f"robot '{spec.name}' joints: {missing} not in {spec.path} (has {sorted(by_name)})")
     joints = [by_name[n] for n in spec.joints]
+    single = (newton.JointType.REVOLUTE, newton.JointType.PRISMATIC)
     for j in joints:
-        if builder.joint_dof_count_of(j) != 1 if hasattr(builder, "joint_dof_count_of") else False:
-            raise ValueError(f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a 1-dof joint")
+        if builder.joint_type[j] not in single:
+            raise ValueError(f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a revolute or prismatic joint")
     coord, dof = _joint_coord_dof(builder, joints)
     for d in dof:
         builder.joint_target_ke[d] = spec.ke

@@ -1,0 +1,1 @@
+"""The tracking service: command line entry points (the tracker and Zenoh node come next)."""

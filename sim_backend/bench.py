@@ -1,0 +1,101 @@
+"""`inhand-tracker bench sim`: milliseconds per control frame and memory per world."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import warp as wp
+
+from .grasp import plan_pinch
+from .kinematics import Kinematics
+from .objects import catalog_object
+from .population import Population, PopulationConfig, resolve_device
+from .robots import HandSpec
+
+__all__ = ["SimBenchResult", "bench_sim"]
+
+
+@dataclass(frozen=True)
+class SimBenchResult:
+    worlds: int
+    substeps: int
+    device: str
+    median_ms: float
+    p95_ms: float
+    bytes_per_world: float
+    build_s: float
+
+
+def _used_bytes(device: wp.context.Device) -> int:
+    if device.is_cuda:
+        return int(device.total_memory - device.free_memory)
+    with open("/proc/self/statm") as f:  # resident set size, pages
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def bench_sim(
+    worlds: list[int], *, substeps: int = 8, frames: int = 60, warmup: int = 10, obj: str = "foam_brick",
+    device: str = "auto",
+) -> list[SimBenchResult]:  # fmt: skip
+    """Time graph replays of a held grasp (every world squeezing the object) for each K in ``worlds``."""
+    dev = resolve_device(device)
+    spec = HandSpec()
+    grasp = plan_pinch(Kinematics(spec), catalog_object(obj))
+    results = []
+    for k in worlds:
+        wp.synchronize_device(dev)
+        before = _used_bytes(dev)
+        t0 = time.perf_counter()
+        pop = Population(spec, catalog_object(obj), PopulationConfig(worlds=k, substeps=substeps, device=dev.alias))
+        pop.reset_state(grasp.object_pose, grasp.q_touch)
+        pop.set_targets(grasp.q_squeeze[None])
+        for _ in range(warmup):
+            pop.step()
+        wp.synchronize_device(dev)
+        build_s = time.perf_counter() - t0
+        used = _used_bytes(dev) - before
+        times = np.empty(frames)
+        for i in range(frames):
+            t = time.perf_counter()
+            pop.step()
+            wp.synchronize_device(dev)
+            times[i] = (time.perf_counter() - t) * 1e3
+        lost = int((pop.obs.health != 0).sum())
+        if lost:
+            print(f"  note: {lost} of {k} worlds lost the object during the benchmark")
+        results.append(
+            SimBenchResult(
+                worlds=k,
+                substeps=substeps,
+                device=dev.alias,
+                median_ms=float(np.median(times)),
+                p95_ms=float(np.percentile(times, 95)),
+                bytes_per_world=used / k,
+                build_s=build_s,
+            )
+        )
+        del pop
+        if dev.is_cuda:
+            torch.cuda.empty_cache()
+    return results
+
+
+def format_table(results: list[SimBenchResult]) -> str:
+    lines = [
+        "| device | K | substeps | median ms/frame | p95 ms/frame | memory/world | build s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r.device} | {r.worlds} | {r.substeps} | {r.median_ms:.2f} | {r.p95_ms:.2f} | "
+            f"{r.bytes_per_world / 1024:.0f} KiB | {r.build_s:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def as_dicts(results: list[SimBenchResult]) -> list[dict]:
+    return [asdict(r) for r in results]

@@ -1,0 +1,273 @@
+"""The simulation population on Warp's CPU device: grasps, resampling, graph replay, physics
+parameters, observations and errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from sim_backend import (
+    CATALOG,
+    HEALTH_LOST,
+    HEALTH_NAN,
+    HEALTH_OK,
+    FileRobotSpec,
+    Population,
+    PopulationConfig,
+    catalog_object,
+    load_mesh_object,
+    plan_pinch,
+)
+
+FRAMES_3S = 90
+
+
+def _grasped(hand, obj_name: str, worlds: int, **cfg) -> tuple[Population, object]:
+    spec, kin = hand
+    obj = catalog_object(obj_name)
+    grasp = plan_pinch(kin, obj)
+    pop = Population(spec, obj, PopulationConfig(worlds=worlds, device="cpu", **cfg))
+    pop.reset_state(grasp.object_pose, grasp.q_touch)
+    pop.set_targets(np.tile(grasp.q_squeeze, (pop.G, 1)))
+    return pop, grasp
+
+
+def _quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    u, w = q[..., :3], q[..., 3:]
+    t = 2.0 * torch.cross(u, v, dim=-1)
+    return v + w * t + torch.cross(u, t, dim=-1)
+
+
+@pytest.mark.parametrize("name", sorted(CATALOG))
+def test_grasp_holds_each_object_for_3_s(hand, name):
+    pop, grasp = _grasped(hand, name, worlds=2)
+    pop.step()
+    start = pop.obs.object_pose[..., 2].clone()
+    for _ in range(FRAMES_3S):
+        pop.step()
+    drop = (start - pop.obs.object_pose[..., 2]).max().item()
+    assert drop < 0.005, f"{name} dropped {drop * 1e3:.1f} mm in 3 s"
+    assert (pop.obs.health == HEALTH_OK).all()
+    # Every pad presses on the object: the grasp is a real pinch, not a resting object.
+    assert (pop.obs.force.norm(dim=-1) > 0.2).all()
+
+
+def test_resampled_copies_stay_bit_identical(hand):
+    pop, _ = _grasped(hand, "spam_can", worlds=4)
+    pop.set_params(mass=torch.tensor([[0.06, 0.1, 0.15, 0.2]]), friction=torch.tensor([[0.5, 0.8, 1.0, 1.4]]))
+    wrench = torch.zeros(1, 4, 6)
+    wrench[0, :, 1] = torch.tensor([0.5, -0.5, 1.0, 0.0])  # push along y: the worlds diverge
+    for _ in range(5):
+        pop.set_wrench(wrench)
+        pop.step()
+    assert not torch.equal(pop.obs.object_pose[0, 0], pop.obs.object_pose[0, 2])
+    pop.resample(torch.tensor([[2, 2, 0, 0]]))
+    assert pop.mass[0].tolist() == pytest.approx([0.15, 0.15, 0.06, 0.06])
+    for _ in range(30):
+        pop.step()
+        for a, b in ((0, 1), (2, 3)):
+            assert torch.equal(pop.obs.object_pose[0, a], pop.obs.object_pose[0, b])
+            assert torch.equal(pop.obs.q[0, a], pop.obs.q[0, b])
+    for tensor in pop._state_tensors():
+        assert torch.equal(tensor[0, 0], tensor[0, 1]) and torch.equal(tensor[0, 2], tensor[0, 3])
+
+
+def test_graph_replay_equals_eager_stepping(hand):
+    pop, _ = _grasped(hand, "foam_brick", worlds=2)
+    saved = pop._snapshot()
+    for _ in range(5):
+        pop.step()
+    replayed = [t.clone() for t in pop._state_tensors()]
+    obs_replayed = pop.obs.force.clone()
+    pop._restore(saved)
+    for _ in range(5):
+        pop.step_eager()
+    for a, b in zip(replayed, pop._state_tensors(), strict=True):
+        assert torch.equal(a, b)
+    assert torch.equal(obs_replayed, pop.obs.force)
+
+
+def test_low_friction_slips_where_high_friction_holds(hand):
+    pop, _ = _grasped(hand, "spam_can", worlds=2)
+    lo, hi = catalog_object("spam_can").friction_range
+    pop.set_params(friction=torch.tensor([[lo, hi]]))
+    for _ in range(10):
+        pop.step()
+    start = pop.obs.object_pose[0, :, :3].clone()
+    push = torch.zeros(1, 2, 6)
+    # The same 10 N downward push on both: more than 0.3 x the ~20 N grip, less than 1.5 x it.
+    push[0, :, 2] = -10.0
+    slipped = torch.zeros(2)
+    for _ in range(10):
+        pop.set_wrench(push)
+        pop.step()
+        slipped += pop.obs.slip[0].amax(dim=-1)
+    moved = (pop.obs.object_pose[0, :, :3] - start).norm(dim=-1)
+    assert moved[0] > 0.05, f"low friction moved only {moved[0] * 1e3:.1f} mm"
+    assert moved[1] < 0.01, f"high friction moved {moved[1] * 1e3:.1f} mm"
+    assert slipped[0] > 0, "the slipping world never reported slip"
+    assert pop.obs.health[0].tolist() == [HEALTH_LOST, HEALTH_OK] or moved[0] > 0.1
+
+
+def test_mass_change_shows_in_the_dynamics(hand):
+    pop, _ = _grasped(hand, "spam_can", worlds=2)
+    light, heavy = 0.06, 0.18
+    pop.set_params(mass=torch.tensor([[light, heavy]]))
+    assert pop.mass[0].tolist() == pytest.approx([light, heavy])
+    for _ in range(20):
+        pop.step()
+    # The pads carry the weight: the vertical force of the object on them sums to -m g.
+    world_force = _quat_rotate(pop.obs.sensor_rot[0], pop.obs.force[0])
+    carried = -world_force[..., 2].sum(dim=-1)
+    assert carried[0].item() == pytest.approx(light * 9.81, rel=0.35)
+    assert carried[1].item() == pytest.approx(heavy * 9.81, rel=0.35)
+    # Free in the air below the open hand, the same upward kick lifts the light object 3x as fast.
+    pop.reset_state(np.array([0.1, 0.0, 0.12, 0.0, 0.0, 0.0, 1.0]))
+    kick = torch.zeros(1, 2, 6)
+    kick[0, :, 2] = 3.0  # [N] for one frame
+    pop.set_wrench(kick)
+    pop.step()
+    # n semi-implicit substeps of h under acceleration a travel a h^2 n (n + 1) / 2.
+    n, h = pop.config.substeps, pop.config.frame_dt / pop.config.substeps
+    accel = torch.tensor([3.0 / light, 3.0 / heavy]) - 9.81
+    expected = accel * h * h * n * (n + 1) / 2
+    rise = pop.obs.object_pose[0, :, 2] - 0.12
+    assert torch.allclose(rise, expected, rtol=0.02), (rise, expected)
+
+
+def test_observations_have_documented_shapes_and_units(hand):
+    spec, kin = hand
+    pop, _ = _grasped(hand, "foam_brick", worlds=3, groups=2)
+    for _ in range(10):
+        pop.step()
+    G, K, D, L = 2, 3, 22, 4
+    o = pop.obs
+    shapes = {
+        "q": (G, K, D),
+        "sensor_pos": (G, K, L, 3),
+        "sensor_rot": (G, K, L, 4),
+        "force": (G, K, L, 3),
+        "slip": (G, K, L),
+        "slip_dir": (G, K, L, 2),
+        "spin": (G, K, L),
+        "spin_sense": (G, K, L),
+        "object_pose": (G, K, 7),
+        "health": (G, K),
+    }
+    for name, shape in shapes.items():
+        assert tuple(getattr(o, name).shape) == shape, name
+    assert torch.allclose(o.sensor_rot.norm(dim=-1), torch.ones(G, K, L), atol=1e-5)
+    assert torch.allclose(o.object_pose[..., 3:].norm(dim=-1), torch.ones(G, K), atol=1e-5)
+    # Sensor poses are forward kinematics of the observed joints, in metres.
+    pos, rot = kin.sensor_poses(o.q[0, 0].numpy())
+    assert np.allclose(o.sensor_pos[0, 0].numpy(), pos, atol=1e-4)
+    assert np.allclose(np.abs((o.sensor_rot[0, 0].numpy() * rot).sum(-1)), 1.0, atol=1e-4)
+    # Pad normals (sensor z) point at the object, and the pads push it: force along -z, newtons.
+    normal = _quat_rotate(o.sensor_rot, torch.tensor([0.0, 0.0, 1.0]).expand(G, K, L, 3))
+    to_object = o.object_pose[..., None, :3] - o.sensor_pos
+    assert ((normal * to_object).sum(-1) > 0).all()
+    assert (o.force[..., 2] < -0.1).all() and (o.force.norm(dim=-1) < 50).all()
+    slipping = o.slip_dir.norm(dim=-1)
+    assert torch.all((slipping - 1).abs() < 1e-4) or torch.all(slipping[o.slip == 0] == 0)
+    # Hand at 0.3 m, object held 11 cm below the palm: positions are metres.
+    assert o.object_pose[..., 2].mean().item() == pytest.approx(0.19, abs=0.01)
+
+
+def test_health_mask_marks_lost_and_nan_worlds_without_raising(hand):
+    pop, grasp = _grasped(hand, "foam_brick", worlds=3)
+    poses = np.tile(grasp.object_pose, (1, 3, 1))
+    poses[0, 1, :3] = [0.1, 0.4, 0.025]  # on the table, far from the hand
+    pop.reset_state(poses, grasp.q_touch)
+    torch.from_dlpack  # noqa: B018 - keep torch import used explicitly
+    qd = pop._state_views["joint_qd"](pop.state_0)
+    qd[0, 2, 3] = math.nan  # a world blows up
+    pop.step()
+    assert pop.obs.health[0].tolist() == [HEALTH_OK, HEALTH_LOST, HEALTH_NAN]
+
+
+def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
+    spec, kin = hand
+    pop, _ = _grasped(hand, "foam_brick", worlds=2)
+    with pytest.raises(ValueError, match=r"targets: expected shape \(1, 22\), got \(1, 21\)"):
+        pop.set_targets(np.zeros((1, 21)))
+    bad = np.zeros((1, 22))
+    bad[0, 7] = np.nan
+    with pytest.raises(ValueError, match="targets: 1 non-finite values.*'index_1' = nan"):
+        pop.set_targets(bad)
+    with pytest.raises(ValueError, match=r"index: expected shape \(1, 2\)"):
+        pop.resample(torch.zeros(2, 2, dtype=torch.long))
+    with pytest.raises(ValueError, match=r"index: values must lie in \[0, 2\), got min 0 max 5"):
+        pop.resample(torch.tensor([[0, 5]]))
+    with pytest.raises(ValueError, match=r"mass: 1 values outside \[0.015, 0.05\]"):
+        pop.set_params(mass=torch.tensor([[0.02, 3.0]]))
+    with pytest.raises(ValueError, match=r"wrench: expected shape \(1, 2, 6\)"):
+        pop.set_wrench(torch.zeros(1, 2, 3))
+    with pytest.raises(ValueError, match=r"object_pose: expected shape"):
+        pop.reset_state(np.zeros(6))
+    with pytest.raises(ValueError, match="object: unknown name 'rubber_duck'"):
+        catalog_object("rubber_duck")
+    garbage = tmp_path / "broken.stl"
+    garbage.write_bytes(b"\x00\x01not a mesh at all")
+    with pytest.raises(ValueError, match="object 'broken' mesh: "):
+        load_mesh_object("broken", str(garbage), mass=0.1, mass_range=(0.05, 0.2))
+    with pytest.raises(ValueError, match="no such file"):
+        load_mesh_object("missing", str(tmp_path / "missing.obj"), mass=0.1, mass_range=(0.05, 0.2))
+    with pytest.raises(ValueError, match="substeps: expected an even number, got 3"):
+        PopulationConfig(substeps=3)
+    urdf = tmp_path / "gripper.urdf"
+    urdf.write_text(_GRIPPER_URDF)
+    with pytest.raises(ValueError, match=r"joints: \['elbow'\] not in"):
+        Population(FileRobotSpec("gripper", str(urdf), ("elbow",), ("left",)), catalog_object("foam_brick"),
+                   PopulationConfig(worlds=1, device="cpu"))  # fmt: skip
+
+
+def test_users_robot_from_urdf(tmp_path):
+    urdf = tmp_path / "gripper.urdf"
+    urdf.write_text(_GRIPPER_URDF)
+    spec = FileRobotSpec(
+        "gripper",
+        str(urdf),
+        joints=("left_slide", "right_slide"),
+        sensor_links=("left", "right"),
+        ke=300.0,
+        kd=10.0,
+        effort=20.0,
+        base=(0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 1.0),
+    )
+    pop = Population(spec, catalog_object("foam_brick"), PopulationConfig(worlds=2, device="cpu"))
+    pop.reset_state(np.array([0.0, 0.0, 0.025, 0, 0, 0, 1.0]), np.array([0.0, 0.0]))
+    pop.set_targets(np.array([[-0.02, 0.02]]))
+    for _ in range(3):
+        pop.step()
+    assert tuple(pop.obs.q.shape) == (1, 2, 2) and tuple(pop.obs.force.shape) == (1, 2, 2, 3)
+    # The slides move towards their targets.
+    assert pop.obs.q[0, 0, 0] < -0.002 and pop.obs.q[0, 0, 1] > 0.002
+
+
+_GRIPPER_URDF = """<?xml version="1.0"?>
+<robot name="gripper">
+  <link name="base">
+    <inertial><mass value="0.5"/><inertia ixx="1e-3" iyy="1e-3" izz="1e-3" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><geometry><box size="0.1 0.1 0.02"/></geometry></collision>
+  </link>
+  <link name="left">
+    <inertial><mass value="0.05"/><inertia ixx="1e-5" iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><origin xyz="0 0 -0.05"/><geometry><box size="0.01 0.03 0.08"/></geometry></collision>
+  </link>
+  <link name="right">
+    <inertial><mass value="0.05"/><inertia ixx="1e-5" iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><origin xyz="0 0 -0.05"/><geometry><box size="0.01 0.03 0.08"/></geometry></collision>
+  </link>
+  <joint name="left_slide" type="prismatic">
+    <parent link="base"/><child link="left"/><origin xyz="-0.04 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="-0.03" upper="0.03" effort="20" velocity="1"/>
+  </joint>
+  <joint name="right_slide" type="prismatic">
+    <parent link="base"/><child link="right"/><origin xyz="0.04 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="-0.03" upper="0.03" effort="20" velocity="1"/>
+  </joint>
+</robot>
+"""
