@@ -100,9 +100,7 @@ def make_banana(
     centres = np.stack([arc_radius * np.sin(knots), 0 * knots, arc_radius * (1 - np.cos(knots))], 1) - com
     knot_s = np.linspace(-1.0, 1.0, segments + 1)
     knot_r = tube_radius * np.sqrt(np.clip(1.0 - knot_s**4, 0.08, None))
-    capsules = tuple(
-        (*centres[i], *centres[i + 1], float(min(knot_r[i], knot_r[i + 1]))) for i in range(segments)
-    )
+    capsules = tuple((*centres[i], *centres[i + 1], float(min(knot_r[i], knot_r[i + 1]))) for i in range(segments))
     return mesh, capsules
 
 

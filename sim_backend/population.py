@@ -115,7 +115,8 @@ class Observation:
     slip: torch.Tensor
     """Translational slip flag, shape (G, K, L), 1.0 slipping / 0.0 not."""
     slip_dir: torch.Tensor
-    """Unit slip direction of the pad over the object in the tangent plane, shape (G, K, L, 2); zero when not slipping."""
+    """Unit direction the pad slides over the object, in the sensor's tangent plane, shape (G, K, L, 2);
+    zero when not slipping."""
     spin: torch.Tensor
     """Rotational slip flag, shape (G, K, L), 1.0 / 0.0."""
     spin_sense: torch.Tensor
@@ -209,7 +210,9 @@ class Population:
         self._coords = world.joint_coord_count
         self._dofs = world.joint_dof_count
         self._nominal_mass = float(world.body_mass[self._object_body])
-        self._nominal_inertia = torch.tensor(np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32).reshape(3, 3)
+        self._nominal_inertia = torch.tensor(
+            np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32
+        ).reshape(3, 3)
 
         with wp.ScopedDevice(self.device):
             self.solver = newton.solvers.SolverMuJoCo(
@@ -525,7 +528,7 @@ class Population:
         quaternion is normalised. Default: on the table in front of the robot.
         joint_q: shape (G, K, D), (G, D) or (D,) [rad or m]; default the robot's start pose.
         """
-        G, K, D = self.G, self.K, self.D
+        _G, _K, D = self.G, self.K, self.D
         if object_pose is None:
             z = -float(self.object.mesh.bounds[0, 2])
             object_pose = np.array([0.1, 0.0, z, 0.0, 0.0, 0.0, 1.0])
@@ -559,10 +562,14 @@ class Population:
 
     def _check(self, name: str, value, width: int) -> torch.Tensor:
         """Broadcast ``value`` to (G, K, width) on the CPU, with a clear error when it cannot."""
-        arr = torch.as_tensor(np.asarray(value.cpu() if isinstance(value, torch.Tensor) else value), dtype=torch.float32)
+        arr = torch.as_tensor(
+            np.asarray(value.cpu() if isinstance(value, torch.Tensor) else value), dtype=torch.float32
+        )
         G, K = self.G, self.K
         if arr.shape not in ((G, K, width), (G, width), (width,)):
-            raise ValueError(f"{name}: expected shape ({G}, {K}, {width}), ({G}, {width}) or ({width},), got {tuple(arr.shape)}")
+            raise ValueError(
+                f"{name}: expected shape ({G}, {K}, {width}), ({G}, {width}) or ({width},), got {tuple(arr.shape)}"
+            )
         if not torch.isfinite(arr).all():
             raise ValueError(f"{name}: {int((~torch.isfinite(arr)).sum())} non-finite values")
         if arr.dim() == 2:
@@ -604,7 +611,9 @@ class Population:
         if value.device.type == "cpu":  # device tensors come from the tracker, already in range
             bad = ~((value >= lo) & (value <= hi))
             if bool(bad.any()):
-                raise ValueError(f"{name}: {int(bad.sum())} values outside [{lo}, {hi}], e.g. {value[bad][0].item():.4g}")
+                raise ValueError(
+                    f"{name}: {int(bad.sum())} values outside [{lo}, {hi}], e.g. {value[bad][0].item():.4g}"
+                )
         return value
 
     def _notify(self, inertial: bool, shape: bool) -> None:
@@ -631,7 +640,9 @@ class Population:
             raise ValueError(f"index: expected an integer tensor, got {index.dtype}")
         index = index.to(self.torch_device, torch.int64)
         if index.device.type == "cpu" and bool(((index < 0) | (index >= self.K)).any()):
-            raise ValueError(f"index: values must lie in [0, {self.K}), got min {int(index.min())} max {int(index.max())}")
+            raise ValueError(
+                f"index: values must lie in [0, {self.K}), got min {int(index.min())} max {int(index.max())}"
+            )
         with self._stream():
             tensors = [view(self.state_0) for view in self._state_views.values()]
             tensors += [self._warmstart, self._mass[..., None], self._inv_mass[..., None], self._shape_mu]

@@ -236,7 +236,7 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
         )
         return body
 
-    for f, (fname, y) in enumerate(zip(("index", "middle", "ring"), _FINGER_Y, strict=True)):
+    for _f, (fname, y) in enumerate(zip(("index", "middle", "ring"), _FINGER_Y, strict=True)):
         l0, l1, l2, l3 = ALLEGRO_FINGER_LINKS
         m0, m1, m2, m3 = ALLEGRO_FINGER_MASSES
         lim = ALLEGRO_FINGER_LIMITS
@@ -342,7 +342,9 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
     single = (newton.JointType.REVOLUTE, newton.JointType.PRISMATIC)
     for j in joints:
         if builder.joint_type[j] not in single:
-            raise ValueError(f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a revolute or prismatic joint")
+            raise ValueError(
+                f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a revolute or prismatic joint"
+            )
     coord, dof = _joint_coord_dof(builder, joints)
     for d in dof:
         builder.joint_target_ke[d] = spec.ke

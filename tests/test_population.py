@@ -43,7 +43,7 @@ def _quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("name", sorted(CATALOG))
 def test_grasp_holds_each_object_for_3_s(hand, name):
-    pop, grasp = _grasped(hand, name, worlds=2)
+    pop, _grasp = _grasped(hand, name, worlds=2)
     pop.step()
     start = pop.obs.object_pose[..., 2].clone()
     for _ in range(FRAMES_3S):
@@ -139,7 +139,7 @@ def test_mass_change_shows_in_the_dynamics(hand):
 
 
 def test_observations_have_documented_shapes_and_units(hand):
-    spec, kin = hand
+    _spec, kin = hand
     pop, _ = _grasped(hand, "foam_brick", worlds=3, groups=2)
     for _ in range(10):
         pop.step()
@@ -181,7 +181,6 @@ def test_health_mask_marks_lost_and_nan_worlds_without_raising(hand):
     poses = np.tile(grasp.object_pose, (1, 3, 1))
     poses[0, 1, :3] = [0.1, 0.4, 0.025]  # on the table, far from the hand
     pop.reset_state(poses, grasp.q_touch)
-    torch.from_dlpack  # noqa: B018 - keep torch import used explicitly
     qd = pop._state_views["joint_qd"](pop.state_0)
     qd[0, 2, 3] = math.nan  # a world blows up
     pop.step()
@@ -189,13 +188,13 @@ def test_health_mask_marks_lost_and_nan_worlds_without_raising(hand):
 
 
 def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
-    spec, kin = hand
+    _spec, _kin = hand
     pop, _ = _grasped(hand, "foam_brick", worlds=2)
     with pytest.raises(ValueError, match=r"targets: expected shape \(1, 22\), got \(1, 21\)"):
         pop.set_targets(np.zeros((1, 21)))
     bad = np.zeros((1, 22))
     bad[0, 7] = np.nan
-    with pytest.raises(ValueError, match="targets: 1 non-finite values.*'index_1' = nan"):
+    with pytest.raises(ValueError, match=r"targets: 1 non-finite values.*'index_1' = nan"):
         pop.set_targets(bad)
     with pytest.raises(ValueError, match=r"index: expected shape \(1, 2\)"):
         pop.resample(torch.zeros(2, 2, dtype=torch.long))
