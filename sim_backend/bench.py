@@ -32,7 +32,10 @@ class SimBenchResult:
 
 def _used_bytes(device: wp.context.Device) -> int:
     if device.is_cuda:
-        return int(device.total_memory - device.free_memory)
+        # Warp's memory pool keeps freed blocks, so the driver's free memory says little; the
+        # pool's own count of live bytes, plus torch's, is what a population holds.
+        warp_bytes = wp.get_mempool_used_mem_current(device) if wp.is_mempool_enabled(device) else 0
+        return int(warp_bytes + torch.cuda.memory_allocated(wp.device_to_torch(device)))
     with open("/proc/self/statm") as f:  # resident set size, pages
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
