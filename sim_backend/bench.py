@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -85,6 +86,7 @@ def bench_sim(
             )
         )
         del pop
+        gc.collect()  # the solver and its graph hold reference cycles: free them before the next K
         if dev.is_cuda:
             torch.cuda.empty_cache()
     return results
