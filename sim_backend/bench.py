@@ -24,6 +24,7 @@ __all__ = ["SimBenchResult", "bench_sim"]
 class SimBenchResult:
     worlds: int
     substeps: int
+    solver: str
     device: str
     median_ms: float
     p95_ms: float
@@ -43,21 +44,25 @@ def _used_bytes(device: wp.context.Device) -> int:
 
 def bench_sim(
     worlds: list[int], *, substeps: int = 8, frames: int = 60, warmup: int = 10, obj: str = "foam_brick",
-    device: str = "auto",
+    device: str = "auto", solver: str = "cg",
 ) -> list[SimBenchResult]:  # fmt: skip
     """Time graph replays of a held grasp (every world squeezing the object) for each K in ``worlds``."""
     dev = resolve_device(device)
     spec = HandSpec()
     grasp = plan_pinch(Kinematics(spec), catalog_object(obj))
+
     # A throwaway population takes the one-time costs (kernel compiles, CUDA context and module
     # loads) out of the first K's build time and memory.
-    Population(spec, catalog_object(obj), PopulationConfig(worlds=1, substeps=substeps, device=dev.alias)).step()
+    def config(k: int) -> PopulationConfig:
+        return PopulationConfig(worlds=k, substeps=substeps, device=dev.alias, solver=solver)
+
+    Population(spec, catalog_object(obj), config(1)).step()
     results = []
     for k in worlds:
         wp.synchronize_device(dev)
         before = _used_bytes(dev)
         t0 = time.perf_counter()
-        pop = Population(spec, catalog_object(obj), PopulationConfig(worlds=k, substeps=substeps, device=dev.alias))
+        pop = Population(spec, catalog_object(obj), config(k))
         pop.reset_state(grasp.object_pose, grasp.q_touch)
         pop.set_targets(grasp.q_squeeze[None])
         for _ in range(warmup):
@@ -78,6 +83,7 @@ def bench_sim(
             SimBenchResult(
                 worlds=k,
                 substeps=substeps,
+                solver=solver,
                 device=dev.alias,
                 median_ms=float(np.median(times)),
                 p95_ms=float(np.percentile(times, 95)),
@@ -94,12 +100,12 @@ def bench_sim(
 
 def format_table(results: list[SimBenchResult]) -> str:
     lines = [
-        "| device | K | substeps | median ms/frame | p95 ms/frame | memory/world | build s |",
-        "|---|---|---|---|---|---|---|",
+        "| device | K | substeps | solver | median ms/frame | p95 ms/frame | memory/world | build s |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lines.append(
-            f"| {r.device} | {r.worlds} | {r.substeps} | {r.median_ms:.2f} | {r.p95_ms:.2f} | "
+            f"| {r.device} | {r.worlds} | {r.substeps} | {r.solver} | {r.median_ms:.2f} | {r.p95_ms:.2f} | "
             f"{r.bytes_per_world / 1024:.0f} KiB | {r.build_s:.1f} |"
         )
     return "\n".join(lines)

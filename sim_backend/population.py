@@ -42,16 +42,26 @@ class PopulationConfig:
     """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
     use_graph: bool = True
     """Replay a captured graph per frame (False steps eagerly, for debugging)."""
-    iterations: int = 20
-    ls_iterations: int = 10
-    contacts_per_world: int = 48
-    """MuJoCo contact capacity per world (nconmax)."""
+    solver: str = "cg"
+    """MuJoCo constraint solver: "cg" or "newton". Newton needs fewer iterations but assembles and
+    factors a dense Hessian per iteration; on the CPU at K=40 that made it 20% slower than CG
+    for the same held grasp (41.6 vs 34.8 ms per frame, docs/benchmarks.md)."""
+    integrator: str = "implicitfast"
+    """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
+    cone: str = "elliptic"
+    """Friction cone: "elliptic" (accurate sticking) or "pyramidal"."""
+    impratio: float = 10.0
+    """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer."""
+    iterations: int = 40
+    ls_iterations: int = 6
+    contacts_per_world: int = 32
+    """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
     broad_phase: str = "explicit"
     """Collision broad phase: "explicit" tests the model's precomputed shape pairs (the hand never
     collides with itself, so that list is short), "sap" or "nxn" search all shapes."""
     contact_gap: float = 0.005
     """Shapes closer than this make (speculative) contacts [m]."""
-    constraints_per_world: int = 320
+    constraints_per_world: int = 160
     """MuJoCo constraint rows per world (njmax)."""
     slip_speed: float = 0.01
     """Tangential speed of a pad against the object above which it slips [m/s]."""
@@ -218,10 +228,10 @@ class Population:
             self.solver = newton.solvers.SolverMuJoCo(
                 self.model,
                 use_mujoco_contacts=False,
-                solver="newton",
-                integrator="implicitfast",
-                cone="elliptic",
-                impratio=10.0,
+                solver=cfg.solver,
+                integrator=cfg.integrator,
+                cone=cfg.cone,
+                impratio=cfg.impratio,
                 iterations=cfg.iterations,
                 ls_iterations=cfg.ls_iterations,
                 nconmax=cfg.contacts_per_world,

@@ -103,6 +103,8 @@ class HandSpec:
     armature: float = 0.002
     """Rotor inertia added to every finger joint [kg m^2]; keeps light links stable."""
     palm_mass: float = 0.4
+    gravity_compensation: bool = True
+    """Cancel gravity on the robot's links, as the arm's and hand's controllers do."""
     default_q: tuple[float, ...] = field(default=())
     """Start joints (D=22); empty means wrist at 0.3 m height and an open hand."""
 
@@ -147,7 +149,7 @@ def _quat_axis_angle(axis: tuple[float, float, float], angle: float) -> wp.quat:
 
 def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
     body_start = builder.body_count
-    gravcomp = {"mujoco:gravcomp": 1.0}
+    gravcomp = {"mujoco:gravcomp": 1.0} if spec.gravity_compensation else None
     # Hand shapes never collide with each other (collision group -1 on every shape): the fingers
     # are kept apart by their joint limits, and self contacts would only slow the solver down.
     shape_cfg = newton.ModelBuilder.ShapeConfig(density=0.0, collision_group=-1, mu=1.0)
