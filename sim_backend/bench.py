@@ -44,7 +44,7 @@ def _used_bytes(device: wp.context.Device) -> int:
 
 def bench_sim(
     worlds: list[int], *, substeps: int = 8, frames: int = 60, warmup: int = 10, obj: str = "foam_brick",
-    device: str = "auto", solver: str = "cg",
+    device: str = "auto", solver: str = "auto",
 ) -> list[SimBenchResult]:  # fmt: skip
     """Time graph replays of a held grasp (every world squeezing the object) for each K in ``worlds``."""
     dev = resolve_device(device)
@@ -83,7 +83,7 @@ def bench_sim(
             SimBenchResult(
                 worlds=k,
                 substeps=substeps,
-                solver=solver,
+                solver=pop.config.solver_settings(dev)[0],
                 device=dev.alias,
                 median_ms=float(np.median(times)),
                 p95_ms=float(np.percentile(times, 95)),

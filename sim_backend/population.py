@@ -42,18 +42,21 @@ class PopulationConfig:
     """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
     use_graph: bool = True
     """Replay a captured graph per frame (False steps eagerly, for debugging)."""
-    solver: str = "cg"
-    """MuJoCo constraint solver: "cg" or "newton". Newton needs fewer iterations but assembles and
-    factors a dense Hessian per iteration; on the CPU at K=40 that made it 20% slower than CG
-    for the same held grasp (41.6 vs 34.8 ms per frame, docs/benchmarks.md)."""
+    solver: str = "auto"
+    """MuJoCo constraint solver: "newton", "cg", or "auto": Newton on CUDA, CG on the CPU. Newton
+    needs few iterations but assembles and factors a dense Hessian in each; on the CPU that cost
+    dominates (K=40: 39.7 ms per frame against CG's 29.7), on an H100 CG's many cheap iterations
+    do (K=4096: CG 17.6 ms, Newton 12.0). Both hold the same grasps (docs/benchmarks.md)."""
     integrator: str = "implicitfast"
     """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
     cone: str = "elliptic"
     """Friction cone: "elliptic" (accurate sticking) or "pyramidal"."""
     impratio: float = 10.0
     """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer."""
-    iterations: int = 40
-    ls_iterations: int = 6
+    iterations: int | None = None
+    """Solver iterations; None: 20 for Newton, 40 for CG."""
+    ls_iterations: int | None = None
+    """Line-search iterations; None: 10 for Newton, 6 for CG."""
     contacts_per_world: int = 32
     """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
     broad_phase: str = "explicit"
@@ -78,10 +81,14 @@ class PopulationConfig:
     def __post_init__(self) -> None:
         for name in ("groups", "worlds", "substeps", "iterations", "ls_iterations"):
             value = getattr(self, name)
+            if value is None and name.endswith("iterations"):
+                continue
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"population {name}: expected a positive integer, got {value!r}")
         if self.substeps % 2:
             raise ValueError(f"population substeps: expected an even number, got {self.substeps}")
+        if self.solver not in ("auto", "newton", "cg"):
+            raise ValueError(f"population solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
         if not (0.0 < self.frame_rate <= 1000.0):
             raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
 
@@ -92,6 +99,12 @@ class PopulationConfig:
     @property
     def frame_dt(self) -> float:
         return 1.0 / self.frame_rate
+
+    def solver_settings(self, device: wp.context.Device) -> tuple[str, int, int]:
+        """(solver, iterations, line-search iterations) this config means on ``device``."""
+        solver = self.solver if self.solver != "auto" else ("newton" if device.is_cuda else "cg")
+        iterations, ls_iterations = (20, 10) if solver == "newton" else (40, 6)
+        return solver, self.iterations or iterations, self.ls_iterations or ls_iterations
 
 
 def resolve_device(name: str = "auto") -> wp.context.Device:
@@ -224,16 +237,17 @@ class Population:
             np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32
         ).reshape(3, 3)
 
+        solver, iterations, ls_iterations = cfg.solver_settings(self.device)
         with wp.ScopedDevice(self.device):
             self.solver = newton.solvers.SolverMuJoCo(
                 self.model,
                 use_mujoco_contacts=False,
-                solver=cfg.solver,
+                solver=solver,
                 integrator=cfg.integrator,
                 cone=cfg.cone,
                 impratio=cfg.impratio,
-                iterations=cfg.iterations,
-                ls_iterations=cfg.ls_iterations,
+                iterations=iterations,
+                ls_iterations=ls_iterations,
                 nconmax=cfg.contacts_per_world,
                 njmax=cfg.constraints_per_world,
             )
