@@ -2,7 +2,7 @@
 
 from .grasp import Grasp, plan_pinch
 from .kinematics import Kinematics
-from .objects import CATALOG, ObjectSpec, catalog_object, load_mesh_object, make_banana
+from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
 from .observe import HEALTH_LOST, HEALTH_NAN, HEALTH_OK
 from .population import Observation, Population, PopulationConfig, resolve_device
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot
@@ -24,6 +24,7 @@ __all__ = [
     "RobotSpec",
     "add_robot",
     "catalog_object",
+    "load_catalog",
     "load_mesh_object",
     "make_banana",
     "plan_pinch",

@@ -10,12 +10,25 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+import tomllib
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import trimesh
 
-__all__ = ["CATALOG", "ObjectSpec", "catalog_object", "load_mesh_object", "make_banana"]
+__all__ = [
+    "CATALOG",
+    "DEFAULT_CONFIG",
+    "ObjectSpec",
+    "catalog_object",
+    "load_catalog",
+    "load_mesh_object",
+    "make_banana",
+]
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "objects.toml"
+"""Where the objects' physics (mass, friction and their ranges) are configured."""
 
 
 @dataclass(frozen=True)
@@ -117,15 +130,36 @@ def _box(name: str, size: tuple[float, float, float], **kw) -> ObjectSpec:
 
 _BANANA_MESH, _BANANA_CAPSULES = make_banana()
 
-# Shapes and masses of the paper's three YCB objects. The spam can was emptied in the paper to
-# make it light enough for a fingertip grasp; 0.1 kg stands for that.
-CATALOG: dict[str, ObjectSpec] = {
-    "spam_can": _box("spam_can", (0.097, 0.056, 0.082), mass=0.1, mass_range=(0.05, 0.2), friction=0.8),
-    "foam_brick": _box("foam_brick", (0.05, 0.075, 0.05), mass=0.028, mass_range=(0.015, 0.05), friction=1.0),
-    "toy_banana": ObjectSpec(
-        "toy_banana", _BANANA_MESH, mass=0.066, mass_range=(0.04, 0.1), friction=0.6, capsules=_BANANA_CAPSULES
-    ),
+# Shapes of the paper's three YCB objects; their physics comes from configs/objects.toml.
+_SHAPES: dict[str, ObjectSpec] = {
+    "spam_can": _box("spam_can", (0.097, 0.056, 0.082), mass=0.1, mass_range=(0.05, 0.2)),
+    "foam_brick": _box("foam_brick", (0.05, 0.075, 0.05), mass=0.028, mass_range=(0.015, 0.05)),
+    "toy_banana": ObjectSpec("toy_banana", _BANANA_MESH, mass=0.066, mass_range=(0.04, 0.1), capsules=_BANANA_CAPSULES),
 }
+
+
+def load_catalog(path: str | os.PathLike = DEFAULT_CONFIG) -> dict[str, ObjectSpec]:
+    """The object catalog with physics from the TOML file at ``path`` (see configs/objects.toml)."""
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"objects config: cannot read '{path}': {exc}") from exc
+    catalog = dict(_SHAPES)
+    for name, entry in table.items():
+        physics = {k: entry[k] for k in ("mass", "friction") if k in entry}
+        physics |= {k: tuple(entry[k]) for k in ("mass_range", "friction_range") if k in entry}
+        if "mesh" in entry:
+            mesh_path = str(path.parent / entry["mesh"])
+            catalog[name] = load_mesh_object(name, mesh_path, scale=float(entry.get("scale", 1.0)), **physics)
+        elif name in catalog:
+            catalog[name] = replace(catalog[name], **physics)
+        else:
+            raise ValueError(f"objects config '{path}': '{name}' is not a catalog shape and has no 'mesh'")
+    return catalog
+
+
+CATALOG: dict[str, ObjectSpec] = load_catalog() if DEFAULT_CONFIG.is_file() else dict(_SHAPES)
 
 
 def catalog_object(name: str) -> ObjectSpec:
