@@ -12,7 +12,7 @@ import numpy as np
 
 from .robots import RobotLayout, RobotSpec, add_robot
 
-__all__ = ["Kinematics"]
+__all__ = ["Kinematics", "SensorFK"]
 
 
 def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -99,3 +99,52 @@ class Kinematics:
             step = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(err.size), err)
             q[idx] = np.clip(q[idx] + step, lay.lower[idx], lay.upper[idx])
         return q
+
+
+class SensorFK:
+    """Sensor poses of G robots from their joint positions, on the device, as torch tensors.
+
+    The tracker needs the real robot's sensor poses every frame; robots send only joints, so this
+    runs forward kinematics of a robot-only model of G worlds with the population's own kernel.
+    """
+
+    def __init__(self, spec: RobotSpec, groups: int, device: wp.context.Device):
+        world = newton.ModelBuilder()
+        newton.solvers.SolverMuJoCo.register_custom_attributes(world)
+        self.layout = lay = add_robot(world, spec)
+        builder = newton.ModelBuilder()
+        builder.replicate(world, groups)
+        self.device = device
+        with wp.ScopedDevice(device):
+            self._model = builder.finalize(device=device)
+            self._state = self._model.state()
+            L = lay.sensor_count
+            self._pos = wp.zeros((groups, L), dtype=wp.vec3)
+            self._rot = wp.zeros((groups, L), dtype=wp.quat)
+            self._scratch = [wp.zeros((groups, L), dtype=t) for t in (wp.vec3, wp.vec3, wp.vec3, float)]
+            offsets = [wp.transform(wp.vec3(*o[:3]), wp.quat(*o[3:])) for o in lay.sensor_offsets]
+            self._offsets = wp.array(offsets, dtype=wp.transform)
+            self._bodies = wp.array(lay.sensor_bodies.astype(np.int32), dtype=wp.int32)
+        self._groups, self._per_world = groups, world.body_count
+        torch_q = wp.to_torch(self._state.joint_q).view(groups, world.joint_coord_count)
+        self._q = torch_q[:, lay.coord_indices[0] : lay.coord_indices[0] + lay.dof_count]
+        if not np.array_equal(lay.coord_indices, np.arange(lay.coord_indices[0], lay.coord_indices[0] + lay.dof_count)):
+            raise ValueError(f"robot '{lay.name}': actuated joints must be contiguous coordinates for SensorFK")
+        self.pos = wp.to_torch(self._pos).view(groups, L, 3)
+        """Sensor positions after :meth:`update`, (G, L, 3) [m]."""
+        self.rot = wp.to_torch(self._rot).view(groups, L, 4)
+        """Sensor orientations after :meth:`update`, (G, L, 4) quaternion (x, y, z, w)."""
+
+    def update(self, q) -> None:
+        """Forward kinematics of joint positions ``q`` (G, D), a torch tensor on the device."""
+        from .observe import sensor_poses
+
+        self._q.copy_(q)
+        with wp.ScopedDevice(self.device):
+            newton.eval_fk(self._model, self._state.joint_q, self._state.joint_qd, self._state)
+            wp.launch(
+                sensor_poses,
+                dim=(self._groups, self.layout.sensor_count),
+                inputs=[self._state.body_q, self._per_world, self._bodies, self._offsets],
+                outputs=[self._pos, self._rot, *self._scratch],
+            )

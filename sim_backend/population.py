@@ -251,6 +251,9 @@ class Population:
                 nconmax=cfg.contacts_per_world,
                 njmax=cfg.constraints_per_world,
             )
+            # Iteration-limit warnings are printf'd from inside kernels, once per world and step;
+            # at thousands of worlds they flood the log. Non-converged steps still finish.
+            self.solver.mjw_model.opt.warn_overflow = 0
             self.pipeline = newton.CollisionPipeline(
                 self.model,
                 rigid_contact_max=self.solver.get_max_contact_count(),
@@ -545,14 +548,19 @@ class Population:
         with self._stream():
             self._wrench.copy_(wrench, non_blocking=True)
 
-    def reset_state(self, object_pose: np.ndarray | torch.Tensor | None = None, joint_q=None) -> None:
-        """Put every world at rest with its object at ``object_pose`` and its robot at ``joint_q``.
+    def reset_state(
+        self,
+        object_pose: np.ndarray | torch.Tensor | None = None,
+        joint_q: np.ndarray | torch.Tensor | None = None,
+        groups: np.ndarray | torch.Tensor | None = None,
+    ) -> None:
+        """Put worlds at rest with their object at ``object_pose`` and their robot at ``joint_q``.
 
         object_pose: shape (G, K, 7) or (G, 7) or (7,): position [m], quaternion (x, y, z, w); the
         quaternion is normalised. Default: on the table in front of the robot.
         joint_q: shape (G, K, D), (G, D) or (D,) [rad or m]; default the robot's start pose.
+        groups: (G,) bool, the groups to reset (default all); the others are left untouched.
         """
-        _G, _K, D = self.G, self.K, self.D
         if object_pose is None:
             z = -float(self.object.mesh.bounds[0, 2])
             object_pose = np.array([0.1, 0.0, z, 0.0, 0.0, 0.0, 1.0])
@@ -560,25 +568,39 @@ class Population:
         norm = torch.linalg.vector_norm(pose[..., 3:], dim=-1, keepdim=True)
         if bool((norm < 1e-6).any()):
             raise ValueError("object_pose: quaternion (x, y, z, w) of zero length")
-        pose = torch.cat([pose[..., :3], pose[..., 3:] / norm], dim=-1)
-        q = self._check("joint_q", self.layout.default_q if joint_q is None else joint_q, D)
-        q = torch.clamp(q, self._lower.cpu(), self._upper.cpu())
+        pose = torch.cat([pose[..., :3], pose[..., 3:] / norm], dim=-1).to(self.torch_device)
+        q = self._check("joint_q", self.layout.default_q if joint_q is None else joint_q, self.D)
+        q = torch.clamp(q.to(self.torch_device), self._lower, self._upper)
+        if groups is None:
+            groups = torch.ones(self.G, dtype=torch.bool)
+        groups = torch.as_tensor(
+            np.asarray(groups.cpu() if isinstance(groups, torch.Tensor) else groups), dtype=torch.bool
+        )
+        if groups.shape != (self.G,):
+            raise ValueError(f"groups: expected shape ({self.G},), got {tuple(groups.shape)}")
+        sel = groups.to(self.torch_device)[:, None, None]
+        coords = torch.as_tensor(self.layout.coord_indices, device=self.torch_device)
         with self._stream():
             for state in (self.state_0, self.state_1):
                 jq = self._state_views["joint_q"](state)
-                jq[..., self._free_coords()] = pose.to(self.torch_device)
-                jq[..., torch.as_tensor(self.layout.coord_indices)] = q.to(self.torch_device)
-                self._state_views["joint_qd"](state).zero_()
-                self._state_views["body_qd"](state).zero_()
-                state.body_f.zero_()
-            self._warmstart.zero_()
-            self._wrench.zero_()
+                fresh = jq.clone()
+                fresh[..., self._free_coords()] = pose
+                fresh[..., coords] = q
+                jq.copy_(torch.where(sel, fresh, jq))
+                for name in ("joint_qd", "body_qd"):
+                    view = self._state_views[name](state)
+                    view.masked_fill_(sel, 0.0)
+                wp.to_torch(state.body_f).view(self.G, self.K, -1).masked_fill_(sel, 0.0)
+            self._warmstart.masked_fill_(sel, 0.0)
+            self._wrench.masked_fill_(sel, 0.0)
+            self.obs.health.masked_fill_(sel[..., 0], 0)
+        worlds = groups.repeat_interleave(self.K).numpy()
         with wp.ScopedDevice(self.device):
+            articulations = wp.array(worlds[self.model.articulation_world.numpy()], dtype=bool)
             for state in (self.state_0, self.state_1):
-                newton.eval_fk(self.model, state.joint_q, state.joint_qd, state)
+                newton.eval_fk(self.model, state.joint_q, state.joint_qd, state, mask=articulations)
             # flags=0: clear MuJoCo's warm start and applied forces, keep the state just written.
-            self.solver.reset(self.state_0, flags=0)
-        self.obs.health.zero_()
+            self.solver.reset(self.state_0, world_mask=wp.array([*worlds, False], dtype=bool), flags=0)
 
     def _free_coords(self) -> slice:
         start = self._coords - 7  # the object's free joint is the last joint of a world

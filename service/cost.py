@@ -1,0 +1,161 @@
+"""The paper's cost, eq. (3): how far each simulated world's observation is from the real robot's.
+
+All ten terms are batched over groups G, worlds K and sensors L as torch ops. Terms whose fields
+a frame lacks (no force, no slip, no rotational slip: the paper's real robot had no slip) drop out
+per group through the ``has_*`` masks. The weights are either fixed, or (default, as the paper
+prescribes) normalised so that each term's running mean magnitude is about 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from sim_backend import Observation
+
+from .sampling import quat_conjugate, quat_multiply
+
+__all__ = ["TERM_NAMES", "Cost", "CostConfig", "RealObservation", "cost_terms"]
+
+TERM_NAMES = (
+    "joints",  # w1 ||q - q_gt||
+    "sensor_position",  # w2 sum_l ||P - P_gt||
+    "sensor_rotation",  # w3 sum_l angle(R^-1 R_gt)
+    "contact_disagree",  # w4 sum_l (1 - alpha)
+    "force_magnitude",  # w5 sum_l alpha |dM(c, c_gt)|
+    "force_direction",  # w6 sum_l alpha |dphi(c, c_gt)|
+    "slip_disagree",  # w7 sum_l (1 - beta)
+    "slip_direction",  # w8 sum_l beta |dphi(d, d_gt)|
+    "spin_disagree",  # w9 sum_l (1 - gamma)
+    "spin_sense",  # w10 sum_l gamma |r - r_gt|
+)
+# Smallest running mean a term is normalised by, in its own unit (m, rad, count, N): a term that
+# is almost always zero (no slip yet) must not get an enormous weight.
+_NORM_FLOOR = torch.tensor([1e-3, 1e-3, 1e-2, 0.05, 0.05, 1e-2, 0.05, 1e-2, 0.05, 0.05])
+
+
+@dataclass
+class RealObservation:
+    """What the real robot sensed in one frame, per group; optional fields are zero when absent."""
+
+    q: torch.Tensor
+    """Joint positions, (G, D) [rad or m]."""
+    sensor_pos: torch.Tensor
+    """Sensor positions by forward kinematics of q, (G, L, 3) [m]."""
+    sensor_rot: torch.Tensor
+    """Sensor orientations by forward kinematics of q, (G, L, 4) quaternion (x, y, z, w)."""
+    force: torch.Tensor
+    """Contact force on each sensor in its frame, (G, L, 3) [N]."""
+    slip: torch.Tensor
+    """Translational slip flags, (G, L), 0/1."""
+    slip_dir: torch.Tensor
+    """Unit slip directions in the sensor's tangent plane, (G, L, 2)."""
+    spin: torch.Tensor
+    """Rotational slip flags, (G, L), 0/1."""
+    spin_sense: torch.Tensor
+    """Rotational slip sense, (G, L), 1 counter-clockwise about the pad normal, else 0."""
+    has_force: torch.Tensor
+    """Whether the frame carried forces, (G,), 0/1."""
+    has_slip: torch.Tensor
+    """Whether the frame carried translational slip, (G,), 0/1."""
+    has_spin: torch.Tensor
+    """Whether the frame carried rotational slip, (G,), 0/1."""
+
+    @classmethod
+    def zeros(cls, g: int, d: int, l: int, device: torch.device) -> RealObservation:
+        z = lambda *s: torch.zeros(s, device=device)  # noqa: E731
+        rot = z(g, l, 4)
+        rot[..., 3] = 1.0
+        return cls(z(g, d), z(g, l, 3), rot, z(g, l, 3), z(g, l), z(g, l, 2), z(g, l), z(g, l), z(g), z(g), z(g))
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    weights: tuple[float, ...] | None = None
+    """Fixed w1..w10; None normalises each term's running mean magnitude to 1."""
+    enabled: tuple[bool, ...] = (True,) * 10
+    """Switch terms off (ablations: contact terms 4-6, slip terms 7-10)."""
+    contact_threshold: float = 0.2
+    """A sensor is in contact when its force exceeds this [N]."""
+    norm_rate: float = 0.02
+    """Running-mean update rate of the normalisation once it has seen 1/rate frames."""
+
+    def __post_init__(self) -> None:
+        if self.weights is not None and len(self.weights) != 10:
+            raise ValueError(f"cost weights: expected 10 values (w1..w10), got {len(self.weights)}")
+        if len(self.enabled) != 10:
+            raise ValueError(f"cost enabled: expected 10 flags, got {len(self.enabled)}")
+
+
+def _angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Angle [rad] between vectors along the last axis; atan2 form stays accurate near 0 and pi."""
+    if a.shape[-1] == 2:
+        cross = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+        return torch.atan2(cross.abs(), (a * b).sum(-1))
+    return torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(a, b, dim=-1), dim=-1), (a * b).sum(-1))
+
+
+def cost_terms(sim: Observation, real: RealObservation, contact_threshold: float) -> torch.Tensor:
+    """The ten unweighted terms of eq. (3) for every world, (G, K, 10)."""
+    r = lambda t: t[:, None]  # noqa: E731 - real (G, ...) against sim (G, K, ...)
+    joints = torch.linalg.vector_norm(sim.q - r(real.q), dim=-1)
+    position = torch.linalg.vector_norm(sim.sensor_pos - r(real.sensor_pos), dim=-1).sum(-1)
+    rel = quat_multiply(quat_conjugate(sim.sensor_rot), r(real.sensor_rot).expand_as(sim.sensor_rot))
+    rotation = (2.0 * torch.atan2(torch.linalg.vector_norm(rel[..., :3], dim=-1), rel[..., 3].abs())).sum(-1)
+
+    mag_sim = torch.linalg.vector_norm(sim.force, dim=-1)
+    mag_real = r(torch.linalg.vector_norm(real.force, dim=-1))
+    touch_sim, touch_real = mag_sim > contact_threshold, mag_real > contact_threshold
+    alpha = (touch_sim == touch_real).float()
+    both = (touch_sim & touch_real).float()
+    force_on = r(real.has_force)[..., None]
+    contact = (1.0 - alpha).sum(-1) * force_on[..., 0]
+    magnitude = (alpha * (mag_sim - mag_real).abs()).sum(-1) * force_on[..., 0]
+    direction = (both * _angle_between(sim.force, r(real.force))).sum(-1) * force_on[..., 0]
+
+    beta = (sim.slip == r(real.slip)).float()
+    both_slip = sim.slip * r(real.slip)
+    slip_on = r(real.has_slip)
+    slip = (1.0 - beta).sum(-1) * slip_on
+    slip_dir = (both_slip * _angle_between(sim.slip_dir, r(real.slip_dir))).sum(-1) * slip_on
+
+    gamma = (sim.spin == r(real.spin)).float()
+    both_spin = sim.spin * r(real.spin)
+    spin_on = r(real.has_spin)
+    spin = (1.0 - gamma).sum(-1) * spin_on
+    sense = (both_spin * (sim.spin_sense - r(real.spin_sense)).abs()).sum(-1) * spin_on
+    terms = [joints, position, rotation, contact, magnitude, direction, slip, slip_dir, spin, sense]
+    return torch.stack(terms, dim=-1)
+
+
+@dataclass
+class Cost:
+    """Eq. (3) with its weights; keeps the running term magnitudes for the default normalisation."""
+
+    config: CostConfig
+    groups: int
+    device: torch.device
+    running: torch.Tensor = field(init=False)
+    frames: int = field(init=False, default=0)
+
+    def __post_init__(self) -> None:
+        self.running = torch.zeros(self.groups, 10, device=self.device)
+        self._floor = _NORM_FLOOR.to(self.device)
+        self._enabled = torch.tensor(self.config.enabled, dtype=torch.float32, device=self.device)
+        fixed = self.config.weights
+        self._fixed = None if fixed is None else torch.tensor(fixed, dtype=torch.float32, device=self.device)
+
+    def weights(self) -> torch.Tensor:
+        """Current w1..w10 per group, (G, 10)."""
+        if self._fixed is not None:
+            return (self._fixed * self._enabled).expand(self.groups, 10)
+        return self._enabled / torch.maximum(self.running, self._floor)
+
+    def __call__(self, sim: Observation, real: RealObservation) -> torch.Tensor:
+        """Weighted cost of every world, (G, K); updates the running term magnitudes."""
+        terms = cost_terms(sim, real, self.config.contact_threshold)
+        self.frames += 1
+        rate = max(1.0 / self.frames, self.config.norm_rate)
+        self.running.lerp_(terms.mean(dim=1), rate)
+        return (terms * self.weights()[:, None, :]).sum(-1)

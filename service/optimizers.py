@@ -1,0 +1,107 @@
+"""The paper's sample-based optimizers (section III-D) and its baselines, batched over groups.
+
+Each optimizer turns the window costs C (G, K) into an index map (G, K): world k of group g
+becomes a copy of world ``index[g, k]``, and a boolean ``explore`` (G, K): which worlds get fresh
+parameter noise and a perturbation wrench. All work is torch ops on the device: no host syncs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["METHODS", "OptimizerConfig", "Update", "reps_eta", "reps_pmf", "update", "wrs_pmf"]
+
+METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
+
+
+@dataclass(frozen=True)
+class OptimizerConfig:
+    method: str = "PBO"
+    wrs_lambda: float = 10.0
+    """WRS softmax temperature lambda, on costs normalised by their spread in the group."""
+    reps_epsilon: float = 1.0
+    """REPS KL bound epsilon between the new sample distribution and the uniform one [nats]."""
+    pbo_keep: float = 0.25
+    """PBO: the fraction K_best / K of worlds kept."""
+    keep_best: bool = True
+    """Leave the best world unperturbed, so an update never loses the current estimate."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"optimizer method: expected one of {METHODS}, got {self.method!r}")
+        if not (0.0 < self.pbo_keep <= 1.0):
+            raise ValueError(f"optimizer pbo_keep: expected 0 < fraction <= 1, got {self.pbo_keep}")
+        if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
+            raise ValueError(
+                f"optimizer reps_epsilon and wrs_lambda must be positive, got {self.reps_epsilon}, {self.wrs_lambda}"
+            )
+
+
+@dataclass
+class Update:
+    index: torch.Tensor
+    """Source world of every world after the update, (G, K) int64."""
+    explore: torch.Tensor
+    """Worlds to perturb (parameters and wrench), (G, K) bool."""
+
+
+def wrs_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
+    """Eq. (4): softmax of -lambda (C_i - min C), (G, K). Costs are scaled by their spread in the
+    group so that lambda keeps its meaning whatever the cost's units."""
+    spread = (cost.amax(-1, keepdim=True) - cost.amin(-1, keepdim=True)).clamp_min(1e-12)
+    return torch.softmax(-lam * (cost - cost.amin(-1, keepdim=True)) / spread, dim=-1)
+
+
+def reps_eta(cost: torch.Tensor, epsilon: float, iterations: int = 60) -> torch.Tensor:
+    """eta* of eq. (5) per group, (G,), by bisection on log eta.
+
+    With rewards R_i = max C + min C - C_i, the dual's derivative is g'(eta) = epsilon - KL(P_eta || U),
+    and the KL falls monotonically as eta grows, so eta* is where the KL meets epsilon. A group
+    whose costs cannot reach the bound (all equal, or epsilon >= log K) gets the largest eta tried.
+    """
+    reward = cost.amax(-1, keepdim=True) + cost.amin(-1, keepdim=True) - cost
+    spread = (reward.amax(-1) - reward.amin(-1)).clamp_min(1e-12)
+    lo = torch.log(spread * 1e-4)
+    hi = torch.log(spread * 1e4)
+    log_k = math.log(cost.shape[-1])
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        logp = torch.log_softmax(reward / mid.exp()[:, None], dim=-1)
+        kl = (logp.exp() * logp).sum(-1) + log_k
+        too_sharp = kl > epsilon  # KL above the bound: eta must grow
+        lo = torch.where(too_sharp, mid, lo)
+        hi = torch.where(too_sharp, hi, mid)
+    return (0.5 * (lo + hi)).exp()
+
+
+def reps_pmf(cost: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """Eq. (6): softmax of R_i / eta*, (G, K)."""
+    reward = cost.amax(-1, keepdim=True) + cost.amin(-1, keepdim=True) - cost
+    return torch.softmax(reward / reps_eta(cost, epsilon)[:, None], dim=-1)
+
+
+def update(cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator) -> Update:
+    """One optimizer update of every group from the window costs ``cost`` (G, K)."""
+    g, k = cost.shape
+    dev = cost.device
+    identity = torch.arange(k, device=dev).expand(g, k)
+    if config.method in ("OLP", "EYE"):
+        return Update(index=identity.clone(), explore=torch.zeros(g, k, dtype=torch.bool, device=dev))
+    if config.method == "PBO":
+        keep = max(1, round(config.pbo_keep * k))
+        order = torch.argsort(cost, dim=-1)
+        best = order[:, :keep]
+        pick = torch.randint(0, keep, (g, k - keep), generator=gen, device=dev)
+        index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
+    else:
+        pmf = wrs_pmf(cost, config.wrs_lambda) if config.method == "WRS" else reps_pmf(cost, config.reps_epsilon)
+        index = torch.multinomial(pmf, k, replacement=True, generator=gen)
+        # Put the best world in slot 0 so that keep_best protects it.
+        index[:, 0] = cost.argmin(-1)
+    explore = torch.ones(g, k, dtype=torch.bool, device=dev)
+    if config.keep_best:
+        explore[:, 0] = False
+    return Update(index=index, explore=explore)
