@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import newton
 import numpy as np
+import warp as wp
 
 from .robots import RobotLayout, RobotSpec, add_robot
 

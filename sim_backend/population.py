@@ -207,6 +207,7 @@ class Population:
     def __init__(self, robot: RobotSpec, obj: ObjectSpec, config: PopulationConfig | None = None):
         self.config = cfg = config or PopulationConfig()
         self.device = resolve_device(cfg.device)
+        self.robot_spec = robot
         self.object = obj
         self.G, self.K, self.W = cfg.groups, cfg.worlds, cfg.world_count
         torch_device = wp.device_to_torch(self.device)

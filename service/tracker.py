@@ -1,0 +1,312 @@
+"""Algorithm 1 of the paper for every group of a population at once.
+
+Per frame: write the robot's controls, replay the frame graph, score every world against the real
+robot (eq. 3), keep the window mean since the last update (eq. 1), take the best world (eq. 2).
+Every T frames the optimizer resamples and perturbs the group. Beyond the paper each estimate
+carries the group's cost-weighted mean pose and covariance, the best world's mass and friction,
+and a status; a group whose every world lost the object, or whose cost jumps far above its
+running level, is re-seeded around its last trusted estimate with wider noise.
+
+The tracker reads only what a robot sends (controls, joints, touch) plus p0 and Sigma_p.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+import torch
+
+from sim_backend import HEALTH_OK, Population, SensorFK
+
+from .cost import Cost, CostConfig, RealObservation
+from .optimizers import OptimizerConfig, update, wrs_pmf
+from .sampling import clipped_normal, quat_conjugate, quat_log, quat_multiply, sample_poses, sample_wrenches
+
+__all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
+
+
+class Status(IntEnum):
+    TRACKING = 0
+    UNCERTAIN = 1
+    """The population is spread wider than ``uncertain_spread``."""
+    DIVERGED = 2
+    """Every world lost the object or the cost jumped: the group was re-seeded this frame."""
+    RECOVERING = 3
+    """Re-seeded recently; not yet trusted."""
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    update_every: int = 10
+    """T: frames between optimizer updates."""
+    sigma_t: float = 0.005
+    """Initial pose noise, translation standard deviation [m] (Sigma_p)."""
+    sigma_r: float = 0.1
+    """Initial pose noise, rotation standard deviation [rad] (Sigma_p)."""
+    mass_sigma0: float = 0.25
+    """Initial mass spread, as a fraction of the object's mass range."""
+    friction_sigma0: float = 0.25
+    """Initial friction spread, as a fraction of the friction range."""
+    mass_sigma: float = 0.05
+    """Exploration: mass noise per update, fraction of the range (Sigma_theta)."""
+    friction_sigma: float = 0.05
+    """Exploration: friction noise per update, fraction of the range (Sigma_theta)."""
+    wrench_force: float = 0.3
+    """Exploration: perturbation force standard deviation [N] (Sigma_v)."""
+    wrench_torque: float = 0.005
+    """Exploration: perturbation torque standard deviation [N m] (Sigma_v)."""
+    estimate_lambda: float = 5.0
+    """Sharpness of the cost weights behind the mean pose and covariance (as WRS's lambda)."""
+    lost_fraction: float = 0.9
+    """Diverged when more than this fraction of a group's worlds lost the object."""
+    cost_jump: float = 6.0
+    """Diverged when the best window cost exceeds this multiple of its running level."""
+    uncertain_spread: float = 0.01
+    """Uncertain when the weighted position spread (RMS) exceeds this [m]."""
+    reseed_scale: float = 3.0
+    """Re-seeding noise, as a multiple of sigma_t and sigma_r."""
+    recover_frames: int = 20
+    """Frames a re-seeded group reports RECOVERING before it is trusted again."""
+    seed: int = 0
+    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
+    cost: CostConfig = field(default_factory=CostConfig)
+
+    def __post_init__(self) -> None:
+        if self.update_every < 1:
+            raise ValueError(f"tracker update_every: expected >= 1 frame, got {self.update_every}")
+        for name in ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "mass_sigma", "friction_sigma"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"tracker {name}: expected >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class Frame:
+    """One frame from the robots of all groups (host arrays)."""
+
+    controls: np.ndarray
+    """Joint position targets, (G, D)."""
+    q: np.ndarray
+    """Measured joint positions, (G, D)."""
+    force: np.ndarray | None = None
+    """Fingertip forces in the sensor frames, (G, L, 3) [N], or None."""
+    slip: np.ndarray | None = None
+    slip_dir: np.ndarray | None = None
+    spin: np.ndarray | None = None
+    spin_sense: np.ndarray | None = None
+
+
+@dataclass
+class Estimate:
+    """What the tracker reports for every group after a frame (host arrays)."""
+
+    frame: int
+    pose: np.ndarray
+    """Best world's object pose, (G, 7): position [m], quaternion (x, y, z, w)."""
+    cost: np.ndarray
+    """Best world's window cost, (G,)."""
+    mean_pose: np.ndarray
+    """Cost-weighted mean object pose of the group, (G, 7)."""
+    covariance: np.ndarray
+    """Cost-weighted covariance of (position [m], rotation vector [rad]) about the mean, (G, 6, 6)."""
+    mass: np.ndarray
+    """Best world's object mass, (G,) [kg]."""
+    friction: np.ndarray
+    """Best world's object friction, (G,)."""
+    lost: np.ndarray
+    """Fraction of each group's worlds that lost the object, (G,)."""
+    status: np.ndarray
+    """Status per group, (G,) int (see :class:`Status`)."""
+
+
+class Tracker:
+    """Algorithm 1 over every group of ``population`` at once."""
+
+    def __init__(self, population: Population, config: TrackerConfig | None = None):
+        self.pop = pop = population
+        self.config = cfg = config or TrackerConfig()
+        self.G, self.K, self.D, self.L = pop.G, pop.K, pop.D, pop.L
+        dev = self.device = pop.torch_device
+        self.gen = torch.Generator(device=dev)
+        self.gen.manual_seed(cfg.seed)
+        self.cost = Cost(cfg.cost, self.G, dev)
+        self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
+        self.real = RealObservation.zeros(self.G, self.D, self.L, dev)
+        self.window = torch.zeros(self.G, self.K, device=dev)
+        self.window_frames = 0
+        self.frame = 0
+        obj = pop.object
+        self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
+        self._status = np.zeros(self.G, dtype=np.int64)
+        self._recovering = np.zeros(self.G, dtype=np.int64)
+        self._level = np.full(self.G, np.nan)
+        self._trusted: np.ndarray | None = None
+        self._p0: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ start
+    def start(self, p0: np.ndarray, q0: np.ndarray, sigma_t=None, sigma_r=None) -> None:
+        """Seed every group around its initial pose estimate ``p0`` (G, 7) with the robot at ``q0`` (G, D).
+
+        sigma_t [m], sigma_r [rad]: Sigma_p, scalars or (G,); default from the config.
+        """
+        cfg = self.config
+        p0 = np.asarray(p0, dtype=np.float32).reshape(self.G, 7)
+        self._p0 = p0.copy()
+        self._trusted = p0.copy()
+        self._seed(np.ones(self.G, bool), p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
+                   cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
+        self._status[:] = Status.TRACKING
+        self._recovering[:] = 0
+        self._level[:] = np.nan
+
+    def _seed(self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r) -> None:
+        """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them."""
+        cfg, dev = self.config, self.device
+        mean_t = torch.as_tensor(mean, dtype=torch.float32, device=dev)
+        poses = sample_poses(mean_t, sigma_t, sigma_r, self.K, self.gen)
+        if self.K == 1 or cfg.optimizer.method == "OLP":
+            poses = mean_t[:, None].expand(self.G, self.K, 7)  # OLP: the estimate itself, one world
+        (m_lo, m_hi), (f_lo, f_hi) = self._mass_range, self._friction_range
+        obj = self.pop.object
+        mass = torch.full((self.G, self.K), obj.mass, device=dev)
+        friction = torch.full((self.G, self.K), obj.friction, device=dev)
+        if self.K > 1:
+            mass = clipped_normal(mass, cfg.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
+            friction = clipped_normal(friction, cfg.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
+        sel = torch.as_tensor(groups, device=dev)[:, None]
+        mass = torch.where(sel, mass, self.pop.mass)
+        friction = torch.where(sel, friction, self.pop.friction)
+        self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
+        self.pop.set_params(mass=mass, friction=friction)
+        self.window.masked_fill_(sel, 0.0)
+
+    # ------------------------------------------------------------------ frame
+    def _load_real(self, frame: Frame) -> None:
+        real, dev = self.real, self.device
+
+        def put(dst: torch.Tensor, src: np.ndarray | None, flag: torch.Tensor | None = None) -> None:
+            if src is None:
+                if flag is not None:
+                    flag.zero_()
+                return
+            dst.copy_(torch.as_tensor(src, dtype=torch.float32), non_blocking=True)
+            if flag is not None:
+                flag.fill_(1.0)
+
+        put(real.q, frame.q)
+        put(real.force, frame.force, real.has_force)
+        put(real.slip, frame.slip, real.has_slip)
+        put(real.slip_dir, frame.slip_dir)
+        put(real.spin, frame.spin, real.has_spin)
+        put(real.spin_sense, frame.spin_sense)
+        self.fk.update(real.q)
+        real.sensor_pos, real.sensor_rot = self.fk.pos, self.fk.rot
+        del dev
+
+    def step(self, frame: Frame) -> Estimate:
+        """Advance every group by one robot frame and return the estimates."""
+        cfg, pop = self.config, self.pop
+        pop.set_targets(frame.controls)
+        pop.step()
+        self._load_real(frame)
+        cost = self.cost(pop.obs, self.real)
+        # A world that lost its object or went NaN is worst; NaN costs must not win the argmin.
+        cost = torch.where(pop.obs.health == HEALTH_OK, torch.nan_to_num(cost, nan=1e9), torch.full_like(cost, 1e9))
+        self.window += cost
+        self.window_frames += 1
+        self.frame += 1
+        window = self.window / self.window_frames
+        packed = self._summary(window).cpu()  # the one host sync of the frame
+        estimate = self._unpack(packed)
+        if self.window_frames >= cfg.update_every:
+            self._update(window)
+        self._watch(estimate, frame)
+        return estimate
+
+    def _summary(self, window: torch.Tensor) -> torch.Tensor:
+        """Everything the estimate needs, packed in one (G, 58) tensor for one device->host copy."""
+        obs, pop = self.pop.obs, self.pop
+        best = window.argmin(-1)
+        take = lambda t: torch.gather(t, 1, best[:, None, None].expand(-1, 1, t.shape[-1]))[:, 0]  # noqa: E731
+        pose = take(obs.object_pose)
+        weights = wrs_pmf(window, self.config.estimate_lambda)  # (G, K)
+        position = obs.object_pose[..., :3]
+        quat = obs.object_pose[..., 3:]
+        # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
+        quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
+        mean_p = (weights[..., None] * position).sum(1)
+        mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
+        delta = torch.cat(
+            [
+                position - mean_p[:, None],
+                quat_log(quat_multiply(quat_conjugate(mean_q)[:, None].expand_as(quat), quat)),
+            ],
+            dim=-1,
+        )
+        cov = torch.einsum("gk,gki,gkj->gij", weights, delta, delta).reshape(self.G, 36)
+        lost = (obs.health != HEALTH_OK).float().mean(-1, keepdim=True)
+        scalars = torch.stack(
+            [window.gather(1, best[:, None])[:, 0], pop.mass.gather(1, best[:, None])[:, 0],
+             pop.friction.gather(1, best[:, None])[:, 0]], dim=-1)  # fmt: skip
+        return torch.cat([pose, mean_p, mean_q, cov, scalars, lost], dim=-1)
+
+    def _unpack(self, packed: torch.Tensor) -> Estimate:
+        a = packed.numpy()
+        return Estimate(
+            frame=self.frame,
+            pose=a[:, 0:7],
+            mean_pose=a[:, 7:14],
+            covariance=a[:, 14:50].reshape(self.G, 6, 6),
+            cost=a[:, 50],
+            mass=a[:, 51],
+            friction=a[:, 52],
+            lost=a[:, 53],
+            status=self._status.copy(),
+        )
+
+    def _update(self, window: torch.Tensor) -> None:
+        """The optimizer's resample and perturbation; the window starts again."""
+        cfg = self.config
+        upd = update(window, cfg.optimizer, self.gen)
+        self.pop.resample(upd.index)
+        if bool(cfg.optimizer.method not in ("OLP", "EYE")):
+            (m_lo, m_hi), (f_lo, f_hi) = self._mass_range, self._friction_range
+            explore = upd.explore
+            mass = torch.where(
+                explore,
+                clipped_normal(self.pop.mass.clone(), cfg.mass_sigma * (m_hi - m_lo), m_lo, m_hi, self.gen),
+                self.pop.mass,
+            )
+            friction = torch.where(explore, clipped_normal(self.pop.friction.clone(), cfg.friction_sigma * (f_hi - f_lo), f_lo, f_hi, self.gen), self.pop.friction)  # fmt: skip
+            self.pop.set_params(mass=mass, friction=friction)
+            wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
+            self.pop.set_wrench(wrench * explore[..., None])
+        self.window.zero_()
+        self.window_frames = 0
+
+    # ------------------------------------------------------------------ divergence
+    def _watch(self, est: Estimate, frame: Frame) -> None:
+        """Host-side status from the estimate just copied back; re-seed diverged groups."""
+        cfg = self.config
+        warm = est.frame > cfg.update_every
+        level = self._level
+        jumped = warm & np.isfinite(level) & (est.cost > cfg.cost_jump * np.maximum(level, 1e-6))
+        diverged = (est.lost > cfg.lost_fraction) | jumped
+        spread = np.sqrt(np.trace(est.covariance[:, :3, :3], axis1=1, axis2=2))
+        status = np.where(spread > cfg.uncertain_spread, Status.UNCERTAIN, Status.TRACKING)
+        self._recovering = np.maximum(self._recovering - 1, 0)
+        status = np.where(self._recovering > 0, Status.RECOVERING, status)
+        status = np.where(diverged, Status.DIVERGED, status)
+        trusted = status == Status.TRACKING
+        if self._trusted is not None:
+            self._trusted[trusted] = est.pose[trusted]
+        # The running cost level follows trusted frames only, so a slow drift cannot raise it.
+        rate = 0.05
+        level[:] = np.where(trusted & np.isfinite(level), (1 - rate) * level + rate * est.cost, level)
+        level[:] = np.where(trusted & ~np.isfinite(level) & warm, est.cost, level)
+        if diverged.any() and self._trusted is not None:
+            self._seed(diverged, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, cfg.sigma_r * cfg.reseed_scale)
+            self._recovering[diverged] = cfg.recover_frames
+        self._status[:] = status
+        est.status = status.astype(np.int64)

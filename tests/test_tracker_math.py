@@ -1,0 +1,151 @@
+"""Unit tests of the tracker's math: eq. (3) terms, the optimizers' distributions, SE(3) noise."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from service.cost import Cost, CostConfig, RealObservation, cost_terms
+from service.optimizers import OptimizerConfig, reps_eta, reps_pmf, update, wrs_pmf
+from service.sampling import quat_exp, quat_log, quat_multiply, sample_poses
+from sim_backend import Observation
+
+
+def _sim_obs(g: int, k: int, d: int = 2, l: int = 2) -> Observation:
+    z = lambda *s: torch.zeros(s)  # noqa: E731
+    rot = z(g, k, l, 4)
+    rot[..., 3] = 1.0
+    pose = z(g, k, 7)
+    pose[..., 6] = 1.0
+    return Observation(z(g, k, d), z(g, k, l, 3), rot, z(g, k, l, 3), z(g, k, l), z(g, k, l, 2), z(g, k, l),
+                       z(g, k, l), pose, torch.zeros(g, k, dtype=torch.int32))  # fmt: skip
+
+
+def _real(d: int = 2, l: int = 2) -> RealObservation:
+    r = RealObservation.zeros(1, d, l, torch.device("cpu"))
+    r.has_force.fill_(1.0)
+    r.has_slip.fill_(1.0)
+    r.has_spin.fill_(1.0)
+    return r
+
+
+def test_each_cost_term_against_hand_computed_values():
+    sim, real = _sim_obs(1, 1), _real()
+    sim.q[0, 0] = torch.tensor([0.3, 0.0])
+    real.q[0] = torch.tensor([0.0, 0.4])  # ||(0.3, -0.4)|| = 0.5
+    sim.sensor_pos[0, 0, 0] = torch.tensor([0.01, 0.0, 0.0])
+    sim.sensor_pos[0, 0, 1] = torch.tensor([0.0, 0.02, 0.0])  # 0.01 + 0.02
+    sim.sensor_rot[0, 0, 1] = quat_exp(torch.tensor([0.0, 0.0, 0.3]))  # one sensor turned 0.3 rad
+    # Forces: sensor 0 both in contact, 2 N vs 3 N at 90 degrees; sensor 1 only the sim touches.
+    sim.force[0, 0, 0] = torch.tensor([0.0, 0.0, -2.0])
+    real.force[0, 0] = torch.tensor([3.0, 0.0, 0.0])
+    sim.force[0, 0, 1] = torch.tensor([0.0, 0.0, -1.0])
+    # Slip: sensor 0 both slipping, directions 45 degrees apart; sensor 1 only the real one slips.
+    sim.slip[0, 0, 0] = 1.0
+    real.slip[0, 0] = 1.0
+    sim.slip_dir[0, 0, 0] = torch.tensor([1.0, 0.0])
+    real.slip_dir[0, 0] = torch.tensor([math.sqrt(0.5), math.sqrt(0.5)])
+    real.slip[0, 1] = 1.0
+    # Spin: sensor 0 both spinning, opposite senses; sensor 1 agrees (neither).
+    sim.spin[0, 0, 0] = real.spin[0, 0] = 1.0
+    sim.spin_sense[0, 0, 0] = 1.0
+    t = cost_terms(sim, real, contact_threshold=0.2)[0, 0]
+    expected = [0.5, 0.03, 0.3, 1.0, 1.0, math.pi / 2, 1.0, math.pi / 4, 0.0, 1.0]
+    assert t.tolist() == pytest.approx(expected, abs=1e-5)
+
+
+def test_terms_without_fields_drop_out_and_weights_normalise():
+    sim, real = _sim_obs(1, 3), _real()
+    sim.slip[0, :, 0] = 1.0
+    sim.force[0, :, 0, 2] = -1.0
+    real.has_slip.zero_()
+    real.has_spin.zero_()
+    real.has_force.zero_()
+    t = cost_terms(sim, real, contact_threshold=0.2)
+    assert torch.all(t[..., 3:] == 0)
+    cost = Cost(CostConfig(), groups=1, device=torch.device("cpu"))
+    sim.q[0, :, 0] = torch.tensor([0.1, 0.2, 0.3])
+    for _ in range(5):
+        c = cost(sim, real)
+    # Normalised by the running mean (0.2), the joint term of the three worlds reads 0.5, 1, 1.5.
+    assert c[0].tolist() == pytest.approx([0.5, 1.0, 1.5], rel=1e-5)
+    fixed = Cost(CostConfig(weights=(2.0,) + (0.0,) * 9), groups=1, device=torch.device("cpu"))
+    assert fixed(sim, real)[0].tolist() == pytest.approx([0.2, 0.4, 0.6], rel=1e-5)
+    with pytest.raises(ValueError, match="cost weights: expected 10 values"):
+        CostConfig(weights=(1.0, 2.0))
+
+
+def test_reps_eta_meets_the_kl_bound_within_one_percent():
+    gen = torch.Generator().manual_seed(0)
+    cost = torch.rand(64, 40, generator=gen) * torch.rand(64, 1, generator=gen) * 10
+    for eps in (0.1, 0.5, 1.0, 2.0):
+        p = reps_pmf(cost, eps)
+        kl = (p * torch.log(p * cost.shape[1])).sum(-1)
+        assert torch.allclose(kl, torch.full_like(kl, eps), rtol=0.01), (eps, kl.min(), kl.max())
+    assert (reps_eta(cost, 1.0) > 0).all()
+
+
+def _counts(index: torch.Tensor, k: int) -> torch.Tensor:
+    return torch.nn.functional.one_hot(index, k).sum(dim=(0, 1)).float()
+
+
+def test_wrs_samples_follow_its_softmax():
+    k, g = 8, 4000
+    cost = torch.linspace(0.0, 1.0, k).expand(g, k).contiguous()
+    cfg = OptimizerConfig(method="WRS", wrs_lambda=3.0, keep_best=False)
+    upd = update(cost, cfg, torch.Generator().manual_seed(1))
+    pmf = wrs_pmf(cost[:1], 3.0)[0]
+    # Slot 0 is the best world by construction; the other slots are draws from the PMF.
+    observed = _counts(upd.index[:, 1:], k)
+    expected = pmf * observed.sum()
+    chi2 = ((observed - expected) ** 2 / expected).sum().item()
+    assert chi2 < 24.3, chi2  # chi-square, 7 dof, p = 0.001
+    assert torch.allclose(pmf, torch.softmax(-3.0 * torch.linspace(0, 1, k), 0))
+
+
+def test_pbo_keeps_the_best_and_copies_them_uniformly():
+    k, g = 12, 3000
+    gen = torch.Generator().manual_seed(2)
+    cost = torch.rand(g, k, generator=gen)
+    upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25), gen)
+    best = torch.argsort(cost, -1)[:, :3]
+    assert torch.equal(upd.index[:, :3], best)  # the K_best survive, best first
+    copies = upd.index[:, 3:]
+    assert torch.isin(copies, best).all() if g == 1 else all(torch.isin(copies[i], best[i]).all() for i in range(50))
+    rank = (copies[..., None] == best[:, None, :]).float().argmax(-1)  # which of the 3 was copied
+    observed = torch.nn.functional.one_hot(rank, 3).sum((0, 1)).float()
+    expected = observed.sum() / 3
+    assert (((observed - expected) ** 2) / expected).sum().item() < 13.8  # 2 dof, p = 0.001
+    assert not upd.explore[:, 0].any() and upd.explore[:, 1:].all()
+
+
+def test_eye_and_olp_never_move_worlds():
+    cost = torch.rand(3, 5)
+    for method in ("EYE", "OLP"):
+        upd = update(cost, OptimizerConfig(method=method), torch.Generator())
+        assert torch.equal(upd.index, torch.arange(5).expand(3, 5)) and not upd.explore.any()
+    with pytest.raises(ValueError, match="optimizer method: expected one of"):
+        OptimizerConfig(method="CMA")
+
+
+def test_so3_sampler_angles_match_sigma():
+    gen = torch.Generator().manual_seed(3)
+    mean = torch.tensor([[0.1, 0.2, 0.3, 0.0, 0.0, math.sin(0.4), math.cos(0.4)]])
+    for sigma in (0.01, 0.1, 0.3):
+        poses = sample_poses(mean, 0.005, sigma, 20000, gen)[0]
+        rel = quat_multiply(torch.cat([-mean[:, 3:6], mean[:, 6:]], -1).expand(20000, 4), poses[:, 3:])
+        angle = quat_log(rel).norm(dim=-1)
+        # ||omega|| for omega ~ N(0, sigma^2 I3) is Maxwell: E[theta^2] = 3 sigma^2.
+        assert (angle**2).mean().item() == pytest.approx(3 * sigma**2, rel=0.05)
+        assert torch.allclose(poses[:, 3:].norm(dim=-1), torch.ones(20000), atol=1e-5)
+    dp = poses[:, :3] - mean[:, :3]
+    assert dp.std(0).tolist() == pytest.approx([0.005] * 3, rel=0.05)
+
+
+def test_quat_log_inverts_exp():
+    gen = torch.Generator().manual_seed(4)
+    axis = torch.nn.functional.normalize(torch.randn(1000, 3, generator=gen), dim=-1)
+    omega = axis * torch.rand(1000, 1, generator=gen) * 3.1  # angles below pi: log is unique there
+    assert torch.allclose(quat_log(quat_exp(omega)), omega, atol=1e-5)
