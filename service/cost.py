@@ -138,6 +138,8 @@ class Cost:
     device: torch.device
     running: torch.Tensor = field(init=False)
     frames: int = field(init=False, default=0)
+    last_terms: torch.Tensor | None = field(init=False, default=None)
+    """The unweighted terms of the latest frame, (G, K, 10)."""
 
     def __post_init__(self) -> None:
         self.running = torch.zeros(self.groups, 10, device=self.device)
@@ -155,6 +157,7 @@ class Cost:
     def __call__(self, sim: Observation, real: RealObservation) -> torch.Tensor:
         """Weighted cost of every world, (G, K); updates the running term magnitudes."""
         terms = cost_terms(sim, real, self.config.contact_threshold)
+        self.last_terms = terms
         self.frames += 1
         rate = max(1.0 / self.frames, self.config.norm_rate)
         self.running.lerp_(terms.mean(dim=1), rate)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["METHODS", "OptimizerConfig", "Update", "reps_eta", "reps_pmf", "update", "wrs_pmf"]
+__all__ = ["METHODS", "OptimizerConfig", "Update", "reps_eta", "reps_pmf", "systematic_resample", "update", "wrs_pmf"]
 
 METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
 
@@ -28,6 +28,10 @@ class OptimizerConfig:
     """PBO: the fraction K_best / K of worlds kept."""
     keep_best: bool = True
     """Leave the best world unperturbed, so an update never loses the current estimate."""
+    min_spread: float = 0.05
+    """Skip the update of a group whose window costs differ by less than this fraction of their
+    mean: before the hand touches the object every world scores alike, and resampling then would
+    only throw away the spread of initial poses."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -83,6 +87,18 @@ def reps_pmf(cost: torch.Tensor, epsilon: float) -> torch.Tensor:
     return torch.softmax(reward / reps_eta(cost, epsilon)[:, None], dim=-1)
 
 
+def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """K draws per group from ``pmf`` (G, K) by systematic resampling: one uniform offset and K
+    evenly spaced points, so each world is copied floor or ceil of K p_i times. Unlike independent
+    draws it keeps every world of a flat PMF."""
+    g, k = pmf.shape
+    offset = torch.rand((g, 1), generator=gen, device=pmf.device)
+    points = (torch.arange(k, device=pmf.device) + offset) / k
+    cdf = torch.cumsum(pmf, dim=-1)
+    cdf = cdf / cdf[:, -1:]
+    return torch.searchsorted(cdf, points).clamp_(max=k - 1)
+
+
 def update(cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K)."""
     g, k = cost.shape
@@ -98,10 +114,12 @@ def update(cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator) ->
         index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
     else:
         pmf = wrs_pmf(cost, config.wrs_lambda) if config.method == "WRS" else reps_pmf(cost, config.reps_epsilon)
-        index = torch.multinomial(pmf, k, replacement=True, generator=gen)
+        index = systematic_resample(pmf, gen)
         # Put the best world in slot 0 so that keep_best protects it.
         index[:, 0] = cost.argmin(-1)
     explore = torch.ones(g, k, dtype=torch.bool, device=dev)
     if config.keep_best:
         explore[:, 0] = False
-    return Update(index=index, explore=explore)
+    spread = cost.amax(-1) - cost.amin(-1)
+    informative = (spread > config.min_spread * cost.mean(-1).abs())[:, None]
+    return Update(index=torch.where(informative, index, identity), explore=explore & informative)

@@ -53,16 +53,19 @@ class TrackerConfig:
     """Exploration: mass noise per update, fraction of the range (Sigma_theta)."""
     friction_sigma: float = 0.05
     """Exploration: friction noise per update, fraction of the range (Sigma_theta)."""
-    wrench_force: float = 0.3
+    wrench_force: float = 0.05
     """Exploration: perturbation force standard deviation [N] (Sigma_v)."""
-    wrench_torque: float = 0.005
+    wrench_torque: float = 0.001
     """Exploration: perturbation torque standard deviation [N m] (Sigma_v)."""
     estimate_lambda: float = 5.0
     """Sharpness of the cost weights behind the mean pose and covariance (as WRS's lambda)."""
     lost_fraction: float = 0.9
     """Diverged when more than this fraction of a group's worlds lost the object."""
-    cost_jump: float = 6.0
-    """Diverged when the best window cost exceeds this multiple of its running level."""
+    contact_loss_frames: int = 5
+    """Diverged when the best world disagrees with the real robot about contact on at least half
+    of the sensors for this many frames in a row (the real hand holds the object, no world does).
+    A cost-level rule fired falsely whenever contact began: the normalised cost is not stationary
+    across approach, grasp and transport."""
     uncertain_spread: float = 0.01
     """Uncertain when the weighted position spread (RMS) exceeds this [m]."""
     reseed_scale: float = 3.0
@@ -116,6 +119,8 @@ class Estimate:
     """Best world's object friction, (G,)."""
     lost: np.ndarray
     """Fraction of each group's worlds that lost the object, (G,)."""
+    contact_disagreement: np.ndarray
+    """Sensors on which the best world and the real robot disagree about contact, (G,)."""
     status: np.ndarray
     """Status per group, (G,) int (see :class:`Status`)."""
 
@@ -140,7 +145,7 @@ class Tracker:
         self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
         self._status = np.zeros(self.G, dtype=np.int64)
         self._recovering = np.zeros(self.G, dtype=np.int64)
-        self._level = np.full(self.G, np.nan)
+        self._jumps = np.zeros(self.G, dtype=np.int64)
         self._trusted: np.ndarray | None = None
         self._p0: np.ndarray | None = None
 
@@ -158,7 +163,6 @@ class Tracker:
                    cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
         self._status[:] = Status.TRACKING
         self._recovering[:] = 0
-        self._level[:] = np.nan
 
     def _seed(self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r) -> None:
         """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them."""
@@ -246,10 +250,11 @@ class Tracker:
         )
         cov = torch.einsum("gk,gki,gkj->gij", weights, delta, delta).reshape(self.G, 36)
         lost = (obs.health != HEALTH_OK).float().mean(-1, keepdim=True)
+        disagree = self.cost.last_terms[..., 3].gather(1, best[:, None])  # sensors in contact disagreement
         scalars = torch.stack(
             [window.gather(1, best[:, None])[:, 0], pop.mass.gather(1, best[:, None])[:, 0],
              pop.friction.gather(1, best[:, None])[:, 0]], dim=-1)  # fmt: skip
-        return torch.cat([pose, mean_p, mean_q, cov, scalars, lost], dim=-1)
+        return torch.cat([pose, mean_p, mean_q, cov, scalars, lost, disagree], dim=-1)
 
     def _unpack(self, packed: torch.Tensor) -> Estimate:
         a = packed.numpy()
@@ -262,6 +267,7 @@ class Tracker:
             mass=a[:, 51],
             friction=a[:, 52],
             lost=a[:, 53],
+            contact_disagreement=a[:, 54],
             status=self._status.copy(),
         )
 
@@ -270,43 +276,40 @@ class Tracker:
         cfg = self.config
         upd = update(window, cfg.optimizer, self.gen)
         self.pop.resample(upd.index)
-        if bool(cfg.optimizer.method not in ("OLP", "EYE")):
-            (m_lo, m_hi), (f_lo, f_hi) = self._mass_range, self._friction_range
+        if cfg.optimizer.method not in ("OLP", "EYE"):
             explore = upd.explore
-            mass = torch.where(
-                explore,
-                clipped_normal(self.pop.mass.clone(), cfg.mass_sigma * (m_hi - m_lo), m_lo, m_hi, self.gen),
-                self.pop.mass,
-            )
-            friction = torch.where(explore, clipped_normal(self.pop.friction.clone(), cfg.friction_sigma * (f_hi - f_lo), f_lo, f_hi, self.gen), self.pop.friction)  # fmt: skip
+            mass = self._explore(self.pop.mass, cfg.mass_sigma, self._mass_range, explore)
+            friction = self._explore(self.pop.friction, cfg.friction_sigma, self._friction_range, explore)
             self.pop.set_params(mass=mass, friction=friction)
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * explore[..., None])
         self.window.zero_()
         self.window_frames = 0
 
+    def _explore(self, value: torch.Tensor, sigma: float, bounds: tuple[float, float], mask: torch.Tensor):
+        """theta ~ N(theta, Sigma_theta) clipped to its range, where ``mask``; ``sigma`` is a fraction of the range."""
+        lo, hi = bounds
+        return torch.where(mask, clipped_normal(value.clone(), sigma * (hi - lo), lo, hi, self.gen), value)
+
     # ------------------------------------------------------------------ divergence
     def _watch(self, est: Estimate, frame: Frame) -> None:
         """Host-side status from the estimate just copied back; re-seed diverged groups."""
         cfg = self.config
-        warm = est.frame > cfg.update_every
-        level = self._level
-        jumped = warm & np.isfinite(level) & (est.cost > cfg.cost_jump * np.maximum(level, 1e-6))
-        diverged = (est.lost > cfg.lost_fraction) | jumped
+        self._recovering = np.maximum(self._recovering - 1, 0)
+        recovering = self._recovering > 0
+        lost_contact = ~recovering & (est.contact_disagreement >= 0.5 * self.L)
+        self._jumps = np.where(lost_contact, self._jumps + 1, 0)
+        diverged = (est.lost > cfg.lost_fraction) | (self._jumps >= cfg.contact_loss_frames)
         spread = np.sqrt(np.trace(est.covariance[:, :3, :3], axis1=1, axis2=2))
         status = np.where(spread > cfg.uncertain_spread, Status.UNCERTAIN, Status.TRACKING)
-        self._recovering = np.maximum(self._recovering - 1, 0)
-        status = np.where(self._recovering > 0, Status.RECOVERING, status)
+        status = np.where(recovering, Status.RECOVERING, status)
         status = np.where(diverged, Status.DIVERGED, status)
         trusted = status == Status.TRACKING
         if self._trusted is not None:
             self._trusted[trusted] = est.pose[trusted]
-        # The running cost level follows trusted frames only, so a slow drift cannot raise it.
-        rate = 0.05
-        level[:] = np.where(trusted & np.isfinite(level), (1 - rate) * level + rate * est.cost, level)
-        level[:] = np.where(trusted & ~np.isfinite(level) & warm, est.cost, level)
         if diverged.any() and self._trusted is not None:
             self._seed(diverged, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, cfg.sigma_r * cfg.reseed_scale)
             self._recovering[diverged] = cfg.recover_frames
+            self._jumps[diverged] = 0
         self._status[:] = status
         est.status = status.astype(np.int64)

@@ -91,14 +91,21 @@ def _counts(index: torch.Tensor, k: int) -> torch.Tensor:
     return torch.nn.functional.one_hot(index, k).sum(dim=(0, 1)).float()
 
 
+def pmf_row(cost: torch.Tensor, lam: float) -> torch.Tensor:
+    return wrs_pmf(cost[:1], lam)[0]
+
+
 def test_wrs_samples_follow_its_softmax():
     k, g = 8, 4000
     cost = torch.linspace(0.0, 1.0, k).expand(g, k).contiguous()
     cfg = OptimizerConfig(method="WRS", wrs_lambda=3.0, keep_best=False)
     upd = update(cost, cfg, torch.Generator().manual_seed(1))
     pmf = wrs_pmf(cost[:1], 3.0)[0]
-    # Slot 0 is the best world by construction; the other slots are draws from the PMF.
-    observed = _counts(upd.index[:, 1:], k)
+    # Systematic resampling: every world is copied floor or ceil of K p_i times, so the counts over
+    # many groups match the PMF (slot 0, forced to the best world, is already world 0 here).
+    per_group = torch.nn.functional.one_hot(upd.index, k).sum(1).float()
+    assert ((per_group - k * pmf_row(cost, 3.0)).abs() < 1.0).all()
+    observed = _counts(upd.index, k)
     expected = pmf * observed.sum()
     chi2 = ((observed - expected) ** 2 / expected).sum().item()
     assert chi2 < 24.3, chi2  # chi-square, 7 dof, p = 0.001
