@@ -22,16 +22,16 @@ class OptimizerConfig:
     method: str = "PBO"
     wrs_lambda: float = 10.0
     """WRS softmax temperature lambda, on costs normalised by their spread in the group."""
-    reps_epsilon: float = 1.0
+    reps_epsilon: float = 0.5
     """REPS KL bound epsilon between the new sample distribution and the uniform one [nats]."""
-    pbo_keep: float = 0.25
+    pbo_keep: float = 0.5
     """PBO: the fraction K_best / K of worlds kept."""
     keep_best: bool = True
     """Leave the best world unperturbed, so an update never loses the current estimate."""
-    min_spread: float = 0.05
-    """Skip the update of a group whose window costs differ by less than this fraction of their
-    mean: before the hand touches the object every world scores alike, and resampling then would
-    only throw away the spread of initial poses."""
+    min_spread: float = 0.5
+    """Skip the update of a group whose window costs differ by less than this (the default cost
+    normalises each term to about 1): before the hand touches the object every world scores
+    alike up to noise, and resampling on noise only throws away the spread of initial poses."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -121,5 +121,5 @@ def update(cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator) ->
     if config.keep_best:
         explore[:, 0] = False
     spread = cost.amax(-1) - cost.amin(-1)
-    informative = (spread > config.min_spread * cost.mean(-1).abs())[:, None]
+    informative = (spread > config.min_spread)[:, None]
     return Update(index=torch.where(informative, index, identity), explore=explore & informative)

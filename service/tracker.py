@@ -39,7 +39,7 @@ class Status(IntEnum):
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    update_every: int = 10
+    update_every: int = 15
     """T: frames between optimizer updates."""
     sigma_t: float = 0.005
     """Initial pose noise, translation standard deviation [m] (Sigma_p)."""
