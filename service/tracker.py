@@ -145,7 +145,7 @@ class Tracker:
         self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
         self._status = np.zeros(self.G, dtype=np.int64)
         self._recovering = np.zeros(self.G, dtype=np.int64)
-        self._jumps = np.zeros(self.G, dtype=np.int64)
+        self._contact_loss = np.zeros(self.G, dtype=np.int64)
         self._trusted: np.ndarray | None = None
         self._p0: np.ndarray | None = None
 
@@ -187,33 +187,35 @@ class Tracker:
 
     # ------------------------------------------------------------------ frame
     def _load_real(self, frame: Frame) -> None:
-        real, dev = self.real, self.device
+        real = self.real
 
-        def put(dst: torch.Tensor, src: np.ndarray | None, flag: torch.Tensor | None = None) -> None:
+        def put(dst: torch.Tensor, src: np.ndarray | None, flag: torch.Tensor | None = None, name: str = "") -> None:
             if src is None:
                 if flag is not None:
                     flag.zero_()
                 return
+            if np.shape(src) != tuple(dst.shape):
+                raise ValueError(f"frame {name}: expected shape {tuple(dst.shape)}, got {np.shape(src)}")
             dst.copy_(torch.as_tensor(src, dtype=torch.float32), non_blocking=True)
             if flag is not None:
                 flag.fill_(1.0)
 
-        put(real.q, frame.q)
-        put(real.force, frame.force, real.has_force)
-        put(real.slip, frame.slip, real.has_slip)
-        put(real.slip_dir, frame.slip_dir)
-        put(real.spin, frame.spin, real.has_spin)
-        put(real.spin_sense, frame.spin_sense)
+        put(real.q, frame.q, name="q")
+        put(real.force, frame.force, real.has_force, "force")
+        put(real.slip, frame.slip, real.has_slip, "slip")
+        put(real.slip_dir, frame.slip_dir, name="slip_dir")
+        put(real.spin, frame.spin, real.has_spin, "spin")
+        put(real.spin_sense, frame.spin_sense, name="spin_sense")
         self.fk.update(real.q)
         real.sensor_pos, real.sensor_rot = self.fk.pos, self.fk.rot
-        del dev
 
     def step(self, frame: Frame) -> Estimate:
         """Advance every group by one robot frame and return the estimates."""
         cfg, pop = self.config, self.pop
+        # Everything that can refuse the frame runs before the population moves.
+        self._load_real(frame)
         pop.set_targets(frame.controls)
         pop.step()
-        self._load_real(frame)
         cost = self.cost(pop.obs, self.real)
         # A world that lost its object or went NaN is worst; NaN costs must not win the argmin.
         cost = torch.where(pop.obs.health == HEALTH_OK, torch.nan_to_num(cost, nan=1e9), torch.full_like(cost, 1e9))
@@ -298,8 +300,8 @@ class Tracker:
         self._recovering = np.maximum(self._recovering - 1, 0)
         recovering = self._recovering > 0
         lost_contact = ~recovering & (est.contact_disagreement >= 0.5 * self.L)
-        self._jumps = np.where(lost_contact, self._jumps + 1, 0)
-        diverged = (est.lost > cfg.lost_fraction) | (self._jumps >= cfg.contact_loss_frames)
+        self._contact_loss = np.where(lost_contact, self._contact_loss + 1, 0)
+        diverged = (est.lost > cfg.lost_fraction) | (self._contact_loss >= cfg.contact_loss_frames)
         spread = np.sqrt(np.trace(est.covariance[:, :3, :3], axis1=1, axis2=2))
         status = np.where(spread > cfg.uncertain_spread, Status.UNCERTAIN, Status.TRACKING)
         status = np.where(recovering, Status.RECOVERING, status)
@@ -310,6 +312,6 @@ class Tracker:
         if diverged.any() and self._trusted is not None:
             self._seed(diverged, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, cfg.sigma_r * cfg.reseed_scale)
             self._recovering[diverged] = cfg.recover_frames
-            self._jumps[diverged] = 0
+            self._contact_loss[diverged] = 0
         self._status[:] = status
         est.status = status.astype(np.int64)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import newton
 import numpy as np
@@ -168,7 +168,8 @@ class _Buffers:
     slip_acc: wp.array
     spin_acc: wp.array
     weight_acc: wp.array
-    wrench: wp.array = field(default=None)  # type: ignore[assignment]
+    wrench: wp.array
+    """Perturbation wrench on each world's object for the next frame, (W,) spatial_vector."""
 
 
 def _capsule_xform(p0: np.ndarray, p1: np.ndarray) -> tuple[wp.transform, float]:

@@ -114,3 +114,18 @@ def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording
         syncs = [op for op in plain.ops if "local_scalar" in op or "nonzero" in op]
         assert not syncs, f"host syncs in a frame: {syncs}"
     assert counts[(1, 4)] == counts[(2, 16)], counts
+
+
+def test_a_bad_frame_is_refused_with_the_field_and_shapes(hand, recording):
+    tr = _tracker(hand, worlds=2)
+    tr.start(recording.initial_pose, recording.initial_q)
+    good = _frame(recording, 0)
+    before = tr.pop.obs.object_pose.clone()
+    with pytest.raises(ValueError, match=r"frame q: expected shape \(2, 22\), got \(2, 21\)"):
+        tr.step(Frame(controls=good.controls, q=good.q[:, :21]))
+    with pytest.raises(ValueError, match=r"frame force: expected shape \(2, 4, 3\), got \(2, 4\)"):
+        tr.step(Frame(controls=good.controls, q=good.q, force=good.force[..., 0]))
+    assert tr.frame == 0 and torch.equal(tr.pop.obs.object_pose, before), "a refused frame moved nothing"
+    assert tr.step(good).frame == 1  # and the tracker goes on
+    with pytest.raises(ValueError, match="optimizer method: expected one of"):
+        TrackerConfig(optimizer=OptimizerConfig(method="SGD"))
