@@ -115,7 +115,7 @@ def test_wrs_samples_follow_its_softmax():
 def test_pbo_keeps_the_best_and_copies_them_uniformly():
     k, g = 12, 3000
     gen = torch.Generator().manual_seed(2)
-    cost = torch.rand(g, k, generator=gen)
+    cost = 10.0 * torch.rand(g, k, generator=gen)  # spreads well above min_spread: every group updates
     upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25), gen)
     best = torch.argsort(cost, -1)[:, :3]
     assert torch.equal(upd.index[:, :3], best)  # the K_best survive, best first
@@ -126,6 +126,13 @@ def test_pbo_keeps_the_best_and_copies_them_uniformly():
     expected = observed.sum() / 3
     assert (((observed - expected) ** 2) / expected).sum().item() < 13.8  # 2 dof, p = 0.001
     assert not upd.explore[:, 0].any() and upd.explore[:, 1:].all()
+
+
+def test_groups_whose_costs_do_not_differ_are_left_alone():
+    cost = torch.tensor([[1.0, 1.1, 1.2, 1.3], [0.0, 5.0, 9.0, 9.0]])
+    upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.5, min_spread=0.5), torch.Generator())
+    assert upd.index[0].tolist() == [0, 1, 2, 3] and not upd.explore[0].any()
+    assert upd.index[1, :2].tolist() == [0, 1] and upd.explore[1, 1:].all()
 
 
 def test_eye_and_olp_never_move_worlds():
