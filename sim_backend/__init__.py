@@ -6,7 +6,7 @@ from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
 from .observe import HEALTH_LOST, HEALTH_NAN, HEALTH_OK
 from .population import Observation, Population, PopulationConfig, resolve_device
-from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot
+from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot
 
 __all__ = [
     "CATALOG",
@@ -29,6 +29,7 @@ __all__ = [
     "catalog_object",
     "load_catalog",
     "load_mesh_object",
+    "load_robot",
     "make_banana",
     "pinch_lift_twist",
     "plan_pinch",

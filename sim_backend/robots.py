@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import newton
 import numpy as np
@@ -23,6 +25,7 @@ __all__ = [
     "RobotLayout",
     "RobotSpec",
     "add_robot",
+    "load_robot",
 ]
 
 # Joint limits of the real Allegro hand v4 [rad], per finger joint 0..3 (index, middle, ring)
@@ -388,3 +391,29 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
 def _short(label: str) -> str:
     """Last path element of a Newton label (importers prefix labels with their parents)."""
     return label.rsplit("/", 1)[-1]
+
+
+def load_robot(path: str | os.PathLike) -> RobotSpec:
+    """A robot from a TOML file (see configs/robots/): ``kind = "hand"`` for the procedural hand,
+    ``kind = "file"`` for a URDF/MJCF robot whose ``path`` is relative to the TOML file."""
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"robot config: cannot read '{path}': {exc}") from exc
+    kind = table.pop("kind", None)
+    cls = {"hand": HandSpec, "file": FileRobotSpec}.get(kind)
+    if cls is None:
+        raise ValueError(f"robot config '{path}' kind: expected 'hand' or 'file', got {kind!r}")
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ValueError(f"robot config '{path}': unknown keys {unknown} for kind '{kind}' (known: {sorted(known)})")
+    if kind == "file":
+        table["path"] = str(path.parent / table["path"])
+        table["sensor_offsets"] = tuple(tuple(o) for o in table.get("sensor_offsets", ()))
+    table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
+    try:
+        return cls(**table)
+    except TypeError as exc:
+        raise ValueError(f"robot config '{path}': {exc}") from exc

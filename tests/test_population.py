@@ -4,6 +4,7 @@ parameters, observations and errors."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,10 +20,12 @@ from sim_backend import (
     PopulationConfig,
     catalog_object,
     load_mesh_object,
+    load_robot,
     plan_pinch,
 )
 
 FRAMES_3S = 90
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def _grasped(hand, obj_name: str, worlds: int, **cfg) -> tuple[Population, object]:
@@ -216,26 +219,20 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
         load_mesh_object("missing", str(tmp_path / "missing.obj"), mass=0.1, mass_range=(0.05, 0.2))
     with pytest.raises(ValueError, match="substeps: expected an even number, got 3"):
         PopulationConfig(substeps=3)
-    urdf = tmp_path / "gripper.urdf"
-    urdf.write_text(_GRIPPER_URDF)
+    urdf = CONFIGS / "robots" / "example_gripper.urdf"
+    assert load_robot(CONFIGS / "robots" / "allegro.toml").finger_ke == 3.0
+    bad_cfg = tmp_path / "bad.toml"
+    bad_cfg.write_text('kind = "hand"\nfinger_kp = 3.0\n')
+    with pytest.raises(ValueError, match=r"unknown keys \['finger_kp'\] for kind 'hand'"):
+        load_robot(bad_cfg)
     with pytest.raises(ValueError, match=r"joints: \['elbow'\] not in"):
         Population(FileRobotSpec("gripper", str(urdf), ("elbow",), ("left",)), catalog_object("foam_brick"),
                    PopulationConfig(worlds=1, device="cpu"))  # fmt: skip
 
 
-def test_users_robot_from_urdf(tmp_path):
-    urdf = tmp_path / "gripper.urdf"
-    urdf.write_text(_GRIPPER_URDF)
-    spec = FileRobotSpec(
-        "gripper",
-        str(urdf),
-        joints=("left_slide", "right_slide"),
-        sensor_links=("left", "right"),
-        ke=300.0,
-        kd=10.0,
-        effort=20.0,
-        base=(0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 1.0),
-    )
+def test_users_robot_from_urdf_named_in_a_config():
+    spec = load_robot(CONFIGS / "robots" / "example_gripper.toml")
+    assert isinstance(spec, FileRobotSpec) and spec.joints == ("left_slide", "right_slide")
     pop = Population(spec, catalog_object("foam_brick"), PopulationConfig(worlds=2, device="cpu"))
     pop.reset_state(np.array([0.0, 0.0, 0.025, 0, 0, 0, 1.0]), np.array([0.0, 0.0]))
     pop.set_targets(np.array([[-0.02, 0.02]]))
@@ -244,29 +241,3 @@ def test_users_robot_from_urdf(tmp_path):
     assert tuple(pop.obs.q.shape) == (1, 2, 2) and tuple(pop.obs.force.shape) == (1, 2, 2, 3)
     # The slides move towards their targets.
     assert pop.obs.q[0, 0, 0] < -0.002 and pop.obs.q[0, 0, 1] > 0.002
-
-
-_GRIPPER_URDF = """<?xml version="1.0"?>
-<robot name="gripper">
-  <link name="base">
-    <inertial><mass value="0.5"/><inertia ixx="1e-3" iyy="1e-3" izz="1e-3" ixy="0" ixz="0" iyz="0"/></inertial>
-    <collision><geometry><box size="0.1 0.1 0.02"/></geometry></collision>
-  </link>
-  <link name="left">
-    <inertial><mass value="0.05"/><inertia ixx="1e-5" iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial>
-    <collision><origin xyz="0 0 -0.05"/><geometry><box size="0.01 0.03 0.08"/></geometry></collision>
-  </link>
-  <link name="right">
-    <inertial><mass value="0.05"/><inertia ixx="1e-5" iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial>
-    <collision><origin xyz="0 0 -0.05"/><geometry><box size="0.01 0.03 0.08"/></geometry></collision>
-  </link>
-  <joint name="left_slide" type="prismatic">
-    <parent link="base"/><child link="left"/><origin xyz="-0.04 0 0"/><axis xyz="1 0 0"/>
-    <limit lower="-0.03" upper="0.03" effort="20" velocity="1"/>
-  </joint>
-  <joint name="right_slide" type="prismatic">
-    <parent link="base"/><child link="right"/><origin xyz="0.04 0 0"/><axis xyz="1 0 0"/>
-    <limit lower="-0.03" upper="0.03" effort="20" velocity="1"/>
-  </joint>
-</robot>
-"""
