@@ -1,0 +1,40 @@
+"""The wire protocol: typed messages, a msgpack codec (no pickle), and every key expression.
+
+Imports only numpy, msgpack and pydantic, so the robot-side client stays light.
+"""
+
+from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, DecodeError, decode, encode
+from .keys import PREFIX, Keys, check_name
+from .messages import (
+    PROTOCOL_VERSION,
+    CloseSession,
+    Error,
+    ErrorCode,
+    Estimate,
+    OpenSession,
+    RobotFrame,
+    SessionInfo,
+    Status,
+    check_version,
+)
+
+__all__ = [
+    "MAX_ARRAY_BYTES",
+    "MAX_PAYLOAD_BYTES",
+    "PREFIX",
+    "PROTOCOL_VERSION",
+    "CloseSession",
+    "DecodeError",
+    "Error",
+    "ErrorCode",
+    "Estimate",
+    "Keys",
+    "OpenSession",
+    "RobotFrame",
+    "SessionInfo",
+    "Status",
+    "check_name",
+    "check_version",
+    "decode",
+    "encode",
+]

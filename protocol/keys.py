@@ -1,0 +1,64 @@
+"""Every Zenoh key expression of the protocol, in one place.
+
+``inhand/v1/{service}/...``: ``v1`` changes when a message changes incompatibly.
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = ["PREFIX", "Keys", "check_name"]
+
+PREFIX = "inhand/v1"
+_NAME = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
+
+
+def check_name(kind: str, name: str) -> str:
+    """A service or session name usable as one key chunk (no '/', '*', '$', '#', '?' or blanks)."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValueError(f"{kind} name: expected 1-64 characters of [A-Za-z0-9_-.], got {name!r}")
+    return name
+
+
+class Keys:
+    """The key expressions of one service."""
+
+    def __init__(self, service: str = "default"):
+        self.service = check_name("service", service)
+        self.root = f"{PREFIX}/{self.service}"
+
+    @property
+    def alive(self) -> str:
+        """Liveliness token of the service."""
+        return f"{self.root}/alive"
+
+    @property
+    def info(self) -> str:
+        """Queryable: version, device, robots, objects, capacity."""
+        return f"{self.root}/info"
+
+    @property
+    def open(self) -> str:
+        """Queryable with payload: open a session."""
+        return f"{self.root}/rpc/open"
+
+    @property
+    def close(self) -> str:
+        """Queryable with payload: close a session."""
+        return f"{self.root}/rpc/close"
+
+    def frame(self, session: str) -> str:
+        """Subscriber: the robot's frames, in seq order."""
+        return f"{self.root}/s/{check_name('session', session)}/frame"
+
+    def pose(self, session: str) -> str:
+        """Publisher of every estimate, and a queryable answering the latest."""
+        return f"{self.root}/s/{check_name('session', session)}/pose"
+
+    def status(self, session: str) -> str:
+        """Queryable: counters, latency, health."""
+        return f"{self.root}/s/{check_name('session', session)}/status"
+
+    def robot(self, session: str) -> str:
+        """Liveliness token of the session's robot."""
+        return f"{self.root}/s/{check_name('session', session)}/robot"

@@ -1,0 +1,98 @@
+"""The wire protocol: round trips, refusals that name the field and the numbers, no pickle, and
+a light import."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import (
+    MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
+    DecodeError,
+    Error,
+    ErrorCode,
+    Estimate,
+    Keys,
+    OpenSession,
+    RobotFrame,
+    check_version,
+    decode,
+    encode,
+)
+
+POSE = [0.1, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0]
+
+
+def _frame(**kw) -> RobotFrame:
+    fields = dict(session="s1", seq=3, stamp=1.5, controls=np.zeros(22), q=np.ones(22), force=np.zeros((4, 3)))
+    return RobotFrame(**(fields | kw))
+
+
+def test_messages_round_trip_with_arrays_intact():
+    frame = _frame(slip=np.array([0, 1, 0, 0]), slip_dir=np.zeros((4, 2)))
+    back = decode(encode(frame), RobotFrame)
+    assert back.seq == 3 and back.q.dtype == np.float32 and np.array_equal(back.q, np.ones(22))
+    assert back.force.shape == (4, 3) and back.spin is None
+    est = Estimate(session="s1", seq=3, stamp=1.5, pose=POSE, mean_pose=POSE, covariance=np.eye(6) * 1e-6,
+                   cost=1.2, mass=0.03, friction=0.9, status="tracking", latency_ms=4.0)  # fmt: skip
+    assert decode(encode(est), Estimate).covariance.shape == (6, 6)
+    err = decode(encode(Error(code=ErrorCode.UNKNOWN_OBJECT, message="object: 'duck'")), Error)
+    assert err.code is ErrorCode.UNKNOWN_OBJECT
+
+
+def test_bad_values_are_refused_naming_the_field_and_the_numbers():
+    with pytest.raises(ValueError, match=r"(?s)controls.*1 non-finite values, first at \(5,\) = nan"):
+        _frame(controls=np.where(np.arange(22) == 5, np.nan, 0.0))
+    with pytest.raises(ValueError, match=r"(?s)force.*expected last dimension 3, got shape \(4, 2\)"):
+        _frame(force=np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="seq"):
+        _frame(seq=-1)
+    with pytest.raises(ValueError, match=r"(?s)p0.*expected last dimension 7"):
+        OpenSession(robot="allegro", object="foam_brick", p0=[0.0] * 6)
+    # A peer that skips validation still cannot slip NaN past decode.
+    raw = encode(_frame()).replace(np.float32(1.0).tobytes(), np.float32(np.inf).tobytes(), 1)
+    with pytest.raises(DecodeError, match=r"RobotFrame\.q: Value error, 1 non-finite values, first at \(0,\) = inf"):
+        decode(raw, RobotFrame)
+
+
+def test_malformed_oversized_and_pickled_payloads_are_refused():
+    with pytest.raises(DecodeError, match="payload: not valid msgpack"):
+        decode(b"\xc1\x00\xff", RobotFrame)
+    with pytest.raises(DecodeError, match=f"payload: {MAX_PAYLOAD_BYTES + 1} bytes exceeds the limit of"):
+        decode(b"\x00" * (MAX_PAYLOAD_BYTES + 1), RobotFrame)
+    with pytest.raises(DecodeError, match="payload: expected a map, got list"):
+        decode(msgpack.packb([1, 2]), RobotFrame)
+    evil = msgpack.packb({"__nd__": True, "dtype": "|O", "shape": [1], "data": b"\x80\x04."})
+    with pytest.raises(DecodeError, match=r"array dtype: '\|O' is not allowed"):
+        decode(evil, RobotFrame)
+    short = msgpack.packb({"__nd__": True, "dtype": "<f4", "shape": [22], "data": b"\x00" * 8})
+    with pytest.raises(DecodeError, match=r"array data: shape \[22\] of <f4 needs 88 bytes, got 8"):
+        decode(short, RobotFrame)
+    with pytest.raises(DecodeError, match=r"RobotFrame\.bogus: Extra inputs are not permitted"):
+        decode(msgpack.packb(msgpack.unpackb(encode(_frame())) | {"bogus": 1}), RobotFrame)
+
+
+def test_version_mismatch_names_both_versions():
+    check_version(PROTOCOL_VERSION)
+    with pytest.raises(ValueError, match=f"client speaks v7, service speaks v{PROTOCOL_VERSION}"):
+        check_version(7)
+
+
+def test_keys_live_under_the_versioned_prefix_and_refuse_bad_names():
+    keys = Keys("lab-1")
+    assert keys.frame("s1") == "inhand/v1/lab-1/s/s1/frame"
+    assert keys.open == "inhand/v1/lab-1/rpc/open" and keys.alive == "inhand/v1/lab-1/alive"
+    for bad in ("a/b", "*", "", "x y"):
+        with pytest.raises(ValueError, match="session name: expected 1-64 characters"):
+            keys.pose(bad)
+
+
+def test_protocol_imports_stay_light():
+    code = "import sys, protocol; bad = {'torch', 'warp', 'newton', 'trimesh'} & set(sys.modules); print(sorted(bad))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
