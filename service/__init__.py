@@ -1,1 +1,1 @@
-"""The tracking service: command line entry points (the tracker and Zenoh node come next)."""
+"""The tracker (cost, optimizers, Algorithm 1), its evaluation, and the `inhand-tracker` command."""

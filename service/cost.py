@@ -13,8 +13,7 @@ from dataclasses import dataclass, field
 import torch
 
 from sim_backend import Observation
-
-from .sampling import quat_conjugate, quat_multiply
+from sim_backend.rotations import quat_conjugate, quat_multiply
 
 __all__ = ["TERM_NAMES", "Cost", "CostConfig", "RealObservation", "cost_terms"]
 

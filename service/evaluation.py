@@ -3,19 +3,19 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from sim_backend.rotations import quat_rotate
 
 __all__ = ["add_error", "transform_points"]
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    u, w = q[..., None, :3], q[..., None, 3:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Object-frame ``points`` (N, 3) at ``pose`` (..., 7) -> (..., N, 3) [m]."""
-    return pose[..., None, :3] + _rotate(pose[..., 3:], points)
+    pose_t = torch.as_tensor(np.asarray(pose, dtype=np.float64))
+    points_t = torch.as_tensor(np.asarray(points, dtype=np.float64))
+    q = pose_t[..., None, 3:].expand(*pose_t.shape[:-1], points_t.shape[0], 4)
+    return (pose_t[..., None, :3] + quat_rotate(q, points_t.expand_as(q[..., :3]))).numpy()
 
 
 def add_error(points: np.ndarray, true_pose: np.ndarray, est_pose: np.ndarray) -> np.ndarray:

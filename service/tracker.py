@@ -19,10 +19,11 @@ import numpy as np
 import torch
 
 from sim_backend import HEALTH_OK, Population, SensorFK
+from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 from .cost import Cost, CostConfig, RealObservation
 from .optimizers import OptimizerConfig, update, wrs_pmf
-from .sampling import clipped_normal, quat_conjugate, quat_log, quat_multiply, sample_poses, sample_wrenches
+from .sampling import clipped_normal, sample_poses, sample_wrenches
 
 __all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
 
@@ -147,7 +148,7 @@ class Tracker:
         self._recovering = np.zeros(self.G, dtype=np.int64)
         self._contact_loss = np.zeros(self.G, dtype=np.int64)
         self._trusted: np.ndarray | None = None
-        self._p0: np.ndarray | None = None
+        """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
 
     # ------------------------------------------------------------------ start
     def start(self, p0: np.ndarray, q0: np.ndarray, sigma_t=None, sigma_r=None) -> None:
@@ -157,8 +158,8 @@ class Tracker:
         """
         cfg = self.config
         p0 = np.asarray(p0, dtype=np.float32).reshape(self.G, 7)
-        self._p0 = p0.copy()
         self._trusted = p0.copy()
+        self.frame = self.window_frames = 0
         self._seed(np.ones(self.G, bool), p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
                    cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
         self._status[:] = Status.TRACKING
@@ -212,13 +213,15 @@ class Tracker:
     def step(self, frame: Frame) -> Estimate:
         """Advance every group by one robot frame and return the estimates."""
         cfg, pop = self.config, self.pop
+        if self._trusted is None:
+            raise ValueError("tracker: call start(p0, q0) before the first frame")
         # Everything that can refuse the frame runs before the population moves.
         self._load_real(frame)
         pop.set_targets(frame.controls)
         pop.step()
         cost = self.cost(pop.obs, self.real)
         # A world that lost its object or went NaN is worst; NaN costs must not win the argmin.
-        cost = torch.where(pop.obs.health == HEALTH_OK, torch.nan_to_num(cost, nan=1e9), torch.full_like(cost, 1e9))
+        cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(pop.obs.health != HEALTH_OK, 1e9)
         self.window += cost
         self.window_frames += 1
         self.frame += 1
@@ -307,9 +310,8 @@ class Tracker:
         status = np.where(recovering, Status.RECOVERING, status)
         status = np.where(diverged, Status.DIVERGED, status)
         trusted = status == Status.TRACKING
-        if self._trusted is not None:
-            self._trusted[trusted] = est.pose[trusted]
-        if diverged.any() and self._trusted is not None:
+        self._trusted[trusted] = est.pose[trusted]
+        if diverged.any():
             self._seed(diverged, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, cfg.sigma_r * cfg.reseed_scale)
             self._recovering[diverged] = cfg.recover_frames
             self._contact_loss[diverged] = 0

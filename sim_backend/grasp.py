@@ -14,12 +14,12 @@ import numpy as np
 
 from .kinematics import Kinematics
 from .objects import ObjectSpec
+from .robots import TIP_RADIUS
 
 __all__ = ["PINCH_OFFSET", "Grasp", "plan_pinch"]
 
 PINCH_OFFSET = np.array([0.045, 0.0, -0.11])
 """Where the pinch centre sits relative to the palm origin (world frame, wrist angles zero) [m]."""
-_TIP_RADIUS = 0.012
 _FINGER_Y = (0.03, 0.0, -0.03)
 
 
@@ -60,7 +60,7 @@ def plan_pinch(kin: Kinematics, obj: ObjectSpec, wrist_q: np.ndarray | None = No
     half_width = float(np.abs(mid[:, 0]).max())
     centre_z = float(0.5 * (mid[:, 2].min() + mid[:, 2].max()))
     centre = q[:3] + PINCH_OFFSET
-    x_finger, x_thumb = centre[0] + half_width + _TIP_RADIUS, centre[0] - half_width - _TIP_RADIUS
+    x_finger, x_thumb = centre[0] + half_width + TIP_RADIUS, centre[0] - half_width - TIP_RADIUS
     targets = np.array([[x_finger, centre[1] + y, centre[2]] for y in _FINGER_Y] + [[x_thumb, centre[1], centre[2]]])
     start = q.copy()
     start[[7, 11, 15]] = 0.8

@@ -9,32 +9,14 @@ from __future__ import annotations
 
 import newton
 import numpy as np
+import torch
 import warp as wp
 
+from .observe import sensor_poses
 from .robots import RobotLayout, RobotSpec, add_robot
+from .rotations import quat_multiply, quat_rotate
 
 __all__ = ["Kinematics", "SensorFK"]
-
-
-def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate vectors ``v`` (..., 3) by unit quaternions ``q`` (..., 4) in (x, y, z, w) order."""
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
 
 
 class Kinematics:
@@ -60,11 +42,10 @@ class Kinematics:
 
     def sensor_poses(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Sensor positions (L, 3) [m] and orientations (L, 4) [quat xyzw] for joints ``q`` (D,)."""
-        bodies = self.body_poses(q)[self.layout.sensor_bodies]
-        off = self.layout.sensor_offsets
-        pos = bodies[:, :3] + _quat_rotate(bodies[:, 3:], off[:, :3])
-        rot = _quat_mul(bodies[:, 3:], off[:, 3:])
-        return pos, rot
+        bodies = torch.from_numpy(self.body_poses(q)[self.layout.sensor_bodies])
+        off = torch.from_numpy(self.layout.sensor_offsets)
+        pos = bodies[:, :3] + quat_rotate(bodies[:, 3:], off[:, :3])
+        return pos.numpy(), quat_multiply(bodies[:, 3:], off[:, 3:]).numpy()
 
     def solve_tips(
         self,
@@ -138,8 +119,6 @@ class SensorFK:
 
     def update(self, q) -> None:
         """Forward kinematics of joint positions ``q`` (G, D), a torch tensor on the device."""
-        from .observe import sensor_poses
-
         self._q.copy_(q)
         with wp.ScopedDevice(self.device):
             newton.eval_fk(self._model, self._state.joint_q, self._state.joint_qd, self._state)

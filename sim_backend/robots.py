@@ -20,6 +20,7 @@ import warp as wp
 __all__ = [
     "ALLEGRO_FINGER_LIMITS",
     "ALLEGRO_THUMB_LIMITS",
+    "TIP_RADIUS",
     "FileRobotSpec",
     "HandSpec",
     "RobotLayout",
@@ -41,7 +42,8 @@ ALLEGRO_FINGER_MASSES = (0.0119, 0.065, 0.0355, 0.0264)
 _PALM_HALF = (0.0204, 0.0565, 0.0475)  # palm half extents [m]: thickness, width, length
 _FINGER_Y = (0.0435, 0.0, -0.0435)  # finger base offsets across the palm [m]
 _LINK_RADIUS = 0.0098
-_TIP_RADIUS = 0.012
+TIP_RADIUS = 0.012
+"""Radius of the fingertip spheres [m]."""
 _WRIST_LIMITS = ((-0.6, 0.6), (-0.6, 0.6), (0.0, 0.8), (-math.pi, math.pi), (-math.pi, math.pi), (-math.pi, math.pi))
 _WRIST_NAMES = ("wrist_x", "wrist_y", "wrist_z", "wrist_yaw", "wrist_pitch", "wrist_roll")
 
@@ -166,7 +168,12 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
         inertia = wp.mat33(inertia_diag, 0.0, 0.0, 0.0, inertia_diag, 0.0, 0.0, 0.0, inertia_diag)
         return builder.add_link(mass=mass, inertia=inertia, label=label, custom_attributes=gravcomp)
 
-    def joint(kind: str, parent: int, child: int, axis, lim, name, ke, kd, effort, parent_xform=None):
+    # (stiffness, damping, effort limit, armature) of the wrist's and the fingers' position drives
+    wrist = (spec.wrist_ke, spec.wrist_kd, 1e3, 0.01)
+    finger = (spec.finger_ke, spec.finger_kd, spec.finger_effort, spec.armature)
+
+    def joint(kind: str, parent: int, child: int, axis, lim, name, drive, parent_xform=None):
+        ke, kd, effort, armature = drive
         add = builder.add_joint_prismatic if kind == "slide" else builder.add_joint_revolute
         j = add(
             parent,
@@ -178,7 +185,7 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
             target_ke=ke,
             target_kd=kd,
             effort_limit=effort,
-            armature=spec.armature if kind == "hinge" and ke < 100.0 else 0.01,
+            armature=armature,
             actuator_mode=newton.JointTargetMode.POSITION,
             label=name,
         )
@@ -191,11 +198,9 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
     # Wrist: slides along world x, y, z, then yaw, pitch, roll.
     parent = -1
     axes = ((1, 0, 0), (0, 1, 0), (0, 0, 1), (0, 0, 1), (0, 1, 0), (1, 0, 0))
-    for i, (axis, lim, name) in enumerate(zip(axes, _WRIST_LIMITS, _WRIST_NAMES, strict=True)):
-        child = link(0.1, 1e-4, f"{name}_link") if i < 5 else None
-        if child is None:
-            break
-        joint("slide" if i < 3 else "hinge", parent, child, axis, lim, name, spec.wrist_ke, spec.wrist_kd, 1e3)
+    for i, (axis, lim, name) in enumerate(zip(axes[:5], _WRIST_LIMITS, _WRIST_NAMES, strict=False)):
+        child = link(0.1, 1e-4, f"{name}_link")
+        joint("slide" if i < 3 else "hinge", parent, child, axis, lim, name, wrist)
         parent = child
     # The palm frame: x = palm normal (towards the face), z = along the fingers. Rotating it by
     # +90 deg about y makes the palm face world -z with the fingers along world +x.
@@ -207,15 +212,12 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
         axes[5],
         _WRIST_LIMITS[5],
         _WRIST_NAMES[5],
-        spec.wrist_ke,
-        spec.wrist_kd,
-        1e3,
+        wrist,
         parent_xform=wp.transform(wp.vec3(), _quat_axis_angle((0, 1, 0), math.pi / 2)),
     )
     hx, hy, hz = _PALM_HALF
     builder.add_shape_box(palm, hx=hx, hy=hy, hz=hz, cfg=shape_cfg, label="palm")
 
-    f_ke, f_kd, f_eff = spec.finger_ke, spec.finger_kd, spec.finger_effort
     tips: list[int] = []
 
     def capsule_link(length: float, mass: float, label: str) -> int:
@@ -235,7 +237,7 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
         builder.add_shape_sphere(
             body,
             xform=wp.transform(wp.vec3(0.0, 0.0, parent_len), wp.quat_identity()),
-            radius=_TIP_RADIUS,
+            radius=TIP_RADIUS,
             cfg=shape_cfg,
             label=f"{label}_tip",
         )
@@ -246,16 +248,16 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
         m0, m1, m2, m3 = ALLEGRO_FINGER_MASSES
         lim = ALLEGRO_FINGER_LIMITS
         b0 = capsule_link(l0, m0, f"{fname}_link0")
-        joint("hinge", palm, b0, (1, 0, 0), lim[0], f"{fname}_0", f_ke, f_kd, f_eff,
+        joint("hinge", palm, b0, (1, 0, 0), lim[0], f"{fname}_0", finger,
               parent_xform=wp.transform(wp.vec3(0.0, y, hz), wp.quat_identity()))  # fmt: skip
         b1 = capsule_link(l1, m1, f"{fname}_link1")
-        joint("hinge", b0, b1, (0, 1, 0), lim[1], f"{fname}_1", f_ke, f_kd, f_eff,
+        joint("hinge", b0, b1, (0, 1, 0), lim[1], f"{fname}_1", finger,
               parent_xform=wp.transform(wp.vec3(0.0, 0.0, l0), wp.quat_identity()))  # fmt: skip
         b2 = capsule_link(l2, m2, f"{fname}_link2")
-        joint("hinge", b1, b2, (0, 1, 0), lim[2], f"{fname}_2", f_ke, f_kd, f_eff,
+        joint("hinge", b1, b2, (0, 1, 0), lim[2], f"{fname}_2", finger,
               parent_xform=wp.transform(wp.vec3(0.0, 0.0, l1), wp.quat_identity()))  # fmt: skip
         b3 = distal_link(l3, m3, f"{fname}_link3")
-        joint("hinge", b2, b3, (0, 1, 0), lim[3], f"{fname}_3", f_ke, f_kd, f_eff,
+        joint("hinge", b2, b3, (0, 1, 0), lim[3], f"{fname}_3", finger,
               parent_xform=wp.transform(wp.vec3(0.0, 0.0, l2), wp.quat_identity()))  # fmt: skip
         tips.append(b3)
 
@@ -265,21 +267,21 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
     t_lim = ALLEGRO_THUMB_LIMITS
     t1, t2, t3 = ALLEGRO_THUMB_LINKS
     b12 = link(0.0176, 1e-5, "thumb_link0")
-    joint("hinge", palm, b12, (0, 0, -1), t_lim[0], "thumb_0", f_ke, f_kd, f_eff,
+    joint("hinge", palm, b12, (0, 0, -1), t_lim[0], "thumb_0", finger,
           parent_xform=wp.transform(wp.vec3(hx, 0.02, -0.035), wp.quat_identity()))  # fmt: skip
     builder.add_shape_sphere(b12, radius=_LINK_RADIUS, cfg=shape_cfg, label="thumb_link0")
     # Links below run along local +y (the thumb's axis before joint 12 turns it).
     to_y = _quat_axis_angle((1, 0, 0), -math.pi / 2)  # maps local +z onto +y
     b13 = capsule_link(t1, 0.0119, "thumb_link1")
-    joint("hinge", b12, b13, (0, 0, 1), t_lim[1], "thumb_1", f_ke, f_kd, f_eff,
+    joint("hinge", b12, b13, (0, 0, 1), t_lim[1], "thumb_1", finger,
           parent_xform=wp.transform(wp.vec3(0.0, 0.0, 0.0), to_y))  # fmt: skip
     b14 = capsule_link(t2, 0.038, "thumb_link2")
     # After the to_y turn the link frame's x is still the palm normal; turning about it carries
     # the thumb's axis (local z, the palm's +y) towards the palm's +z, the fingers.
-    joint("hinge", b13, b14, (1, 0, 0), t_lim[2], "thumb_2", f_ke, f_kd, f_eff,
+    joint("hinge", b13, b14, (1, 0, 0), t_lim[2], "thumb_2", finger,
           parent_xform=wp.transform(wp.vec3(0.0, 0.0, t1), wp.quat_identity()))  # fmt: skip
     b15 = distal_link(t3, 0.0388, "thumb_link3")
-    joint("hinge", b14, b15, (1, 0, 0), t_lim[3], "thumb_3", f_ke, f_kd, f_eff,
+    joint("hinge", b14, b15, (1, 0, 0), t_lim[3], "thumb_3", finger,
           parent_xform=wp.transform(wp.vec3(0.0, 0.0, t2), wp.quat_identity()))  # fmt: skip
     tips.append(b15)
 

@@ -1,8 +1,4 @@
-import os
-
 import pytest
-
-os.environ.setdefault("WARP_CACHE_PATH", os.path.expanduser("~/.cache/warp"))
 
 
 @pytest.fixture(scope="session", autouse=True)

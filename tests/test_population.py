@@ -23,6 +23,7 @@ from sim_backend import (
     load_robot,
     plan_pinch,
 )
+from sim_backend.rotations import quat_rotate
 
 FRAMES_3S = 90
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -36,12 +37,6 @@ def _grasped(hand, obj_name: str, worlds: int, **cfg) -> tuple[Population, objec
     pop.reset_state(grasp.object_pose, grasp.q_touch)
     pop.set_targets(np.tile(grasp.q_squeeze, (pop.G, 1)))
     return pop, grasp
-
-
-def _quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    u, w = q[..., :3], q[..., 3:]
-    t = 2.0 * torch.cross(u, v, dim=-1)
-    return v + w * t + torch.cross(u, t, dim=-1)
 
 
 @pytest.mark.parametrize("name", sorted(CATALOG))
@@ -123,7 +118,7 @@ def test_mass_change_shows_in_the_dynamics(hand):
     for _ in range(20):
         pop.step()
     # The pads carry the weight: the vertical force of the object on them sums to -m g.
-    world_force = _quat_rotate(pop.obs.sensor_rot[0], pop.obs.force[0])
+    world_force = quat_rotate(pop.obs.sensor_rot[0], pop.obs.force[0])
     carried = -world_force[..., 2].sum(dim=-1)
     assert carried[0].item() == pytest.approx(light * 9.81, rel=0.35)
     assert carried[1].item() == pytest.approx(heavy * 9.81, rel=0.35)
@@ -169,7 +164,7 @@ def test_observations_have_documented_shapes_and_units(hand):
     assert np.allclose(o.sensor_pos[0, 0].numpy(), pos, atol=1e-4)
     assert np.allclose(np.abs((o.sensor_rot[0, 0].numpy() * rot).sum(-1)), 1.0, atol=1e-4)
     # Pad normals (sensor z) point at the object, and the pads push it: force along -z, newtons.
-    normal = _quat_rotate(o.sensor_rot, torch.tensor([0.0, 0.0, 1.0]).expand(G, K, L, 3))
+    normal = quat_rotate(o.sensor_rot, torch.tensor([0.0, 0.0, 1.0]).expand(G, K, L, 3))
     to_object = o.object_pose[..., None, :3] - o.sensor_pos
     assert ((normal * to_object).sum(-1) > 0).all()
     assert (o.force[..., 2] < -0.1).all() and (o.force.norm(dim=-1) < 50).all()
