@@ -1,4 +1,5 @@
-"""The wire protocol: typed messages, a msgpack codec (no pickle), and every key expression.
+"""The wire protocol: typed messages, a msgpack codec (no pickle), every key expression,
+and the trajectory file format.
 
 Imports only numpy, msgpack and pydantic, so the robot-side client stays light.
 """
@@ -17,22 +18,27 @@ from .messages import (
     Status,
     check_version,
 )
+from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 
 __all__ = [
     "MAX_ARRAY_BYTES",
     "MAX_PAYLOAD_BYTES",
     "PREFIX",
     "PROTOCOL_VERSION",
+    "TRAJECTORY_FORMAT",
+    "TRAJECTORY_VERSION",
     "CloseSession",
     "DecodeError",
     "Error",
     "ErrorCode",
     "Estimate",
+    "GroundTruth",
     "Keys",
     "OpenSession",
     "RobotFrame",
     "SessionInfo",
     "Status",
+    "Trajectory",
     "check_name",
     "check_version",
     "decode",

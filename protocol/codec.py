@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["MAX_ARRAY_BYTES", "MAX_PAYLOAD_BYTES", "DecodeError", "decode", "encode"]
+__all__ = ["MAX_ARRAY_BYTES", "MAX_PAYLOAD_BYTES", "DecodeError", "decode", "encode", "pack_value", "unpack_array"]
 
 MAX_PAYLOAD_BYTES = 1 << 20
 """Largest message accepted [bytes]."""
@@ -25,7 +25,7 @@ class DecodeError(ValueError):
     """A payload that is not a valid message; the text names the field and the numbers."""
 
 
-def _pack(value: Any) -> Any:
+def pack_value(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         if value.dtype.str not in _DTYPES:
             raise TypeError(f"array dtype {value.dtype} is not sendable (allowed: {sorted(_DTYPES)})")
@@ -35,7 +35,7 @@ def _pack(value: Any) -> Any:
     raise TypeError(f"cannot encode {type(value).__name__}")
 
 
-def _unpack(obj: dict) -> Any:
+def unpack_array(obj: dict, max_bytes: int = MAX_ARRAY_BYTES) -> Any:
     if obj.get(_ARRAY_TAG) is not True:
         return obj
     dtype, shape, data = obj.get("dtype"), obj.get("shape"), obj.get("data")
@@ -43,9 +43,9 @@ def _unpack(obj: dict) -> Any:
         raise DecodeError(f"array dtype: {dtype!r} is not allowed (allowed: {sorted(_DTYPES)})")
     if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 0 for n in shape) or len(shape) > 4:
         raise DecodeError(f"array shape: expected up to 4 non-negative integers, got {shape!r}")
-    if not isinstance(data, bytes) or len(data) > MAX_ARRAY_BYTES:
+    if not isinstance(data, bytes) or len(data) > max_bytes:
         size = len(data) if isinstance(data, bytes) else type(data).__name__
-        raise DecodeError(f"array data: expected at most {MAX_ARRAY_BYTES} bytes, got {size}")
+        raise DecodeError(f"array data: expected at most {max_bytes} bytes, got {size}")
     expected = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
     if len(data) != expected:
         raise DecodeError(f"array data: shape {shape} of {dtype} needs {expected} bytes, got {len(data)}")
@@ -54,7 +54,7 @@ def _unpack(obj: dict) -> Any:
 
 def encode(message: BaseModel) -> bytes:
     """msgpack bytes of ``message``."""
-    return msgpack.packb(message.model_dump(), default=_pack, use_bin_type=True)
+    return msgpack.packb(message.model_dump(), default=pack_value, use_bin_type=True)
 
 
 def decode(payload: bytes, model: type[M]) -> M:
@@ -62,7 +62,7 @@ def decode(payload: bytes, model: type[M]) -> M:
     if len(payload) > MAX_PAYLOAD_BYTES:
         raise DecodeError(f"payload: {len(payload)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES}")
     try:
-        raw = msgpack.unpackb(payload, object_hook=_unpack, raw=False, strict_map_key=True)
+        raw = msgpack.unpackb(payload, object_hook=unpack_array, raw=False, strict_map_key=True)
     except DecodeError:
         raise
     except Exception as exc:  # msgpack raises several kinds for malformed input

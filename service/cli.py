@@ -32,7 +32,62 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--object", default="foam_brick", help="catalog object held in the grasp")
     sim.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     sim.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+    acc = bsub.add_parser("accuracy", help="tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A")
+    acc.add_argument("--suite", default="smoke", help="smoke, paper or reality-gap")
+    acc.add_argument("--methods", default="OLP,EYE,WRS,REPS,PBO", help="comma-separated: OLP, EYE, WRS, REPS, PBO")
+    acc.add_argument("--noise", default="low,med,high", help="initial pose noise levels: low, med, high")
+    acc.add_argument("--worlds", type=int, default=40, help="K, worlds per track")
+    acc.add_argument("--ablations", default="", help="comma-separated: exploration, worlds, contact, slip, or all")
+    acc.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    acc.add_argument("--out", default=None, help="output folder (default bench-results/accuracy-SUITE)")
+    acc.add_argument("--cache", default=None, help="where generated trajectories are kept")
+    acc.add_argument("--json", action="store_true", help="print the summary as JSON")
     return p
+
+
+def _accuracy(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from service.accuracy import CACHE_DIR, SUITES, run_suite
+    from service.report import write_report
+
+    if args.suite not in SUITES:
+        print(f"--suite: expected one of {sorted(SUITES)}, got '{args.suite}'", file=sys.stderr)
+        return 2
+    ablations = (
+        ["exploration", "worlds", "contact", "slip"]
+        if args.ablations == "all"
+        else [a for a in args.ablations.split(",") if a]
+    )
+    unknown = set(ablations) - {"exploration", "worlds", "contact", "slip"}
+    if unknown:
+        print(
+            f"--ablations: unknown {sorted(unknown)}; expected exploration, worlds, contact, slip or all",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        results = run_suite(
+            SUITES[args.suite],
+            methods=args.methods.split(","),
+            noises=args.noise.split(","),
+            worlds=args.worlds,
+            ablations=ablations,
+            device=args.device,
+            cache=Path(args.cache) if args.cache else CACHE_DIR,
+        )
+    except ValueError as exc:
+        print(f"bench accuracy: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out or f"bench-results/accuracy-{args.suite}")
+    report = write_report(results, out, command="inhand-tracker " + " ".join(sys.argv[1:]))
+    if args.json:
+        print(json.dumps({"summary": results["summary"], "ablations": results["ablations"]}, indent=2))
+    else:
+        print(report.read_text().split("\n## Ablation")[0].split("\n## Per trajectory")[0])
+        print(f"report: {report}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
                 )
         print(json.dumps(as_dicts(results), indent=2) if args.json else format_table(results))
         return 0
+    if args.command == "bench" and args.suite == "accuracy":
+        return _accuracy(args)
     return 2
 
 

@@ -137,20 +137,23 @@ class Cost:
     device: torch.device
     running: torch.Tensor = field(init=False)
     frames: int = field(init=False, default=0)
+    enabled: torch.Tensor | None = None
+    """Terms switched on per group, (G, 10) bool (ablations run as groups); default config.enabled."""
     last_terms: torch.Tensor | None = field(init=False, default=None)
     """The unweighted terms of the latest frame, (G, K, 10)."""
 
     def __post_init__(self) -> None:
         self.running = torch.zeros(self.groups, 10, device=self.device)
         self._floor = _NORM_FLOOR.to(self.device)
-        self._enabled = torch.tensor(self.config.enabled, dtype=torch.float32, device=self.device)
+        enabled = self.config.enabled if self.enabled is None else self.enabled
+        self._enabled = torch.as_tensor(enabled, dtype=torch.float32, device=self.device).expand(self.groups, 10)
         fixed = self.config.weights
         self._fixed = None if fixed is None else torch.tensor(fixed, dtype=torch.float32, device=self.device)
 
     def weights(self) -> torch.Tensor:
         """Current w1..w10 per group, (G, 10)."""
         if self._fixed is not None:
-            return (self._fixed * self._enabled).expand(self.groups, 10)
+            return self._fixed * self._enabled
         return self._enabled / torch.maximum(self.running, self._floor)
 
     def __call__(self, sim: Observation, real: RealObservation) -> torch.Tensor:

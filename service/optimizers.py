@@ -99,21 +99,38 @@ def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor
     return torch.searchsorted(cdf, points).clamp_(max=k - 1)
 
 
-def update(cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator) -> Update:
-    """One optimizer update of every group from the window costs ``cost`` (G, K)."""
+def update(
+    cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator, methods: tuple[str, ...] | None = None
+) -> Update:
+    """One optimizer update of every group from the window costs ``cost`` (G, K).
+
+    ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
+    of one population); default ``config.method`` for all. The loop is over methods, not worlds."""
+    if methods is None or len(set(methods)) == 1:
+        return _update(cost, config.method if methods is None else methods[0], config, gen)
+    index = torch.empty(cost.shape, dtype=torch.long, device=cost.device)
+    explore = torch.empty(cost.shape, dtype=torch.bool, device=cost.device)
+    for method in sorted(set(methods)):
+        rows = torch.tensor([m == method for m in methods], device=cost.device)
+        part = _update(cost, method, config, gen)
+        index[rows], explore[rows] = part.index[rows], part.explore[rows]
+    return Update(index=index, explore=explore)
+
+
+def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch.Generator) -> Update:
     g, k = cost.shape
     dev = cost.device
     identity = torch.arange(k, device=dev).expand(g, k)
-    if config.method in ("OLP", "EYE"):
+    if method in ("OLP", "EYE"):
         return Update(index=identity.clone(), explore=torch.zeros(g, k, dtype=torch.bool, device=dev))
-    if config.method == "PBO":
+    if method == "PBO":
         keep = max(1, round(config.pbo_keep * k))
         order = torch.argsort(cost, dim=-1)
         best = order[:, :keep]
         pick = torch.randint(0, keep, (g, k - keep), generator=gen, device=dev)
         index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
     else:
-        pmf = wrs_pmf(cost, config.wrs_lambda) if config.method == "WRS" else reps_pmf(cost, config.reps_epsilon)
+        pmf = wrs_pmf(cost, config.wrs_lambda) if method == "WRS" else reps_pmf(cost, config.reps_epsilon)
         index = systematic_resample(pmf, gen)
         # Put the best world in slot 0 so that keep_best protects it.
         index[:, 0] = cost.argmin(-1)

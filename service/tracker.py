@@ -12,6 +12,7 @@ The tracker reads only what a robot sends (controls, joints, touch) plus p0 and 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -22,7 +23,7 @@ from sim_backend import HEALTH_OK, Population, SensorFK
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 from .cost import Cost, CostConfig, RealObservation
-from .optimizers import OptimizerConfig, update, wrs_pmf
+from .optimizers import METHODS, OptimizerConfig, update, wrs_pmf
 from .sampling import clipped_normal, sample_poses, sample_wrenches
 
 __all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
@@ -127,16 +128,39 @@ class Estimate:
 
 
 class Tracker:
-    """Algorithm 1 over every group of ``population`` at once."""
+    """Algorithm 1 over every group of ``population`` at once.
 
-    def __init__(self, population: Population, config: TrackerConfig | None = None):
+    Groups share the config but may differ where a benchmark compares them side by side in one
+    population: ``methods`` (G,) optimizer per group, ``exploration`` (G,) multiplier on the
+    parameter and wrench noise, ``terms`` (G, 10) cost terms switched on.
+    """
+
+    def __init__(
+        self,
+        population: Population,
+        config: TrackerConfig | None = None,
+        methods: Sequence[str] | None = None,
+        exploration: Sequence[float] | None = None,
+        terms: np.ndarray | None = None,
+    ):
         self.pop = pop = population
         self.config = cfg = config or TrackerConfig()
         self.G, self.K, self.D, self.L = pop.G, pop.K, pop.D, pop.L
         dev = self.device = pop.torch_device
         self.gen = torch.Generator(device=dev)
         self.gen.manual_seed(cfg.seed)
-        self.cost = Cost(cfg.cost, self.G, dev)
+        self.methods = tuple(methods) if methods is not None else (cfg.optimizer.method,) * self.G
+        if len(self.methods) != self.G or not set(self.methods) <= set(METHODS):
+            raise ValueError(f"tracker methods: expected {self.G} of {METHODS}, got {self.methods}")
+        self._olp = torch.tensor([m == "OLP" for m in self.methods], device=dev)
+        scale = np.ones(self.G) if exploration is None else np.asarray(exploration, dtype=np.float64)
+        if scale.shape != (self.G,) or (scale < 0).any():
+            raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
+        self._exploration = torch.as_tensor(scale, dtype=torch.float32, device=dev)
+        if terms is not None and np.shape(terms) != (self.G, 10):
+            raise ValueError(f"tracker terms: expected shape ({self.G}, 10), got {np.shape(terms)}")
+        enabled = None if terms is None else torch.as_tensor(np.asarray(terms, dtype=bool), device=dev)
+        self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
         self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
         self.real = RealObservation.zeros(self.G, self.D, self.L, dev)
         self.window = torch.zeros(self.G, self.K, device=dev)
@@ -170,15 +194,17 @@ class Tracker:
         cfg, dev = self.config, self.device
         mean_t = torch.as_tensor(mean, dtype=torch.float32, device=dev)
         poses = sample_poses(mean_t, sigma_t, sigma_r, self.K, self.gen)
-        if self.K == 1 or cfg.optimizer.method == "OLP":
-            poses = mean_t[:, None].expand(self.G, self.K, 7)  # OLP: the estimate itself, one world
         (m_lo, m_hi), (f_lo, f_hi) = self._mass_range, self._friction_range
         obj = self.pop.object
-        mass = torch.full((self.G, self.K), obj.mass, device=dev)
-        friction = torch.full((self.G, self.K), obj.friction, device=dev)
-        if self.K > 1:
-            mass = clipped_normal(mass, cfg.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
-            friction = clipped_normal(friction, cfg.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
+        nominal_mass = torch.full((self.G, self.K), obj.mass, device=dev)
+        nominal_friction = torch.full((self.G, self.K), obj.friction, device=dev)
+        mass = clipped_normal(nominal_mass, cfg.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
+        friction = clipped_normal(nominal_friction, cfg.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
+        # OLP (and any single world) simulates the estimate itself with the nominal physics.
+        open_loop = (self._olp | (self.K == 1))[:, None]
+        poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
+        mass = torch.where(open_loop, nominal_mass, mass)
+        friction = torch.where(open_loop, nominal_friction, friction)
         sel = torch.as_tensor(groups, device=dev)[:, None]
         mass = torch.where(sel, mass, self.pop.mass)
         friction = torch.where(sel, friction, self.pop.friction)
@@ -279,19 +305,19 @@ class Tracker:
     def _update(self, window: torch.Tensor) -> None:
         """The optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
-        upd = update(window, cfg.optimizer, self.gen)
+        upd = update(window, cfg.optimizer, self.gen, self.methods)
         self.pop.resample(upd.index)
-        if cfg.optimizer.method not in ("OLP", "EYE"):
-            explore = upd.explore
-            mass = self._explore(self.pop.mass, cfg.mass_sigma, self._mass_range, explore)
-            friction = self._explore(self.pop.friction, cfg.friction_sigma, self._friction_range, explore)
+        if not set(self.methods) <= {"OLP", "EYE"}:
+            explore, scale = upd.explore, self._exploration[:, None]
+            mass = self._explore(self.pop.mass, cfg.mass_sigma * scale, self._mass_range, explore)
+            friction = self._explore(self.pop.friction, cfg.friction_sigma * scale, self._friction_range, explore)
             self.pop.set_params(mass=mass, friction=friction)
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
-            self.pop.set_wrench(wrench * explore[..., None])
+            self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
         self.window.zero_()
         self.window_frames = 0
 
-    def _explore(self, value: torch.Tensor, sigma: float, bounds: tuple[float, float], mask: torch.Tensor):
+    def _explore(self, value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor):
         """theta ~ N(theta, Sigma_theta) clipped to its range, where ``mask``; ``sigma`` is a fraction of the range."""
         lo, hi = bounds
         return torch.where(mask, clipped_normal(value.clone(), sigma * (hi - lo), lo, hi, self.gen), value)

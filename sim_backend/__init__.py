@@ -1,6 +1,6 @@
 """Simulation backend: K worlds of hand + object per group on Newton, stepped as one graph."""
 
-from .demos import Recording, pinch_lift_twist, record
+from .demos import DEMO_KINDS, Demo, Recording, make_demo, record
 from .grasp import Grasp, plan_pinch
 from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
@@ -10,9 +10,11 @@ from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, 
 
 __all__ = [
     "CATALOG",
+    "DEMO_KINDS",
     "HEALTH_LOST",
     "HEALTH_NAN",
     "HEALTH_OK",
+    "Demo",
     "FileRobotSpec",
     "Grasp",
     "HandSpec",
@@ -31,7 +33,7 @@ __all__ = [
     "load_mesh_object",
     "load_robot",
     "make_banana",
-    "pinch_lift_twist",
+    "make_demo",
     "plan_pinch",
     "record",
     "resolve_device",

@@ -1,92 +1,211 @@
 """Scripted manipulation demos and the ground truth they make.
 
-A demo is a sequence of joint targets (frames, D) for the procedural hand. Running it in a
-population with hidden physics (one world per group) records what the real robot would send
-(joint positions, fingertip forces, slip) and the object's true pose.
+The paper's demos were teleoperated; ours are scripted for the default hand (the procedural
+Allegro-like hand on a 6-DoF wrist) so that any number can be made with known truth:
+
+- ``pick_place``: reach the object on the table, pinch it with the fingertips, lift it, carry it
+  about (quick moves, so it slips from inertia), turn it in the hand by 30 degrees or more with
+  the fingers and thumb, set it down pressing against the table (it slips again), let go.
+- ``gaiting``: the same, but while the object is held each finger in turn breaks contact, moves
+  and re-establishes it (finger gaiting), and the object is turned back and forth.
+
+A demo is a sequence of joint targets (F, D). Running it in a population with hidden physics
+(one world per group) records what the real robot would send (joint positions, fingertip
+forces, slip) and the object's true pose.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from .grasp import Grasp, plan_pinch
+from protocol.trajectory import GroundTruth, Trajectory
+
+from .grasp import plan_pinch
 from .kinematics import Kinematics
 from .objects import ObjectSpec
 from .population import Population
 
-__all__ = ["Demo", "Recording", "pick_lift_twist", "pinch_lift_twist", "record"]
+__all__ = ["DEMO_KINDS", "FRAME_RATE", "Demo", "Recording", "make_demo", "record"]
+
+DEMO_KINDS = ("pick_place", "gaiting")
+FRAME_RATE = 30.0
+"""Frames per second of every demo [Hz]."""
+
+_FINGER_ABDUCTION = (6, 10, 14)
+_FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
+_THUMB_SWING = 18
 
 
 @dataclass(frozen=True)
 class Demo:
     """A scripted demo: where it starts and the joint targets of every frame."""
 
+    name: str
     controls: np.ndarray
-    """Joint targets, (F, D)."""
+    """Joint targets, (F, D), within the joint limits."""
     object_pose: np.ndarray
-    """Object pose before the first frame, (7,)."""
+    """Object pose before the first frame, (7,): position [m], quaternion (x, y, z, w)."""
     q: np.ndarray
     """Joint positions before the first frame, (D,)."""
+    phases: tuple[tuple[str, int], ...]
+    """(phase name, first frame) in order: what the hand is doing when."""
+
+    @property
+    def frames(self) -> int:
+        return self.controls.shape[0]
 
 
-def _ramp(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
-    s = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, n))  # smooth start and stop
-    return a + (b - a) * s[:, None]
+class _Script:
+    """Joint targets built phase by phase, each a smooth move or a hold of so many seconds."""
+
+    def __init__(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, pace: float):
+        self.q, self.lower, self.upper, self.pace = q.copy(), lower, upper, pace
+        self.rows: list[np.ndarray] = []
+        self.phases: list[tuple[str, int]] = []
+        self.count = 0
+
+    def move(self, phase: str, target: np.ndarray, seconds: float) -> None:
+        """Go to ``target`` with a cosine velocity profile (smooth start and stop)."""
+        n = max(2, round(seconds * self.pace * FRAME_RATE))
+        s = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, n + 1)[1:])
+        target = np.clip(target, self.lower, self.upper)
+        self._add(phase, self.q + (target - self.q) * s[:, None])
+        self.q = target.copy()
+
+    def hold(self, phase: str, seconds: float) -> None:
+        self._add(phase, np.repeat(self.q[None], max(1, round(seconds * self.pace * FRAME_RATE)), axis=0))
+
+    def _add(self, phase: str, rows: np.ndarray) -> None:
+        if not self.phases or self.phases[-1][0] != phase:
+            self.phases.append((phase, self.count))
+        self.rows.append(rows)
+        self.count += rows.shape[0]
 
 
-def pick_lift_twist(kin: Kinematics, obj: ObjectSpec, frames: int = 150, twist: float = 0.4) -> Demo:
-    """Pick the object up from the table and turn it in the hand: the open hand descends over it,
-    closes into a pinch (the thumb and fingers push it along the table as they meet it), lifts it
-    by 5 cm and twists it about the vertical as :func:`pinch_lift_twist` does."""
-    if frames < 80:
-        raise ValueError(f"frames: a pick-lift-twist needs at least 80 frames, got {frames}")
+def make_demo(
+    kin: Kinematics,
+    obj: ObjectSpec,
+    kind: str = "pick_place",
+    variant: int = 0,
+    seconds: float = 60.0,
+    pace: float = 1.0,
+) -> Demo:
+    """Script a demo of ``kind`` (see :data:`DEMO_KINDS`) for ``obj`` on the table.
+
+    ``variant`` seeds where the object lies, how far the fingers turn it and where it is carried.
+    The manipulation in the middle repeats until the demo lasts about ``seconds``; ``pace`` < 1
+    runs every motion faster (short demos).
+    """
+    if kind not in DEMO_KINDS:
+        raise ValueError(f"demo kind: expected one of {DEMO_KINDS}, got {kind!r}")
+    if not (0.2 <= pace <= 5.0):
+        raise ValueError(f"demo pace: expected 0.2 to 5, got {pace}")
+    lay = kin.layout
+    rng = np.random.default_rng([variant, DEMO_KINDS.index(kind)])
+    # Fingers abduct towards -y and the thumb swings towards +y: the planned pinch leaves the
+    # thumb's swing next to its upper limit, so the other way barely turns the object.
+    sign = 1.0
+    turn = float(rng.uniform(0.7, 0.85))  # finger abduction and thumb swing [rad]
+    if kind == "gaiting":
+        turn *= 0.75  # a finger lifts off while the object is turned: keep the others' grip firm
+
     rest_z = -float(obj.mesh.bounds[0, 2])  # the object's centre height when it rests on the table
-    wrist = np.array([0.0, 0.0, 0.3, 0.0, 0.0, 0.0])
+    wrist = np.array([*rng.uniform(-0.05, 0.05, 2), 0.3, 0.0, 0.0, 0.0])
     wrist[2] += rest_z - plan_pinch(kin, obj, wrist_q=wrist).object_pose[2]  # lower the pinch onto it
     grasp = plan_pinch(kin, obj, wrist_q=wrist)
-    pose, palm_z = grasp.object_pose.copy(), float(wrist[2])
-    open_hand = kin.layout.default_q.copy()
+    palm_z = float(wrist[2])
+    open_hand = lay.default_q.copy()
     open_hand[2] = palm_z + 0.08
+    script = _Script(open_hand, lay.lower, lay.upper, pace)
+
     above = open_hand.copy()
     above[2] = palm_z
-    n_descend, n_close = frames // 8, frames // 5
-    rest = pinch_lift_twist(grasp, frames - n_descend - n_close, twist=twist)
-    closing = np.concatenate([_ramp(above, grasp.q_touch, n_close - n_close // 3),
-                              _ramp(grasp.q_touch, grasp.q_squeeze, n_close // 3)])  # fmt: skip
-    controls = np.concatenate([_ramp(open_hand, above, n_descend), closing, rest])
-    return Demo(controls=controls, object_pose=pose, q=open_hand)
-
-
-def pinch_lift_twist(grasp: Grasp, frames: int = 120, lift: float = 0.05, twist: float = 0.4) -> np.ndarray:
-    """Hold the pinch, lift by ``lift`` [m], then turn the object in the hand about the vertical:
-    the fingers abduct one way and the thumb swings the other by ``twist`` [rad], rolling the
-    pads over the object. Returns joint targets (frames, D)."""
-    if frames < 40:
-        raise ValueError(f"frames: a pinch-lift-twist needs at least 40 frames, got {frames}")
-    n_squeeze, n_lift = frames // 8, frames // 4
-    n_twist = frames // 2
-    n_hold = frames - n_squeeze - n_lift - n_twist
+    script.move("reach", above, 1.2)
+    script.move("close", grasp.q_touch, 0.8)
+    script.move("squeeze", grasp.q_squeeze, 0.15)  # squeeze at once: a slow ramp lets it slip out
+    script.hold("squeeze", 0.3)
     held = grasp.q_squeeze.copy()
-    lifted = held.copy()
-    lifted[2] += lift
-    twisted = lifted.copy()
-    twisted[[6, 10, 14]] -= twist  # finger abduction: the fingertips move towards -y
-    twisted[18] -= twist  # thumb swing: its tip moves towards +y
-    parts = [
-        np.repeat(held[None], n_squeeze, axis=0),  # squeeze at once: a slow ramp lets it slip out
-        _ramp(held, lifted, n_lift),
-        _ramp(lifted, twisted, n_twist),
-        np.repeat(twisted[None], n_hold, axis=0),
-    ]
-    return np.concatenate(parts)
+    held[2] += 0.06
+    script.move("lift", held, 1.2)
+
+    def turned(q: np.ndarray, direction: float) -> np.ndarray:
+        """Fingers abduct one way and the thumb swings the other, rolling the pads over the object."""
+        out = q.copy()
+        out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - direction * sign * turn
+        out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn
+        return out
+
+    def gait(direction: float) -> None:
+        """Each finger in turn lets go, moves its abduction to ``direction`` and presses again."""
+        for finger, flexion in zip(_FINGER_ABDUCTION, _FINGER_FLEXION, strict=True):
+            lifted = script.q.copy()
+            lifted[list(flexion)] -= 0.2  # just clear of the object: the others hold it meanwhile
+            script.move("gait", lifted, 0.35)
+            moved = lifted.copy()
+            moved[finger] = held[finger] - direction * sign * turn
+            script.move("gait", moved, 0.35)
+            pressed = moved.copy()
+            pressed[list(flexion)] = held[list(flexion)]
+            script.move("gait", pressed, 0.35)
+            script.hold("gait", 0.2)
+
+    def carry() -> None:
+        """A quick move and back: the object lags behind and slips."""
+        angle = rng.uniform(0.0, 2.0 * math.pi)
+        there = script.q.copy()
+        there[:2] += 0.05 * np.array([math.cos(angle), math.sin(angle)])
+        back = script.q.copy()
+        script.move("carry", there, 0.6)
+        script.hold("carry", 0.3)
+        script.move("carry", back, 0.6)
+
+    cycle = 6.5 if kind == "pick_place" else 14.0  # seconds of one turn out and back
+    cycles = max(1, round((seconds - 7.0) / cycle))  # 7 s: reach, grasp, lift, place, let go
+    for c in range(cycles):
+        last = c == cycles - 1
+        carry()
+        script.move("turn", turned(script.q, 1.0), 2.0)
+        script.hold("turn", 0.5)
+        if kind == "gaiting":
+            gait(0.0)  # fingers back to the middle, the object stays turned
+        if last:
+            break
+        script.move("turn", turned(script.q, -1.0 if kind == "gaiting" else 0.0), 2.0)
+        script.hold("turn", 0.5)
+        if kind == "gaiting":
+            gait(0.0)
+
+    down = script.q.copy()
+    down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
+    script.move("place", down, 1.2)
+    script.hold("place", 0.3)
+    release = above.copy()
+    release[:6] = down[:6]
+    script.move("release", release, 0.8)
+    retreat = release.copy()
+    retreat[2] += 0.08
+    script.move("retreat", retreat, 1.0)
+    return Demo(
+        name=f"{obj.name}_{kind}_{variant}",
+        controls=np.concatenate(script.rows).astype(np.float32),
+        object_pose=grasp.object_pose.astype(np.float32),
+        q=open_hand.astype(np.float32),
+        phases=tuple(script.phases),
+    )
 
 
 @dataclass
 class Recording:
-    """What the robot sent and where the object really was, per group and frame."""
+    """What the robots sent and where the objects really were: G tracks side by side, (F, G, ...).
+
+    Tracks shorter than F are padded by holding their last controls; ``lengths`` says where each
+    really ends.
+    """
 
     controls: np.ndarray
     """Joint targets, (F, G, D)."""
@@ -112,33 +231,110 @@ class Recording:
     """Hidden true mass per group, (G,) [kg]."""
     friction: np.ndarray
     """Hidden true friction per group, (G,)."""
+    lengths: np.ndarray
+    """Real frames of each track, (G,)."""
+    names: tuple[str, ...]
+    """Each track's name, (G,)."""
 
     @property
     def frames(self) -> int:
         return self.controls.shape[0]
 
+    def trajectory(self, g: int, robot: str, obj: str, meta: dict | None = None) -> Trajectory:
+        """Track ``g`` as a trajectory file's content."""
+        n = int(self.lengths[g])
+        cut = lambda a: np.ascontiguousarray(a[:n, g])  # noqa: E731
+        truth = GroundTruth(
+            initial_pose=self.initial_pose[g],
+            initial_q=self.initial_q[g],
+            pose=cut(self.object_pose),
+            mass=float(self.mass[g]),
+            friction=float(self.friction[g]),
+        )
+        return Trajectory(
+            name=self.names[g],
+            robot=robot,
+            object=obj,
+            frame_rate=FRAME_RATE,
+            controls=cut(self.controls),
+            q=cut(self.q),
+            force=cut(self.force),
+            slip=cut(self.slip),
+            slip_dir=cut(self.slip_dir),
+            spin=cut(self.spin),
+            spin_sense=cut(self.spin_sense),
+            truth=truth,
+            meta=dict(meta or {}),
+        )
 
-def record(truth: Population, demo: Demo, mass: np.ndarray, friction: np.ndarray) -> Recording:
-    """Run ``demo`` in ``truth`` (K=1 per group) with hidden ``mass``, ``friction`` (G,)."""
+    @classmethod
+    def stack(cls, trajectories: Sequence[Trajectory]) -> Recording:
+        """G trajectories (with truth) side by side, padded to the longest."""
+        if any(t.truth is None for t in trajectories):
+            raise ValueError("recording: every trajectory needs its ground truth")
+        lengths = np.array([t.frames for t in trajectories])
+        f = int(lengths.max())
+
+        def pad(a: np.ndarray | None, n: int, like: tuple[int, ...]) -> np.ndarray:
+            a = np.zeros((n, *like), np.float32) if a is None else np.asarray(a, np.float32)
+            return np.concatenate([a, np.repeat(a[-1:], f - n, axis=0)]) if n < f else a
+
+        def field(name: str, like: tuple[int, ...]) -> np.ndarray:
+            return np.stack([pad(getattr(t, name), t.frames, like) for t in trajectories], axis=1)
+
+        l_count = next((t.force.shape[1] for t in trajectories if t.force is not None), 0)
+        return cls(
+            controls=field("controls", ()),
+            q=field("q", ()),
+            force=field("force", (l_count, 3)),
+            slip=field("slip", (l_count,)),
+            slip_dir=field("slip_dir", (l_count, 2)),
+            spin=field("spin", (l_count,)),
+            spin_sense=field("spin_sense", (l_count,)),
+            object_pose=np.stack([pad(t.truth.pose, t.frames, (7,)) for t in trajectories], axis=1),
+            initial_pose=np.stack([t.truth.initial_pose for t in trajectories]),
+            initial_q=np.stack([t.truth.initial_q for t in trajectories]),
+            mass=np.array([t.truth.mass for t in trajectories], np.float32),
+            friction=np.array([t.truth.friction for t in trajectories], np.float32),
+            lengths=lengths,
+            names=tuple(t.name for t in trajectories),
+        )
+
+
+def record(truth: Population, demos: Demo | Sequence[Demo], mass: np.ndarray, friction: np.ndarray) -> Recording:
+    """Run ``demos`` (one per group, or one for all) in ``truth`` (K=1 per group) with hidden
+    ``mass``, ``friction`` (G,). Shorter demos hold their last targets until the longest ends."""
     if truth.K != 1:
         raise ValueError(f"truth population: expected 1 world per group, got {truth.K}")
     G = truth.G
-    controls = demo.controls
-    truth.reset_state(demo.object_pose, demo.q)
-    truth.set_params(mass=torch.as_tensor(mass, dtype=torch.float32)[:, None],
-                     friction=torch.as_tensor(friction, dtype=torch.float32)[:, None])  # fmt: skip
+    demos = [demos] * G if isinstance(demos, Demo) else list(demos)
+    if len(demos) != G:
+        raise ValueError(f"record: expected {G} demos (one per group), got {len(demos)}")
+    lengths = np.array([d.frames for d in demos])
+    f = int(lengths.max())
+    controls = np.stack(
+        [np.concatenate([d.controls, np.repeat(d.controls[-1:], f - d.frames, axis=0)]) for d in demos], axis=1
+    )
+    truth.reset_state(np.stack([d.object_pose for d in demos]), np.stack([d.q for d in demos]))
+    truth.set_params(
+        mass=torch.as_tensor(mass, dtype=torch.float32)[:, None],
+        friction=torch.as_tensor(friction, dtype=torch.float32)[:, None],
+    )
     fields = ("q", "force", "slip", "slip_dir", "spin", "spin_sense", "object_pose")
-    rows: dict[str, list[np.ndarray]] = {f: [] for f in fields}
-    for u in controls:
-        truth.set_targets(np.broadcast_to(u, (G, u.shape[0])))
+    rows: dict[str, list[torch.Tensor]] = {f: [] for f in fields}
+    targets = torch.as_tensor(controls, device=truth.torch_device)
+    for u in targets:
+        truth.set_targets(u)
         truth.step()
-        for f in fields:
-            rows[f].append(getattr(truth.obs, f)[:, 0].cpu().numpy().copy())
+        for name in fields:
+            rows[name].append(getattr(truth.obs, name)[:, 0].clone())
     return Recording(
-        controls=np.broadcast_to(controls[:, None], (controls.shape[0], G, controls.shape[1])).copy(),
-        initial_pose=np.broadcast_to(demo.object_pose, (G, 7)).copy(),
-        initial_q=np.broadcast_to(demo.q, (G, demo.q.shape[0])).copy(),
+        controls=controls,
+        initial_pose=np.stack([d.object_pose for d in demos]),
+        initial_q=np.stack([d.q for d in demos]),
         mass=np.asarray(mass, dtype=np.float32),
         friction=np.asarray(friction, dtype=np.float32),
-        **{f: np.stack(v) for f, v in rows.items()},
+        lengths=lengths,
+        names=tuple(d.name for d in demos),
+        **{name: torch.stack(v).cpu().numpy() for name, v in rows.items()},
     )

@@ -64,6 +64,16 @@ class ObjectSpec:
         points, _ = trimesh.sample.sample_surface(self.mesh, count, seed=seed)
         return np.asarray(points, dtype=np.float32)
 
+    def scaled(self, factor: float) -> ObjectSpec:
+        """The same object with every length times ``factor`` (same mass): a reality gap in size."""
+        if not (0.5 <= factor <= 2.0):
+            raise ValueError(f"object '{self.name}' scale: expected 0.5 to 2, got {factor}")
+        mesh = self.mesh.copy()
+        mesh.apply_scale(factor)
+        box = None if self.box_half_extents is None else tuple(h * factor for h in self.box_half_extents)
+        capsules = tuple(tuple(v * factor for v in c) for c in self.capsules)
+        return replace(self, mesh=mesh, box_half_extents=box, capsules=capsules)
+
     @property
     def radius(self) -> float:
         """Distance from the centre of mass to the farthest surface point [m]."""

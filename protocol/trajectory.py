@@ -1,0 +1,176 @@
+"""Trajectory files: a robot's frames as the protocol carries them, plus the ground truth.
+
+A file is one msgpack map (arrays as in the codec: {dtype, shape, bytes}, never pickled)::
+
+    format       "inhand-tracker/trajectory"
+    version      TRAJECTORY_VERSION (a reader refuses other versions, naming both)
+    name, robot, object, frame_rate [Hz], meta {str: str | float | int}
+    frames       {stamp (F,) [s], controls (F, D), q (F, D),
+                  force (F, L, 3) [N] | nil, slip (F, L) | nil, slip_dir (F, L, 2) | nil,
+                  spin (F, L) | nil, spin_sense (F, L) | nil}        exactly RobotFrame's fields
+    truth        {initial_pose (7,), initial_q (D,), pose (F, 7), mass [kg], friction} | nil
+
+Poses are position [m] and quaternion (x, y, z, w). A robot-side client replays ``frames`` over
+Zenoh (``RobotFrame`` per row); ``truth`` is what an evaluation scores against and what a
+tracker must never read. Imports only numpy and msgpack, so the light client can use it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from .codec import DecodeError, pack_value, unpack_array
+from .messages import RobotFrame
+
+__all__ = ["TRAJECTORY_FORMAT", "TRAJECTORY_VERSION", "GroundTruth", "Trajectory"]
+
+TRAJECTORY_FORMAT = "inhand-tracker/trajectory"
+TRAJECTORY_VERSION = 1
+_MAX_FILE_BYTES = 256 << 20
+_OPTIONAL = ("force", "slip", "slip_dir", "spin", "spin_sense")
+
+
+@dataclass
+class GroundTruth:
+    """Where the object really was: never sent to the tracker."""
+
+    initial_pose: np.ndarray
+    """Object pose before the first frame, (7,)."""
+    initial_q: np.ndarray
+    """Joint positions before the first frame, (D,)."""
+    pose: np.ndarray
+    """Object pose after each frame, (F, 7)."""
+    mass: float
+    """Hidden object mass [kg]."""
+    friction: float
+    """Hidden friction coefficient."""
+
+
+@dataclass
+class Trajectory:
+    """One robot's recorded frames (what the protocol carries) and, for benchmarks, the truth."""
+
+    name: str
+    robot: str
+    object: str
+    frame_rate: float
+    """Frames per second [Hz]."""
+    controls: np.ndarray
+    """Joint position targets, (F, D) [rad or m]."""
+    q: np.ndarray
+    """Measured joint positions, (F, D) [rad or m]."""
+    force: np.ndarray | None = None
+    """Fingertip forces in the sensor frames, (F, L, 3) [N]."""
+    slip: np.ndarray | None = None
+    """Translational slip flags, (F, L)."""
+    slip_dir: np.ndarray | None = None
+    """Slip directions in the sensors' tangent planes, (F, L, 2)."""
+    spin: np.ndarray | None = None
+    """Rotational slip flags, (F, L)."""
+    spin_sense: np.ndarray | None = None
+    """Rotational slip senses, (F, L): 1 counter-clockwise about the pad normal, else 0."""
+    stamp: np.ndarray | None = None
+    """Robot clock per frame, (F,) [s]; default frame / frame_rate."""
+    truth: GroundTruth | None = None
+    meta: dict[str, str | float | int] = field(default_factory=dict)
+    """How it was made (demo kind, variant, physics gap, sensor noise)."""
+
+    def __post_init__(self) -> None:
+        f, d = np.shape(self.controls)
+        if np.shape(self.q) != (f, d):
+            raise ValueError(f"trajectory '{self.name}' q: expected shape {(f, d)}, got {np.shape(self.q)}")
+        if self.stamp is None:
+            self.stamp = np.arange(f, dtype=np.float64) / self.frame_rate
+        if self.truth is not None and np.shape(self.truth.pose) != (f, 7):
+            raise ValueError(
+                f"trajectory '{self.name}' truth.pose: expected shape {(f, 7)}, got {np.shape(self.truth.pose)}"
+            )
+
+    @property
+    def frames(self) -> int:
+        return self.controls.shape[0]
+
+    def frame(self, i: int, session: str, seq: int | None = None) -> RobotFrame:
+        """Row ``i`` as the message a robot sends."""
+        optional = {k: None if getattr(self, k) is None else getattr(self, k)[i] for k in _OPTIONAL}
+        return RobotFrame(
+            session=session,
+            seq=i if seq is None else seq,
+            stamp=float(self.stamp[i]),
+            controls=self.controls[i],
+            q=self.q[i],
+            **optional,
+        )
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike) -> Path:
+        frames = {k: getattr(self, k) for k in ("stamp", "controls", "q", *_OPTIONAL)}
+        frames = {
+            k: None if v is None else np.ascontiguousarray(v, dtype=np.float64 if k == "stamp" else np.float32)
+            for k, v in frames.items()
+        }
+        truth = None
+        if self.truth is not None:
+            t = self.truth
+            truth = {
+                "initial_pose": np.asarray(t.initial_pose, np.float32),
+                "initial_q": np.asarray(t.initial_q, np.float32),
+                "pose": np.asarray(t.pose, np.float32),
+                "mass": float(t.mass),
+                "friction": float(t.friction),
+            }
+        doc = {
+            "format": TRAJECTORY_FORMAT,
+            "version": TRAJECTORY_VERSION,
+            "name": self.name,
+            "robot": self.robot,
+            "object": self.object,
+            "frame_rate": float(self.frame_rate),
+            "meta": dict(self.meta),
+            "frames": frames,
+            "truth": truth,
+        }
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(msgpack.packb(doc, default=pack_value, use_bin_type=True))
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Trajectory:
+        """Read a trajectory file; a ValueError names the file and what is wrong with it."""
+        path = Path(path)
+        data = path.read_bytes()
+        if len(data) > _MAX_FILE_BYTES:
+            raise ValueError(f"{path}: {len(data)} bytes exceeds the limit of {_MAX_FILE_BYTES}")
+        try:
+            doc = msgpack.unpackb(data, object_hook=lambda o: unpack_array(o, _MAX_FILE_BYTES), raw=False)
+        except DecodeError as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+        except Exception as exc:
+            raise ValueError(f"{path}: not a trajectory file ({type(exc).__name__}: {exc})") from exc
+        if not isinstance(doc, dict) or doc.get("format") != TRAJECTORY_FORMAT:
+            raise ValueError(
+                f"{path}: not a trajectory file (format {doc.get('format') if isinstance(doc, dict) else None!r})"
+            )
+        if doc.get("version") != TRAJECTORY_VERSION:
+            raise ValueError(
+                f"{path}: trajectory format v{doc.get('version')}, this reader reads v{TRAJECTORY_VERSION}"
+            )
+        try:
+            truth = doc["truth"] and GroundTruth(**doc["truth"])
+            return cls(
+                name=doc["name"],
+                robot=doc["robot"],
+                object=doc["object"],
+                frame_rate=doc["frame_rate"],
+                meta=doc["meta"],
+                truth=truth or None,
+                **doc["frames"],
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: malformed trajectory ({type(exc).__name__}: {exc})") from exc

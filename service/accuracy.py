@@ -1,0 +1,421 @@
+"""The accuracy benchmark: section IV-A of the paper on synthetic ground truth, and beyond it.
+
+A suite is a set of scripted demos (objects x kinds x variants) recorded with hidden mass and
+friction drawn from the prior, optionally with the truth's physics off from the tracker's and
+with sensor noise (the reality gap). Every track (trajectory x initial-noise level x method, or
+an ablation setting) is one group of one population per object, so a suite is one batched run.
+The tracker sees only what the robot sends plus a noisy initial pose; ADD scores every frame.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from protocol.trajectory import Trajectory
+from sim_backend import HandSpec, Kinematics, Population, PopulationConfig, catalog_object
+from sim_backend.demos import DEMO_KINDS, Recording, make_demo, record
+
+from .evaluation import add_error
+from .optimizers import METHODS
+from .sampling import sample_poses
+from .tracker import Frame, Tracker, TrackerConfig
+
+__all__ = [
+    "CACHE_DIR",
+    "DATA_DIR",
+    "EXPLORATION",
+    "NOISE_LEVELS",
+    "SUITES",
+    "PhysicsGap",
+    "SensorNoise",
+    "Suite",
+    "TrackResult",
+    "ground_truth",
+    "run_suite",
+]
+
+NOISE_LEVELS: dict[str, tuple[float, float]] = {"low": (0.001, 0.01), "med": (0.005, 0.1), "high": (0.01, 1.0)}
+"""Initial pose noise (Sigma_p) per level, as the paper's: translation [m], rotation [rad]."""
+EXPLORATION: dict[str, float] = {"low": 0.25, "med": 1.0, "high": 4.0}
+"""Exploration levels of the ablation: multipliers on the parameter and wrench noise."""
+K_ABLATION = (10, 40, 160, 640, 2560)
+_CONTACT_TERMS = (3, 4, 5)  # contact disagreement, force magnitude, force direction
+_SLIP_TERMS = (6, 7, 8, 9)
+
+
+@dataclass(frozen=True)
+class PhysicsGap:
+    """How the ground truth's physics differs from the tracker's."""
+
+    substeps: int = 8
+    """Truth substeps per frame (the tracker uses 8)."""
+    object_scale: float = 1.0
+    """Truth object size relative to the tracker's model."""
+    finger_damping: float = 1.0
+    """Truth finger joint damping relative to the tracker's model."""
+    impratio: float = 10.0
+    """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding."""
+
+    @property
+    def is_none(self) -> bool:
+        return self == PhysicsGap()
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """What real sensors add to the robot's frames."""
+
+    joint_sigma: float = 0.0
+    """Joint encoder noise, standard deviation [rad] (and [m] for the wrist slides)."""
+    force_sigma: float = 0.0
+    """Fingertip force noise, standard deviation per axis [N]."""
+    force_bias: float = 0.0
+    """Fingertip force bias, standard deviation per sensor and axis, fixed per track [N]."""
+    slip_miss: float = 0.0
+    """Fraction of slip events the slip detector misses."""
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    objects: tuple[str, ...]
+    kinds: tuple[str, ...]
+    variants: int
+    """Demos per object and kind."""
+    seconds: float
+    """About how long each demo lasts [s]."""
+    pace: float = 1.0
+    gap: PhysicsGap = PhysicsGap()
+    sensors: SensorNoise = SensorNoise()
+    seed: int = 0
+
+
+SUITES: dict[str, Suite] = {
+    "smoke": Suite("smoke", ("foam_brick",), ("pick_place",), 2, seconds=10.0, pace=0.7),
+    "paper": Suite("paper", ("spam_can", "foam_brick", "toy_banana"), DEMO_KINDS, 2, seconds=60.0),
+    "reality-gap": Suite(
+        "reality-gap",
+        ("spam_can", "foam_brick", "toy_banana"),
+        DEMO_KINDS,
+        1,
+        seconds=30.0,
+        gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
+        sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
+    ),
+}
+
+
+# ---------------------------------------------------------------------- ground truth
+DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "trajectories"
+"""The short trajectories shipped with the project (smoke suite, demo)."""
+CACHE_DIR = Path.home() / ".cache" / "inhand-tracker" / "trajectories"
+"""Where longer trajectories are written once generated."""
+
+
+def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR, log=None) -> list[Trajectory]:
+    """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
+    written to ``cache``) with one truth population per object, one group per demo, hidden mass
+    and friction drawn uniformly from the prior."""
+    spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
+    kin = Kinematics(HandSpec())  # the robot's own model plans the demos
+    out: list[Trajectory] = []
+    for o, name in enumerate(suite.objects):
+        demos = [
+            make_demo(kin, catalog_object(name), kind, v, suite.seconds, suite.pace)
+            for kind in suite.kinds
+            for v in range(suite.variants)
+        ]
+        names = [f"{suite.name}-{d.name}.traj" for d in demos]
+        for folder in (DATA_DIR, cache):
+            if folder is not None and all((folder / n).exists() for n in names):
+                break
+        else:
+            folder = None
+        if folder is not None:
+            out += [Trajectory.load(folder / n) for n in names]
+            continue
+        if log:
+            log(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
+        obj = catalog_object(name)
+        rng = np.random.default_rng([suite.seed, o])
+        mass, friction = rng.uniform(*obj.mass_range, len(demos)), rng.uniform(*obj.friction_range, len(demos))
+        config = PopulationConfig(
+            groups=len(demos), worlds=1, device=device, substeps=suite.gap.substeps, impratio=suite.gap.impratio
+        )
+        truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
+        rec = _add_sensor_noise(record(truth, demos, mass, friction), suite.sensors, rng)
+        meta = {"suite": suite.name, "gap": str(asdict(suite.gap)), "sensors": str(asdict(suite.sensors))}
+        for g, d in enumerate(demos):
+            traj = rec.trajectory(g, HandSpec().name, name, meta | {"demo": d.name})
+            if cache is not None:
+                traj.save(cache / names[g])
+            out.append(traj)
+    return out
+
+
+def _add_sensor_noise(rec: Recording, noise: SensorNoise, rng: np.random.Generator) -> Recording:
+    if noise == SensorNoise():
+        return rec
+    _, g, l = rec.slip.shape
+    rec.q = rec.q + rng.normal(0.0, noise.joint_sigma, rec.q.shape).astype(np.float32)
+    bias = rng.normal(0.0, noise.force_bias, (1, g, l, 3))
+    touching = np.linalg.norm(rec.force, axis=-1, keepdims=True) > 0  # a sensor reads noise only in contact
+    rec.force = (rec.force + touching * (bias + rng.normal(0.0, noise.force_sigma, rec.force.shape))).astype(np.float32)
+    for flags in (rec.slip, rec.spin):
+        flags[rng.random(flags.shape) < noise.slip_miss] = 0.0
+    return rec
+
+
+# ---------------------------------------------------------------------- tracks
+@dataclass(frozen=True)
+class TrackSetting:
+    """What one group of the batched run does."""
+
+    trajectory: int
+    noise: str
+    method: str
+    worlds: int = 40
+    exploration: str = "med"
+    contact_terms: bool = True
+    slip_terms: bool = True
+    study: str = "main"
+    """main (Fig. 2) or the ablation it belongs to (exploration, worlds, contact, slip)."""
+
+
+@dataclass
+class TrackResult:
+    setting: TrackSetting
+    trajectory: str
+    object: str
+    add: np.ndarray = field(repr=False)
+    """ADD per frame, (F,) [m]."""
+    diverged: int = 0
+    """Frames on which the tracker re-seeded the group."""
+
+    def summary(self) -> dict:
+        return {
+            **asdict(self.setting),
+            "trajectory": self.trajectory,
+            "object": self.object,
+            "add_mean_mm": float(self.add.mean() * 1e3),
+            "add_max_mm": float(self.add.max() * 1e3),
+            "diverged_frames": self.diverged,
+        }
+
+
+def settings(
+    trajectories: int, methods: Sequence[str], noises: Sequence[str], ablations: Sequence[str], worlds: int
+) -> list[TrackSetting]:
+    """The tracks of a run: every trajectory x noise x method, then the ablations (PBO at medium
+    noise, as the paper's Fig. 3)."""
+    # OLP simulates the initial estimate alone: one world, in a population of its own.
+    out = [
+        TrackSetting(t, n, m, 1 if m == "OLP" else worlds) for t in range(trajectories) for n in noises for m in methods
+    ]
+    for t in range(trajectories):
+        if "exploration" in ablations:
+            out += [TrackSetting(t, "med", "PBO", worlds, exploration=e, study="exploration") for e in ("low", "high")]
+        if "contact" in ablations:
+            out.append(TrackSetting(t, "med", "PBO", worlds, contact_terms=False, study="contact"))
+        if "slip" in ablations:
+            out.append(TrackSetting(t, "med", "PBO", worlds, slip_terms=False, study="slip"))
+        if "worlds" in ablations:
+            out += [TrackSetting(t, "med", "PBO", k, study="worlds") for k in K_ABLATION if k != worlds]
+    return out
+
+
+def run_tracks(
+    trajectories: Sequence[Trajectory],
+    tracks: Sequence[TrackSetting],
+    device: str = "auto",
+    seed: int = 0,
+    progress: Callable[[int], None] | None = None,
+) -> list[TrackResult]:
+    """Run ``tracks`` on ``trajectories`` of one object: one population per world count, every
+    track a group of it. The noisy initial pose of a (trajectory, noise) pair is the same for
+    every method, so methods are compared on equal footing."""
+    obj = catalog_object(trajectories[0].object)
+    spec = HandSpec()
+    rec = Recording.stack(trajectories)
+    gen = torch.Generator().manual_seed(seed)
+    start = torch.tensor(rec.initial_pose, dtype=torch.float32)
+    p0 = {n: _noisy(start, *NOISE_LEVELS[n], gen) for n in NOISE_LEVELS}  # the "vision" estimates
+    points = obj.surface_points(1000)
+    results: list[TrackResult] = []
+    for k in sorted({t.worlds for t in tracks}):
+        group = [t for t in tracks if t.worlds == k]
+        pop = Population(spec, obj, PopulationConfig(groups=len(group), worlds=k, device=device))
+        terms = np.ones((len(group), 10), bool)
+        for g, t in enumerate(group):
+            terms[g, list(_CONTACT_TERMS)] = t.contact_terms
+            terms[g, list(_SLIP_TERMS)] = t.slip_terms
+        tracker = Tracker(
+            pop,
+            TrackerConfig(seed=seed),
+            methods=[t.method for t in group],
+            exploration=[EXPLORATION[t.exploration] for t in group],
+            terms=terms,
+        )
+        rows = np.array([t.trajectory for t in group])
+        tracker.start(
+            np.stack([p0[t.noise][t.trajectory] for t in group]),
+            rec.initial_q[rows],
+            sigma_t=np.array([NOISE_LEVELS[t.noise][0] for t in group]),
+            sigma_r=np.array([NOISE_LEVELS[t.noise][1] for t in group]),
+        )
+        poses = np.empty((rec.frames, len(group), 7), np.float32)
+        diverged = np.zeros(len(group), np.int64)
+        for f in range(rec.frames):
+            est = tracker.step(
+                Frame(
+                    controls=rec.controls[f, rows],
+                    q=rec.q[f, rows],
+                    force=rec.force[f, rows],
+                    slip=rec.slip[f, rows],
+                    slip_dir=rec.slip_dir[f, rows],
+                    spin=rec.spin[f, rows],
+                    spin_sense=rec.spin_sense[f, rows],
+                )
+            )
+            poses[f] = est.pose
+            diverged += est.status == 2
+            if progress:
+                progress(len(group) * k)
+        add = add_error(points, rec.object_pose[:, rows], poses)  # (F, G)
+        for g, t in enumerate(group):
+            n = int(rec.lengths[t.trajectory])
+            results.append(TrackResult(t, rec.names[t.trajectory], obj.name, add[:n, g], int(diverged[g])))
+    return results
+
+
+def _noisy(mean: torch.Tensor, sigma_t: float, sigma_r: float, gen: torch.Generator) -> np.ndarray:
+    pose = sample_poses(mean, sigma_t, sigma_r, 1, gen)[:, 0]
+    return torch.cat([pose[:, :3], torch.nn.functional.normalize(pose[:, 3:], dim=-1)], dim=-1).numpy()
+
+
+# ---------------------------------------------------------------------- a whole suite
+def run_suite(
+    suite: Suite,
+    methods: Sequence[str] = METHODS,
+    noises: Sequence[str] = ("low", "med", "high"),
+    worlds: int = 40,
+    ablations: Sequence[str] = (),
+    device: str = "auto",
+    cache: Path | None = CACHE_DIR,
+    quiet: bool = False,
+) -> dict:
+    """Ground truth, then every object's tracks as one batched run; returns the results as a dict
+    (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD)."""
+    for m in methods:
+        if m not in METHODS:
+            raise ValueError(f"methods: expected some of {METHODS}, got {m!r}")
+    for n in noises:
+        if n not in NOISE_LEVELS:
+            raise ValueError(f"noise: expected some of {tuple(NOISE_LEVELS)}, got {n!r}")
+    log = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+    trajectories = ground_truth(suite, device, cache, log)
+    t_truth = time.perf_counter() - t0
+    by_object: dict[str, list[Trajectory]] = {}
+    for t in trajectories:
+        by_object.setdefault(t.object, []).append(t)
+    plan = {o: settings(len(ts), methods, noises, ablations, worlds) for o, ts in by_object.items()}
+    total = sum(max(t.frames for t in by_object[o]) * sum(s.worlds for s in p) for o, p in plan.items())
+    bar = _Progress(total, "tracking", quiet)
+    results: list[TrackResult] = []
+    for o, ts in by_object.items():
+        by_k: dict[int, list[TrackSetting]] = {}
+        for s in plan[o]:
+            by_k.setdefault(s.worlds, []).append(s)
+        for k_tracks in by_k.values():  # the frames of one population advance all its groups at once
+            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance)
+    bar.close()
+    return _collect(suite, results, worlds, t_truth, time.perf_counter() - t0 - t_truth, device)
+
+
+class _Progress:
+    """A one-line progress bar on stderr, counted in world-frames."""
+
+    def __init__(self, total: int, label: str, quiet: bool):
+        self.total, self.label, self.quiet, self.done = max(total, 1), label, quiet, 0
+        self.t0, self._last = time.perf_counter(), 0.0
+
+    def advance(self, n: int) -> None:
+        self.done += n
+        now = time.perf_counter()
+        if not self.quiet and (now - self._last > 0.5 or self.done >= self.total):
+            self._last = now
+            frac = min(self.done / self.total, 1.0)
+            eta = (now - self.t0) * (1 - frac) / max(frac, 1e-9)
+            bar = "#" * int(30 * frac)
+            print(
+                f"\r{self.label} [{bar:<30}] {100 * frac:5.1f}%  eta {eta:5.0f} s", end="", file=sys.stderr, flush=True
+            )
+
+    def close(self) -> None:
+        if not self.quiet:
+            print(file=sys.stderr, flush=True)
+
+
+def _stats(values: Sequence[float]) -> dict:
+    a = np.asarray(values) * 1e3
+    return {"mean_mm": float(a.mean()), "std_mm": float(a.std()), "max_mm": float(a.max()), "tracks": int(a.size)}
+
+
+def _collect(
+    suite: Suite, results: list[TrackResult], worlds: int, t_truth: float, t_track: float, device: str
+) -> dict:
+    """ADD statistics over tracks: mean of per-track mean ADD, its std over tracks, and the max
+    over all frames, per method and noise level (Fig. 2) and per ablation setting (Fig. 3)."""
+    summary: dict[str, dict[str, dict]] = {}
+    for r in results:
+        s = r.setting
+        if s.study == "main":
+            summary.setdefault(s.method, {}).setdefault(s.noise, []).append(r)
+    fig2 = {
+        m: {
+            n: {**_stats([r.add.mean() for r in rs]), "max_mm": float(max(r.add.max() for r in rs) * 1e3)}
+            for n, rs in by_noise.items()
+        }
+        for m, by_noise in summary.items()
+    }
+    ablation: dict[str, dict[str, dict]] = {}
+
+    def add_row(study: str, label: str, rs: list[TrackResult]) -> None:
+        if rs:
+            ablation.setdefault(study, {})[label] = _stats([r.add.mean() for r in rs])
+
+    base = [r for r in results if r.setting.study == "main" and r.setting.method == "PBO" and r.setting.noise == "med"]
+    studies = {r.setting.study for r in results} - {"main"}
+    if "exploration" in studies:
+        for e in ("low", "med", "high"):
+            rs = (
+                base
+                if e == "med"
+                else [r for r in results if r.setting.study == "exploration" and r.setting.exploration == e]
+            )
+            add_row("exploration", e, rs)
+    if "worlds" in studies:
+        for k in K_ABLATION:
+            rs = base if k == worlds else [r for r in results if r.setting.study == "worlds" and r.setting.worlds == k]
+            add_row("worlds", str(k), rs)
+    for study in ("contact", "slip"):
+        if study in studies:
+            add_row(study, "on", base)
+            add_row(study, "off", [r for r in results if r.setting.study == study])
+    return {
+        "suite": asdict(suite),
+        "device": device,
+        "worlds": worlds,
+        "seconds": {"ground_truth": t_truth, "tracking": t_track},
+        "summary": fig2,
+        "ablations": ablation,
+        "tracks": [r.summary() | {"add_mm": np.round(r.add * 1e3, 3).tolist()} for r in results],
+    }
