@@ -122,7 +122,7 @@ CACHE_DIR = Path.home() / ".cache" / "inhand-tracker" / "trajectories"
 def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR, log=None) -> list[Trajectory]:
     """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
     written to ``cache``) with one truth population per object, one group per demo, hidden mass
-    and friction drawn uniformly from the prior."""
+    and friction drawn from the tracker's prior."""
     spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
     kin = Kinematics(HandSpec())  # the robot's own model plans the demos
     out: list[Trajectory] = []
@@ -145,7 +145,10 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             log(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
         obj = catalog_object(name)
         rng = np.random.default_rng([suite.seed, o])
-        mass, friction = rng.uniform(*obj.mass_range, len(demos)), rng.uniform(*obj.friction_range, len(demos))
+        mass, friction = (
+            _draw_prior(obj.mass, obj.mass_range, rng, len(demos)),
+            _draw_prior(obj.friction, obj.friction_range, rng, len(demos)),
+        )
         config = PopulationConfig(
             groups=len(demos), worlds=1, device=device, substeps=suite.gap.substeps, impratio=suite.gap.impratio
         )
@@ -158,6 +161,13 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
                 traj.save(cache / names[g])
             out.append(traj)
     return out
+
+
+def _draw_prior(nominal: float, bounds: tuple[float, float], rng: np.random.Generator, n: int) -> np.ndarray:
+    """The tracker's prior over a physics parameter (its nominal value, a quarter of the range as
+    standard deviation, clipped to the range): the truth is one draw from what the tracker believes."""
+    lo, hi = bounds
+    return np.clip(rng.normal(nominal, TrackerConfig().mass_sigma0 * (hi - lo), n), lo, hi)
 
 
 def _add_sensor_noise(rec: Recording, noise: SensorNoise, rng: np.random.Generator) -> Recording:

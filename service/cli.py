@@ -23,7 +23,7 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="inhand-tracker", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
     bench = sub.add_parser("bench", help="benchmarks")
-    bsub = bench.add_subparsers(dest="suite", required=True)
+    bsub = bench.add_subparsers(dest="bench", required=True)
     sim = bsub.add_parser("sim", help="physics population: ms per 30 Hz frame and memory per world")
     sim.add_argument("--worlds", type=_int_list, default=[40, 256, 1024, 4096], help="K values, e.g. 40,256,1024")
     sim.add_argument("--substeps", type=_int_list, default=[8], help="substeps per frame, e.g. 4,8")
@@ -92,7 +92,7 @@ def _accuracy(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if args.command == "bench" and args.suite == "sim":
+    if args.command == "bench" and args.bench == "sim":
         from sim_backend.bench import as_dicts, bench_sim, format_table
 
         results = []
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
         print(json.dumps(as_dicts(results), indent=2) if args.json else format_table(results))
         return 0
-    if args.command == "bench" and args.suite == "accuracy":
+    if args.command == "bench" and args.bench == "accuracy":
         return _accuracy(args)
     return 2
 

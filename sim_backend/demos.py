@@ -7,7 +7,7 @@ Allegro-like hand on a 6-DoF wrist) so that any number can be made with known tr
   about (quick moves, so it slips from inertia), turn it in the hand by 30 degrees or more with
   the fingers and thumb, set it down pressing against the table (it slips again), let go.
 - ``gaiting``: the same, but while the object is held each finger in turn breaks contact, moves
-  and re-establishes it (finger gaiting), and the object is turned back and forth.
+  and re-establishes it (finger gaiting), again and again.
 
 A demo is a sequence of joint targets (F, D). Running it in a population with hidden physics
 (one world per group) records what the real robot would send (joint positions, fingertip
@@ -39,6 +39,7 @@ FRAME_RATE = 30.0
 _FINGER_ABDUCTION = (6, 10, 14)
 _FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
 _THUMB_SWING = 18
+SQUEEZE = 0.3
 
 
 @dataclass(frozen=True)
@@ -110,17 +111,15 @@ def make_demo(
     # Fingers abduct towards -y and the thumb swings towards +y: the planned pinch leaves the
     # thumb's swing next to its upper limit, so the other way barely turns the object.
     sign = 1.0
-    turn = float(rng.uniform(0.7, 0.85))  # finger abduction and thumb swing [rad]
-    if kind == "gaiting":
-        turn *= 0.75  # a finger lifts off while the object is turned: keep the others' grip firm
+    turn = float(rng.uniform(0.55, 0.65))  # finger abduction and thumb swing [rad]
 
     rest_z = -float(obj.mesh.bounds[0, 2])  # the object's centre height when it rests on the table
     wrist = np.array([*rng.uniform(-0.05, 0.05, 2), 0.3, 0.0, 0.0, 0.0])
     wrist[2] += rest_z - plan_pinch(kin, obj, wrist_q=wrist).object_pose[2]  # lower the pinch onto it
-    grasp = plan_pinch(kin, obj, wrist_q=wrist)
+    grasp = plan_pinch(kin, obj, wrist_q=wrist, squeeze=SQUEEZE)
     palm_z = float(wrist[2])
     open_hand = lay.default_q.copy()
-    open_hand[2] = palm_z + 0.08
+    open_hand[:3] = wrist[0], wrist[1], palm_z + 0.12  # straight above: the fingers clear the object
     script = _Script(open_hand, lay.lower, lay.upper, pace)
 
     above = open_hand.copy()
@@ -141,7 +140,8 @@ def make_demo(
         return out
 
     def gait(direction: float) -> None:
-        """Each finger in turn lets go, moves its abduction to ``direction`` and presses again."""
+        """Each finger in turn lets go, moves its abduction to ``direction`` (0: the middle, 1: turned)
+        and presses again."""
         for finger, flexion in zip(_FINGER_ABDUCTION, _FINGER_FLEXION, strict=True):
             lifted = script.q.copy()
             lifted[list(flexion)] -= 0.2  # just clear of the object: the others hold it meanwhile
@@ -158,28 +158,25 @@ def make_demo(
         """A quick move and back: the object lags behind and slips."""
         angle = rng.uniform(0.0, 2.0 * math.pi)
         there = script.q.copy()
-        there[:2] += 0.05 * np.array([math.cos(angle), math.sin(angle)])
+        there[:2] += 0.04 * np.array([math.cos(angle), math.sin(angle)])
         back = script.q.copy()
-        script.move("carry", there, 0.6)
+        script.move("carry", there, 0.8)
         script.hold("carry", 0.3)
-        script.move("carry", back, 0.6)
+        script.move("carry", back, 0.8)
 
-    cycle = 6.5 if kind == "pick_place" else 14.0  # seconds of one turn out and back
-    cycles = max(1, round((seconds - 7.0) / cycle))  # 7 s: reach, grasp, lift, place, let go
-    for c in range(cycles):
-        last = c == cycles - 1
+    # One turn (with a gait in the gaiting demo), then carrying about until the demo lasts
+    # ``seconds``, with a gait between carries in the gaiting demo. Turning back and forth more
+    # often walks the object out of an open-loop grasp, which a teleoperator would not do.
+    carry()
+    script.move("turn", turned(script.q, 1.0), 3.0)
+    script.hold("turn", 0.5)
+    if kind == "gaiting":
+        gait(0.0)  # the fingers go back to the middle one by one; the object stays turned
+    while script.count < (seconds - 3.3) * pace * FRAME_RATE:  # 3.3 s: place, let go, retreat
         carry()
-        script.move("turn", turned(script.q, 1.0), 2.0)
-        script.hold("turn", 0.5)
-        if kind == "gaiting":
-            gait(0.0)  # fingers back to the middle, the object stays turned
-        if last:
-            break
-        script.move("turn", turned(script.q, -1.0 if kind == "gaiting" else 0.0), 2.0)
-        script.hold("turn", 0.5)
+        script.hold("hold", 0.8)
         if kind == "gaiting":
             gait(0.0)
-
     down = script.q.copy()
     down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
     script.move("place", down, 1.2)
