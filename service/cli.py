@@ -49,7 +49,8 @@ def _parser() -> argparse.ArgumentParser:
 def _accuracy(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from service.accuracy import CACHE_DIR, SUITES, run_suite
+    from service.accuracy import CACHE_DIR, NOISE_LEVELS, SUITES, run_suite
+    from service.optimizers import METHODS
     from service.report import write_report
 
     if args.suite not in SUITES:
@@ -67,19 +68,20 @@ def _accuracy(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    try:
-        results = run_suite(
-            SUITES[args.suite],
-            methods=args.methods.split(","),
-            noises=args.noise.split(","),
-            worlds=args.worlds,
-            ablations=ablations,
-            device=args.device,
-            cache=Path(args.cache) if args.cache else CACHE_DIR,
-        )
-    except ValueError as exc:
-        print(f"bench accuracy: {exc}", file=sys.stderr)
-        return 2
+    methods, noises = args.methods.split(","), args.noise.split(",")
+    for name, values, allowed in (("--methods", methods, METHODS), ("--noise", noises, tuple(NOISE_LEVELS))):
+        if not values or not set(values) <= set(allowed):
+            print(f"{name}: expected some of {','.join(allowed)}, got '{','.join(values)}'", file=sys.stderr)
+            return 2
+    results = run_suite(
+        SUITES[args.suite],
+        methods=methods,
+        noises=noises,
+        worlds=args.worlds,
+        ablations=ablations,
+        device=args.device,
+        cache=Path(args.cache) if args.cache else CACHE_DIR,
+    )
     out = Path(args.out or f"bench-results/accuracy-{args.suite}")
     report = write_report(results, out, command="inhand-tracker " + " ".join(sys.argv[1:]))
     if args.json:

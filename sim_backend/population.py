@@ -655,7 +655,7 @@ class Population:
         value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
         if tuple(value.shape) != (self.G, self.K):
             raise ValueError(f"{name}: expected shape ({self.G}, {self.K}), got {tuple(value.shape)}")
-        lo, hi = bounds
+        lo, hi = (torch.tensor(b, dtype=torch.float32).item() for b in bounds)  # a clipped float32 may round past
         if value.device.type == "cpu":  # device tensors come from the tracker, already in range
             bad = ~((value >= lo) & (value <= hi))
             if bool(bad.any()):
