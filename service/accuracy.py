@@ -122,7 +122,7 @@ CACHE_DIR = Path.home() / ".cache" / "inhand-tracker" / "trajectories"
 def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR, log=None) -> list[Trajectory]:
     """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
     written to ``cache``) with one truth population per object, one group per demo, hidden mass
-    and friction drawn from the tracker's prior."""
+    and friction drawn from the tracker's prior (among those with which the hand can lift it)."""
     spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
     kin = Kinematics(HandSpec())  # the robot's own model plans the demos
     out: list[Trajectory] = []
@@ -145,14 +145,11 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             log(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
         obj = catalog_object(name)
         rng = np.random.default_rng([suite.seed, o])
-        mass, friction = (
-            _draw_prior(obj.mass, obj.mass_range, rng, len(demos)),
-            _draw_prior(obj.friction, obj.friction_range, rng, len(demos)),
-        )
         config = PopulationConfig(
             groups=len(demos), worlds=1, device=device, substeps=suite.gap.substeps, impratio=suite.gap.impratio
         )
         truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
+        mass, friction = _feasible_physics(truth, demos, rng)
         rec = _add_sensor_noise(record(truth, demos, mass, friction), suite.sensors, rng)
         meta = {"suite": suite.name, "gap": str(asdict(suite.gap)), "sensors": str(asdict(suite.sensors))}
         for g, d in enumerate(demos):
@@ -168,6 +165,25 @@ def _draw_prior(nominal: float, bounds: tuple[float, float], rng: np.random.Gene
     standard deviation, clipped to the range): the truth is one draw from what the tracker believes."""
     lo, hi = bounds
     return np.clip(rng.normal(nominal, TrackerConfig().mass_sigma0 * (hi - lo), n), lo, hi)
+
+
+def _feasible_physics(truth: Population, demos: list, rng: np.random.Generator, tries: int = 20):
+    """Hidden mass and friction per demo, drawn from the prior until the hand can pick the object
+    up with them: a teleoperator whose grasp slipped out at the lift would redo the demo, so a
+    demo of nothing but an object on the table is not kept."""
+    obj, n = truth.object, len(demos)
+    mass, friction = np.empty(n), np.empty(n)
+    redraw = np.ones(n, bool)
+    lifts = [d.until("carry") for d in demos]
+    for _ in range(tries):
+        mass[redraw] = _draw_prior(obj.mass, obj.mass_range, rng, int(redraw.sum()))
+        friction[redraw] = _draw_prior(obj.friction, obj.friction_range, rng, int(redraw.sum()))
+        probe = record(truth, lifts, mass, friction)
+        rise = probe.object_pose[probe.lengths - 1, np.arange(n), 2] - probe.initial_pose[:, 2]
+        redraw = rise < 0.03  # the lift raises a held object by 6 cm
+        if not redraw.any():
+            return mass, friction
+    raise RuntimeError(f"{obj.name}: no graspable physics in {tries} draws for demos {np.flatnonzero(redraw)}")
 
 
 def _add_sensor_noise(rec: Recording, noise: SensorNoise, rng: np.random.Generator) -> Recording:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -59,6 +59,13 @@ class Demo:
     @property
     def frames(self) -> int:
         return self.controls.shape[0]
+
+    def until(self, phase: str) -> Demo:
+        """The demo up to the first frame of ``phase`` (e.g. "carry": picked up and lifted)."""
+        end = next((i for name, i in self.phases if name == phase), None)
+        if end is None:
+            raise ValueError(f"demo '{self.name}' has no phase '{phase}' (phases: {[n for n, _ in self.phases]})")
+        return replace(self, controls=self.controls[:end], phases=tuple(p for p in self.phases if p[1] < end))
 
 
 class _Script:
@@ -144,7 +151,7 @@ def make_demo(
         and presses again."""
         for finger, flexion in zip(_FINGER_ABDUCTION, _FINGER_FLEXION, strict=True):
             lifted = script.q.copy()
-            lifted[list(flexion)] -= 0.2  # just clear of the object: the others hold it meanwhile
+            lifted[list(flexion)] -= SQUEEZE + 0.05  # just clear of the object: the others hold it meanwhile
             script.move("gait", lifted, 0.35)
             moved = lifted.copy()
             moved[finger] = held[finger] - direction * sign * turn

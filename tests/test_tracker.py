@@ -13,7 +13,7 @@ from service.optimizers import OptimizerConfig
 from service.sampling import sample_poses
 from service.tracker import Frame, Status, Tracker, TrackerConfig
 from sim_backend import Population, PopulationConfig, catalog_object
-from sim_backend.demos import pick_lift_twist, record
+from sim_backend.demos import make_demo, record
 
 OBJECT = "foam_brick"
 
@@ -23,9 +23,9 @@ def recording(hand):
     spec, kin = hand
     obj = catalog_object(OBJECT)
     truth = Population(spec, obj, PopulationConfig(groups=2, worlds=1, device="cpu"))
-    rng = np.random.default_rng(7)
-    mass, friction = rng.uniform(*obj.mass_range, 2), rng.uniform(*obj.friction_range, 2)
-    return record(truth, pick_lift_twist(kin, obj, 150), mass, friction)
+    mass, friction = np.array([0.02, 0.04]), np.array([0.9, 1.2])
+    demo = make_demo(kin, obj, "pick_place", 0, seconds=1.0, pace=0.5).until("place")  # held to the end
+    return record(truth, demo, mass, friction)
 
 
 def _frame(rec, f: int) -> Frame:
