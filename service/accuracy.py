@@ -31,6 +31,7 @@ __all__ = [
     "CACHE_DIR",
     "DATA_DIR",
     "EXPLORATION",
+    "K_ABLATION",
     "NOISE_LEVELS",
     "SUITES",
     "PhysicsGap",
@@ -237,7 +238,12 @@ class TrackResult:
 
 
 def settings(
-    trajectories: int, methods: Sequence[str], noises: Sequence[str], ablations: Sequence[str], worlds: int
+    trajectories: int,
+    methods: Sequence[str],
+    noises: Sequence[str],
+    ablations: Sequence[str],
+    worlds: int,
+    k_ablation: Sequence[int] = K_ABLATION,
 ) -> list[TrackSetting]:
     """The tracks of a run: every trajectory x noise x method, then the ablations (PBO at medium
     noise, as the paper's Fig. 3)."""
@@ -253,7 +259,7 @@ def settings(
         if "slip" in ablations:
             out.append(TrackSetting(t, "med", "PBO", worlds, slip_terms=False, study="slip"))
         if "worlds" in ablations:
-            out += [TrackSetting(t, "med", "PBO", k, study="worlds") for k in K_ABLATION if k != worlds]
+            out += [TrackSetting(t, "med", "PBO", k, study="worlds") for k in k_ablation if k != worlds]
     return out
 
 
@@ -336,6 +342,7 @@ def run_suite(
     device: str = "auto",
     cache: Path | None = CACHE_DIR,
     quiet: bool = False,
+    k_ablation: Sequence[int] | None = None,
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD)."""
@@ -352,7 +359,8 @@ def run_suite(
     by_object: dict[str, list[Trajectory]] = {}
     for t in trajectories:
         by_object.setdefault(t.object, []).append(t)
-    plan = {o: settings(len(ts), methods, noises, ablations, worlds) for o, ts in by_object.items()}
+    k_ablation = tuple(k_ablation or K_ABLATION)
+    plan = {o: settings(len(ts), methods, noises, ablations, worlds, k_ablation) for o, ts in by_object.items()}
     total = sum(max(t.frames for t in by_object[o]) * sum(s.worlds for s in p) for o, p in plan.items())
     bar = _Progress(total, "tracking", quiet)
     results: list[TrackResult] = []
@@ -363,7 +371,7 @@ def run_suite(
         for k_tracks in by_k.values():  # the frames of one population advance all its groups at once
             results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance)
     bar.close()
-    return _collect(suite, results, worlds, t_truth, time.perf_counter() - t0 - t_truth, device)
+    return _collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0 - t_truth, device)
 
 
 class _Progress:
@@ -396,7 +404,13 @@ def _stats(values: Sequence[float]) -> dict:
 
 
 def _collect(
-    suite: Suite, results: list[TrackResult], worlds: int, t_truth: float, t_track: float, device: str
+    suite: Suite,
+    results: list[TrackResult],
+    worlds: int,
+    k_ablation: Sequence[int],
+    t_truth: float,
+    t_track: float,
+    device: str,
 ) -> dict:
     """ADD statistics over tracks: mean of per-track mean ADD, its std over tracks, and the max
     over all frames, per method and noise level (Fig. 2) and per ablation setting (Fig. 3)."""
@@ -429,7 +443,7 @@ def _collect(
             )
             add_row("exploration", e, rs)
     if "worlds" in studies:
-        for k in K_ABLATION:
+        for k in sorted({*k_ablation, worlds}):
             rs = base if k == worlds else [r for r in results if r.setting.study == "worlds" and r.setting.worlds == k]
             add_row("worlds", str(k), rs)
     for study in ("contact", "slip"):

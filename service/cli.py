@@ -39,6 +39,12 @@ def _parser() -> argparse.ArgumentParser:
     acc.add_argument("--noise", default="low,med,high", help="initial pose noise levels: low, med, high")
     acc.add_argument("--worlds", type=int, default=40, help="K, worlds per track")
     acc.add_argument("--ablations", default="", help="comma-separated: exploration, worlds, contact, slip, or all")
+    acc.add_argument(
+        "--ablation-worlds",
+        type=_int_list,
+        default=None,
+        help="K values of the worlds ablation (default 10,40,160,640,2560)",
+    )
     acc.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     acc.add_argument("--out", default=None, help="output folder (default bench-results/accuracy-SUITE)")
     acc.add_argument("--cache", default=None, help="where generated trajectories are kept")
@@ -48,6 +54,8 @@ def _parser() -> argparse.ArgumentParser:
 
 def _accuracy(args: argparse.Namespace) -> int:
     from pathlib import Path
+
+    import warp as wp
 
     from service.accuracy import CACHE_DIR, NOISE_LEVELS, SUITES, run_suite
     from service.optimizers import METHODS
@@ -73,6 +81,7 @@ def _accuracy(args: argparse.Namespace) -> int:
         if not values or not set(values) <= set(allowed):
             print(f"{name}: expected some of {','.join(allowed)}, got '{','.join(values)}'", file=sys.stderr)
             return 2
+    wp.config.quiet = True  # Warp's kernel-cache log goes to stdout, where the report or the JSON goes
     results = run_suite(
         SUITES[args.suite],
         methods=methods,

@@ -28,7 +28,7 @@ def test_optimizers_beat_eye_and_eye_beats_olp(tmp_path):
         capture_output=True, text=True, timeout=900,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr[-3000:]
-    summary = json.loads(out.stdout)["summary"]
+    summary = json.loads(out.stdout)["summary"]  # Warp is quiet: stdout holds the JSON alone
     add = {m: summary[m]["med"]["mean_mm"] for m in summary}
     print("mean ADD [mm]:", {m: round(v, 2) for m, v in add.items()})  # shown with pytest -s
     for method in ("WRS", "REPS", "PBO"):
