@@ -62,3 +62,16 @@ class Keys:
     def robot(self, session: str) -> str:
         """Liveliness token of the session's robot."""
         return f"{self.root}/s/{check_name('session', session)}/robot"
+
+    def every(self, kind: str) -> str:
+        """The wildcard over all sessions' ``kind`` keys (frame, pose, status, robot)."""
+        if kind not in ("frame", "pose", "status", "robot"):
+            raise ValueError(f"key kind: expected frame, pose, status or robot, got {kind!r}")
+        return f"{self.root}/s/*/{kind}"
+
+    def session_of(self, key: str) -> str:
+        """The session chunk of a per-session key of this service."""
+        head = f"{self.root}/s/"
+        if not str(key).startswith(head):
+            raise ValueError(f"key {key!r} is not a session key of service '{self.service}'")
+        return str(key)[len(head) :].split("/", 1)[0]

@@ -21,6 +21,7 @@ __all__ = [
     "Estimate",
     "OpenSession",
     "RobotFrame",
+    "ServiceInfo",
     "SessionInfo",
     "Status",
     "check_version",
@@ -76,6 +77,22 @@ def check_version(version: int) -> None:
     """Raise a ValueError naming both versions when ``version`` is not this protocol's."""
     if version != PROTOCOL_VERSION:
         raise ValueError(f"protocol version mismatch: client speaks v{version}, service speaks v{PROTOCOL_VERSION}")
+
+
+class ServiceInfo(_Message):
+    """What the service's info queryable answers."""
+
+    protocol: int = PROTOCOL_VERSION
+    name: str
+    device: str
+    robots: list[str]
+    objects: list[str]
+    methods: list[str]
+    groups: int
+    """Sessions per population."""
+    max_worlds: int
+    sessions: int
+    """Sessions open now."""
 
 
 class OpenSession(_Message):

@@ -49,7 +49,182 @@ def _parser() -> argparse.ArgumentParser:
     acc.add_argument("--out", default=None, help="output folder (default bench-results/accuracy-SUITE)")
     acc.add_argument("--cache", default=None, help="where generated trajectories are kept")
     acc.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+    serve = sub.add_parser("serve", help="run the tracking service")
+    serve.add_argument("--config", default=None, help="service TOML (default configs/service.toml)")
+    serve.add_argument("--listen", default=None, help="Zenoh endpoints to listen on, comma-separated")
+    serve.add_argument("--connect", default=None, help="Zenoh endpoints to connect to (a router), comma-separated")
+    serve.add_argument("--name", default=None, help="service name: keys under inhand/v1/NAME")
+    serve.add_argument("--device", default=None, help="auto, cpu, cuda or cuda:N")
+
+    rep = sub.add_parser("replay", help="robot side: stream a trajectory file to a service and print the estimates")
+    rep.add_argument("file", help="trajectory file (.traj)")
+    rep.add_argument("--connect", default="tcp/127.0.0.1:7447", help="the service's endpoints, comma-separated")
+    rep.add_argument("--name", default="default", help="service name")
+    rep.add_argument("--method", default="PBO")
+    rep.add_argument("--worlds", type=int, default=40)
+    rep.add_argument("--rate", type=float, default=0.0, help="frames per second; 0: each frame after the last estimate")
+    rep.add_argument("--noise", default="med", help="initial pose noise from the truth: low, med, high")
+
+    demo = sub.add_parser(
+        "demo", help="the service embedded on loopback, a bundled trajectory replayed through a client"
+    )
+    demo.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    demo.add_argument("--worlds", type=int, default=40)
+    demo.add_argument("--method", default="PBO")
+    demo.add_argument("--file", default=None, help="trajectory file (default: a bundled foam-brick pick and place)")
     return p
+
+
+def _split(text: str | None) -> list[str] | None:
+    return None if text is None else [t for t in text.split(",") if t]
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from service.config import load_config
+    from service.node import TrackerNode
+
+    try:
+        config = load_config(
+            args.config, listen=_split(args.listen), connect=_split(args.connect), name=args.name, device=args.device
+        )
+    except ValueError as exc:
+        print(f"serve: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    with TrackerNode(config) as node:
+        print(
+            f"inhand-tracker serving '{config.name}' on {', '.join(config.listen) or '-'} "
+            f"(connect: {', '.join(config.connect) or '-'}), device {node.device}",
+            flush=True,
+        )
+        stop.wait()
+        print("inhand-tracker: stopping", flush=True)
+    return 0
+
+
+def _replay(args: argparse.Namespace, client=None, file: str | None = None, live: bool = False) -> int:
+
+    from client import TrackerClient, noisy_start, replay
+    from protocol import Trajectory
+
+    levels = {"low": (0.001, 0.01), "med": (0.005, 0.1), "high": (0.01, 1.0)}
+    if args.noise not in levels:
+        print(f"--noise: expected low, med or high, got '{args.noise}'", file=sys.stderr)
+        return 2
+    try:
+        traj = Trajectory.load(file or args.file)
+    except (OSError, ValueError) as exc:
+        print(f"replay: {exc}", file=sys.stderr)
+        return 2
+    sigma_t, sigma_r = levels[args.noise]
+    own = client is None
+    client = client or TrackerClient(connect=_split(args.connect), service=args.name)
+    try:
+        p0 = noisy_start(traj, sigma_t, sigma_r)
+        info = client.open_session(
+            traj.robot,
+            traj.object,
+            p0,
+            sigma_t=sigma_t,
+            sigma_r=sigma_r,
+            q0=traj.truth.initial_q if traj.truth else None,
+            method=args.method,
+            worlds=args.worlds,
+        )
+        print(
+            f"session {info.session}: {traj.object} in {traj.robot}, {info.worlds} worlds, {info.method}; "
+            f"{traj.frames} frames of '{traj.name}'",
+            flush=True,
+        )
+        errors: list[float] = []
+
+        def show(i: int, est) -> None:
+            if traj.truth is None:
+                return
+            errors.append(_pose_error(traj.truth.pose[i], est.pose))
+            if live and (i % 15 == 0 or i == traj.frames - 1):
+                print(
+                    f"\r  frame {i + 1:4d}/{traj.frames}  {est.status:10s} position error {errors[-1] * 1e3:6.1f} mm"
+                    f"  latency {est.latency_ms:5.1f} ms",
+                    end="",
+                    flush=True,
+                )
+
+        estimates = replay(client, traj, rate=args.rate, on_estimate=show)
+        status = client.status()
+        if live:
+            print()
+        print(
+            f"estimates: {len(estimates)}; service latency p50 {status.latency_p50_ms:.1f} ms, "
+            f"p99 {status.latency_p99_ms:.1f} ms; gaps {status.gaps}, dropped {status.duplicates + status.late}"
+        )
+        if traj.truth is not None:
+            _summary(traj, estimates)
+        client.close_session()
+    except Exception as exc:  # a user's command: say what went wrong, no traceback
+        print(f"replay: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if own:
+            client.close()
+    return 0
+
+
+def _pose_error(truth, pose) -> float:
+    import numpy as np
+
+    return float(np.linalg.norm(np.asarray(truth[:3]) - np.asarray(pose[:3])))
+
+
+def _summary(traj, estimates) -> None:
+    """ADD against the ground truth, when the object's model is at hand (the service's install)."""
+    import numpy as np
+
+    try:
+        from service.evaluation import add_error
+        from sim_backend import catalog_object
+
+        points = catalog_object(traj.object).surface_points(1000)
+    except (ImportError, ValueError):
+        err = [_pose_error(traj.truth.pose[e.seq], e.pose) for e in estimates]
+        print(f"position error: mean {np.mean(err) * 1e3:.2f} mm, max {np.max(err) * 1e3:.2f} mm")
+        return
+    seqs = np.array([e.seq for e in estimates])
+    add = add_error(points, traj.truth.pose[seqs], np.stack([e.pose for e in estimates]))
+    print(
+        f"ADD over {len(add)} frames: mean {add.mean() * 1e3:.2f} mm, median {np.median(add) * 1e3:.2f} mm, "
+        f"max {add.max() * 1e3:.2f} mm"
+    )
+
+
+def _demo(args: argparse.Namespace) -> int:
+    import socket
+
+    import warp as wp
+
+    from client import TrackerClient
+    from service.accuracy import DATA_DIR
+    from service.config import ServiceConfig
+    from service.node import TrackerNode
+
+    wp.config.quiet = True
+    with socket.socket() as sock:  # a free loopback port
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    config = ServiceConfig(listen=(endpoint,), device=args.device, groups=1)  # one session: no idle groups to step
+    print(f"starting the service on {endpoint} (device {args.device}) ...", flush=True)
+    with TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
+        print(f"service up on {node.device}; replaying through a client", flush=True)
+        args.noise, args.rate = "med", 0.0
+        file = args.file or str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
+        return _replay(args, client=client, file=file, live=True)
 
 
 def _accuracy(args: argparse.Namespace) -> int:
@@ -116,6 +291,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "bench" and args.bench == "accuracy":
         return _accuracy(args)
+    if args.command == "serve":
+        return _serve(args)
+    if args.command == "replay":
+        return _replay(args)
+    if args.command == "demo":
+        return _demo(args)
     return 2
 
 

@@ -175,19 +175,37 @@ class Tracker:
         """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
 
     # ------------------------------------------------------------------ start
-    def start(self, p0: np.ndarray, q0: np.ndarray, sigma_t=None, sigma_r=None) -> None:
-        """Seed every group around its initial pose estimate ``p0`` (G, 7) with the robot at ``q0`` (G, D).
+    def start(
+        self, p0: np.ndarray, q0: np.ndarray, sigma_t=None, sigma_r=None, groups: np.ndarray | None = None
+    ) -> None:
+        """Seed groups around their initial pose estimates ``p0`` (G, 7) with the robots at ``q0`` (G, D).
 
-        sigma_t [m], sigma_r [rad]: Sigma_p, scalars or (G,); default from the config.
+        sigma_t [m], sigma_r [rad]: Sigma_p, scalars or (G,); default from the config. ``groups``
+        (G,) bool restarts only those (a service opening one session); default all, which also
+        restarts the frame count and the update window.
         """
         cfg = self.config
         p0 = np.asarray(p0, dtype=np.float32).reshape(self.G, 7)
-        self._trusted = p0.copy()
-        self.frame = self.window_frames = 0
-        self._seed(np.ones(self.G, bool), p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
+        mask = np.ones(self.G, bool) if groups is None else np.asarray(groups, bool)
+        if self._trusted is None:
+            self._trusted = p0.copy()
+        self._trusted[mask] = p0[mask]
+        if groups is None:
+            self.frame = self.window_frames = 0
+        self._seed(mask, p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
                    cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
-        self._status[:] = Status.TRACKING
-        self._recovering[:] = 0
+        self._status[mask] = Status.TRACKING
+        self._recovering[mask] = 0
+        self._contact_loss[mask] = 0
+
+    def set_method(self, group: int, method: str) -> None:
+        """Change one group's optimizer (a service reusing a group for another session)."""
+        if method not in METHODS:
+            raise ValueError(f"tracker method: expected one of {METHODS}, got {method!r}")
+        methods = list(self.methods)
+        methods[group] = method
+        self.methods = tuple(methods)
+        self._olp[group] = method == "OLP"
 
     def _seed(self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r) -> None:
         """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them."""

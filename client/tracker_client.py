@@ -1,0 +1,232 @@
+"""``TrackerClient``: open a tracking session, stream robot frames, read the estimates."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+import numpy as np
+import zenoh
+
+from protocol import (
+    CloseSession,
+    DecodeError,
+    Error,
+    ErrorCode,
+    Estimate,
+    Keys,
+    OpenSession,
+    RobotFrame,
+    ServiceInfo,
+    SessionInfo,
+    Status,
+    decode,
+    encode,
+)
+
+__all__ = ["TrackerClient", "TrackerError"]
+
+_ENCODING = zenoh.Encoding("application/msgpack")
+
+
+class TrackerError(Exception):
+    """The service refused a request: ``code`` (protocol ErrorCode) and its message."""
+
+    def __init__(self, code: ErrorCode | str, message: str):
+        super().__init__(f"{code}: {message}")
+        self.code, self.message = ErrorCode(code), message
+
+
+def _config(connect, listen, scouting: bool) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
+    if connect:
+        conf.insert_json5("connect/endpoints", str(list(connect)).replace("'", '"'))
+    if listen:
+        conf.insert_json5("listen/endpoints", str(list(listen)).replace("'", '"'))
+    return conf
+
+
+class TrackerClient:
+    """A connection to one tracking service; one session at a time.
+
+    >>> with TrackerClient(connect=["tcp/127.0.0.1:7447"]) as client:
+    ...     client.open_session("allegro", "foam_brick", p0)
+    ...     client.send_frame(controls, q, force=force)
+    ...     pose = client.latest_pose(timeout=1.0)
+    """
+
+    def __init__(
+        self,
+        connect=("tcp/127.0.0.1:7447",),
+        service: str = "default",
+        listen=(),
+        scouting: bool = False,
+        timeout: float = 120.0,
+    ):
+        self.keys = Keys(service)
+        self.timeout = timeout
+        self._zenoh = zenoh.open(_config(connect, listen, scouting))
+        self.info: SessionInfo | None = None
+        self._seq = 0
+        self._publisher: zenoh.Publisher | None = None
+        self._token = None
+        self._subscriber = None
+        self._latest: Estimate | None = None
+        self._new = threading.Condition()
+        self._callbacks: list[Callable[[Estimate], None]] = []
+
+    # ------------------------------------------------------------------ requests
+    def _get(self, key: str, payload: bytes | None, model, timeout: float | None = None):
+        replies = self._zenoh.get(key, payload=payload, timeout=timeout or self.timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                return decode(bytes(reply.ok.payload.to_bytes()), model)
+            try:
+                err = decode(bytes(reply.err.payload.to_bytes()), Error)
+            except DecodeError:
+                raise TrackerError(ErrorCode.INTERNAL, f"{key}: unreadable error reply") from None
+            raise TrackerError(err.code, err.message)
+        raise TimeoutError(f"{key}: no reply from service '{self.keys.service}' within {timeout or self.timeout} s")
+
+    def service_info(self, timeout: float = 5.0) -> ServiceInfo:
+        return self._get(self.keys.info, None, ServiceInfo, timeout)
+
+    def open_session(
+        self,
+        robot: str,
+        object: str,
+        p0,
+        *,
+        sigma_t: float = 0.005,
+        sigma_r: float = 0.1,
+        q0=None,
+        method: str = "PBO",
+        worlds: int = 40,
+        overrides: dict[str, float] | None = None,
+    ) -> SessionInfo:
+        """Ask the service to track ``object`` in ``robot``'s hand from the pose estimate ``p0`` (7,)."""
+        if self.info is not None:
+            raise RuntimeError(f"session '{self.info.session}' is open; close it first")
+        request = OpenSession(
+            robot=robot,
+            object=object,
+            p0=np.asarray(p0, np.float32),
+            sigma_t=sigma_t,
+            sigma_r=sigma_r,
+            q0=None if q0 is None else np.asarray(q0, np.float32),
+            method=method,
+            worlds=worlds,
+            overrides=overrides or {},
+        )
+        self.info = info = self._get(self.keys.open, encode(request), SessionInfo)
+        self._seq = 0
+        self._latest = None
+        self._publisher = self._zenoh.declare_publisher(
+            self.keys.frame(info.session),
+            encoding=_ENCODING,
+            express=True,
+            priority=zenoh.Priority.REAL_TIME,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        self._subscriber = self._zenoh.declare_subscriber(self.keys.pose(info.session), self._on_pose)
+        self._token = self._zenoh.liveliness().declare_token(self.keys.robot(info.session))
+        return info
+
+    def send_frame(
+        self,
+        controls,
+        q,
+        *,
+        force=None,
+        slip=None,
+        slip_dir=None,
+        spin=None,
+        spin_sense=None,
+        stamp: float | None = None,
+        seq: int | None = None,
+    ) -> int:
+        """Send one frame (joint targets and positions, optional touch); returns its seq."""
+        if self.info is None:
+            raise RuntimeError("no session: call open_session first")
+        seq = self._seq if seq is None else seq
+        arr = lambda a: None if a is None else np.asarray(a, np.float32)  # noqa: E731
+        frame = RobotFrame(
+            session=self.info.session,
+            seq=seq,
+            stamp=float(seq / 30.0 if stamp is None else stamp),
+            controls=arr(controls),
+            q=arr(q),
+            force=arr(force),
+            slip=arr(slip),
+            slip_dir=arr(slip_dir),
+            spin=arr(spin),
+            spin_sense=arr(spin_sense),
+        )
+        self._publisher.put(encode(frame))
+        self._seq = max(self._seq, seq + 1)
+        return seq
+
+    def send(self, frame: RobotFrame) -> None:
+        """Send a prepared frame (its session is replaced by this client's)."""
+        self._publisher.put(encode(frame.model_copy(update={"session": self.info.session})))
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        estimate = decode(bytes(sample.payload.to_bytes()), Estimate)
+        with self._new:
+            self._latest = estimate
+            self._new.notify_all()
+        for callback in list(self._callbacks):
+            callback(estimate)
+
+    def on_pose(self, callback: Callable[[Estimate], None]) -> None:
+        """Call ``callback(estimate)`` for every estimate (on a Zenoh thread: keep it short)."""
+        self._callbacks.append(callback)
+
+    def remove_pose_callback(self, callback: Callable[[Estimate], None]) -> None:
+        self._callbacks.remove(callback)
+
+    def latest_pose(self, timeout: float = 1.0, after_seq: int | None = None) -> Estimate:
+        """The newest estimate; with ``after_seq``, wait until one for that seq or later arrives."""
+        with self._new:
+            ok = self._new.wait_for(
+                lambda: self._latest is not None and (after_seq is None or self._latest.seq >= after_seq), timeout
+            )
+            if ok:
+                return self._latest
+        if self.info is None:
+            raise RuntimeError("no session: call open_session first")
+        return self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
+
+    def status(self, timeout: float = 5.0) -> Status:
+        if self.info is None:
+            raise RuntimeError("no session: call open_session first")
+        return self._get(self.keys.status(self.info.session), None, Status, timeout)
+
+    def close_session(self) -> None:
+        if self.info is None:
+            return
+        try:
+            self._get(self.keys.close, encode(CloseSession(session=self.info.session)), CloseSession, 10.0)
+        finally:
+            for entity in (self._token, self._subscriber, self._publisher):
+                if entity is not None:
+                    entity.undeclare()
+            self._token = self._subscriber = self._publisher = None
+            self.info = None
+
+    def close(self) -> None:
+        """Close the session (if any) and leave Zenoh."""
+        try:
+            self.close_session()
+        except (TrackerError, TimeoutError):
+            pass  # the service is gone or forgot us: nothing left to close
+        finally:
+            self._zenoh.close()
+
+    def __enter__(self) -> TrackerClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,263 @@
+"""The service on Zenoh: handlers that only decode, validate and queue, and one loop thread that
+owns the GPU (the :class:`SessionManager`) and publishes every estimate.
+
+Keys (protocol/keys.py): a liveliness token ``alive``; queryables ``info``, ``rpc/open``,
+``rpc/close``, ``s/*/pose`` (latest estimate) and ``s/*/status``; a subscriber on ``s/*/frame``;
+a liveliness subscriber on ``s/*/robot`` that closes a session whose robot is gone past the
+timeout.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from concurrent.futures import Future
+from pathlib import Path
+
+import zenoh
+
+from protocol import (
+    CloseSession,
+    DecodeError,
+    Error,
+    ErrorCode,
+    Keys,
+    OpenSession,
+    RobotFrame,
+    ServiceInfo,
+    decode,
+    encode,
+)
+from sim_backend import load_catalog, load_robot, resolve_device
+
+from .config import DEFAULT_CONFIG, ServiceConfig
+from .optimizers import METHODS
+from .sessions import ServiceError, SessionManager
+
+__all__ = ["TrackerNode", "zenoh_config"]
+
+_ROOT = DEFAULT_CONFIG.parents[1]
+_ENCODING = zenoh.Encoding("application/msgpack")
+
+
+def zenoh_config(listen=(), connect=(), scouting: bool = False) -> zenoh.Config:
+    """A peer config: listen and connect endpoints, multicast scouting on or off."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
+    if listen:
+        conf.insert_json5("listen/endpoints", str(list(listen)).replace("'", '"'))
+    if connect:
+        conf.insert_json5("connect/endpoints", str(list(connect)).replace("'", '"'))
+    return conf
+
+
+class TrackerNode:
+    """The long-running tracking service of one process."""
+
+    def __init__(self, config: ServiceConfig):
+        self.config = config
+        self.keys = Keys(config.name)
+        robots = {}
+        for path in config.robots:
+            spec = load_robot(path if Path(path).is_absolute() else _ROOT / path)
+            robots[spec.name] = spec
+        self.device = str(resolve_device(config.device))
+        self.manager = SessionManager(config, robots, load_catalog())
+        self._inbox: queue.Queue = queue.Queue()
+        self._latest: dict[str, bytes] = {}
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._robot_gone: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._loop = threading.Thread(target=self._run, name="inhand-gpu-loop", daemon=True)
+        self.session: zenoh.Session | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> TrackerNode:
+        cfg, keys = self.config, self.keys
+        self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting))
+        self._entities = [
+            s.declare_queryable(keys.info, self._on_info),
+            s.declare_queryable(keys.open, self._on_open),
+            s.declare_queryable(keys.close, self._on_close),
+            s.declare_queryable(keys.every("pose"), self._on_pose),
+            s.declare_queryable(keys.every("status"), self._on_status),
+            s.declare_subscriber(keys.every("frame"), self._on_frame),
+            s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
+        ]
+        self._loop.start()
+        self._token = s.liveliness().declare_token(keys.alive)  # ready: only now do clients see us
+        return self
+
+    def close(self) -> None:
+        """Stop the loop, close every session, leave Zenoh."""
+        self._stop.set()
+        if self._loop.is_alive():
+            self._loop.join(timeout=10)
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def __enter__(self) -> TrackerNode:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ zenoh handlers (decode, queue)
+    def _call(self, kind: str, payload) -> object:
+        """Hand a request to the loop and wait for its answer (opening may build a population)."""
+        done: Future = Future()
+        self._inbox.put((kind, payload, done))
+        return done.result(timeout=300)
+
+    def _reply(self, query: zenoh.Query, answer) -> None:
+        with query:
+            if isinstance(answer, Error):
+                query.reply_err(encode(answer), encoding=_ENCODING)
+            else:
+                query.reply(query.key_expr, encode(answer), encoding=_ENCODING)
+
+    def _on_info(self, query: zenoh.Query) -> None:
+        m = self.manager
+        info = ServiceInfo(
+            name=self.config.name,
+            device=self.device,
+            robots=sorted(m.robots),
+            objects=sorted(m.objects),
+            methods=list(METHODS),
+            groups=self.config.groups,
+            max_worlds=self.config.max_worlds,
+            sessions=len(m.sessions),
+        )
+        self._reply(query, info)
+
+    def _on_open(self, query: zenoh.Query) -> None:
+        try:
+            request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
+        except DecodeError as exc:
+            return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
+        self._reply(query, self._call("open", request))
+
+    def _on_close(self, query: zenoh.Query) -> None:
+        try:
+            request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", CloseSession)
+        except DecodeError as exc:
+            return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
+        self._reply(query, self._call("close", request.session))
+
+    def _on_pose(self, query: zenoh.Query) -> None:
+        session = self.keys.session_of(query.key_expr)
+        latest = self._latest.get(session)
+        with query:
+            if latest is None:
+                known = session in self.manager.sessions
+                code = ErrorCode.BAD_REQUEST if known else ErrorCode.UNKNOWN_SESSION
+                text = f"session '{session}': no estimate yet" if known else f"session: '{session}' is not open"
+                query.reply_err(encode(Error(code=code, message=text)), encoding=_ENCODING)
+            else:
+                query.reply(query.key_expr, latest, encoding=_ENCODING)
+
+    def _on_status(self, query: zenoh.Query) -> None:
+        self._reply(query, self._call("status", self.keys.session_of(query.key_expr)))
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        received = time.perf_counter()
+        session = self.keys.session_of(sample.key_expr)
+        try:
+            frame = decode(bytes(sample.payload.to_bytes()), RobotFrame)
+        except DecodeError as exc:
+            self._inbox.put(("bad_frame", (session, str(exc)), None))
+            return
+        if frame.session != session:
+            self._inbox.put(
+                (
+                    "bad_frame",
+                    (session, f"RobotFrame.session: '{frame.session}' sent on the key of session '{session}'"),
+                    None,
+                )
+            )
+            return
+        self._inbox.put(("frame", (frame, received), None))
+
+    def _on_robot(self, sample: zenoh.Sample) -> None:
+        session = self.keys.session_of(sample.key_expr)
+        gone = sample.kind == zenoh.SampleKind.DELETE
+        self._inbox.put(("robot", (session, gone, time.monotonic()), None))
+
+    # ------------------------------------------------------------------ the loop
+    def _run(self) -> None:
+        m, cfg = self.manager, self.config
+        while not self._stop.is_set():
+            idle = not any(s.pending for s in m.sessions.values())
+            try:
+                item = self._inbox.get(timeout=0.01 if idle else 0.0005)
+            except queue.Empty:
+                item = None
+            while item is not None:
+                self._handle(*item)
+                try:
+                    item = self._inbox.get_nowait()
+                except queue.Empty:
+                    item = None
+            for pool in m.ready(cfg.max_wait_s):
+                for estimate in m.step(pool):
+                    payload = encode(estimate)
+                    self._latest[estimate.session] = payload
+                    pub = self._publishers.get(estimate.session)
+                    if pub is not None:
+                        pub.put(payload, encoding=_ENCODING)
+            now = time.monotonic()
+            for session, since in list(self._robot_gone.items()):
+                if now - since > cfg.robot_timeout_s:
+                    self._drop(session)
+        for session in list(m.sessions):
+            self._drop(session)
+
+    def _handle(self, kind: str, payload, done: Future | None) -> None:
+        m = self.manager
+        try:
+            if kind == "frame":
+                frame, received = payload
+                m.submit(frame, received)
+            elif kind == "bad_frame":
+                m.count_error(*payload)
+            elif kind == "robot":
+                session, gone, when = payload
+                if gone and session in m.sessions:
+                    self._robot_gone[session] = when
+                else:
+                    self._robot_gone.pop(session, None)
+            elif kind == "open":
+                info = m.open(payload)
+                self._publishers[info.session] = self.session.declare_publisher(
+                    self.keys.pose(info.session),
+                    encoding=_ENCODING,
+                    express=True,
+                    priority=zenoh.Priority.REAL_TIME,
+                )
+                done.set_result(info)
+            elif kind == "close":
+                self._drop(payload, must_exist=True)
+                done.set_result(CloseSession(session=payload))
+            elif kind == "status":
+                done.set_result(m.status(payload))
+        except ServiceError as exc:
+            if done is not None:
+                done.set_result(exc.to_message())
+        except Exception as exc:  # the loop never dies of a request; the caller gets the reason
+            if done is not None:
+                done.set_result(Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
+
+    def _drop(self, session: str, must_exist: bool = False) -> None:
+        if session not in self.manager.sessions:
+            if must_exist:
+                self.manager.close(session)  # raises UNKNOWN_SESSION
+            return
+        self.manager.close(session)
+        self._robot_gone.pop(session, None)
+        self._latest.pop(session, None)
+        pub = self._publishers.pop(session, None)
+        if pub is not None:
+            pub.undeclare()

@@ -1,0 +1,329 @@
+"""Tracking sessions: each is one group of a shared population, and all sessions of a population
+step together in one graph replay per tick.
+
+The manager is owned by one thread (the GPU loop); it knows nothing of Zenoh. ``open`` and
+``close`` answer with messages or raise :class:`ServiceError` with a protocol error code;
+frames go in with ``submit`` (seq order, gaps, duplicates and late frames counted), and ``tick``
+steps every population that has work and returns the estimates to publish.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol import Error, ErrorCode, OpenSession, RobotFrame, SessionInfo, check_version
+from protocol import Estimate as EstimateMessage
+from protocol import Status as StatusMessage
+from sim_backend import ObjectSpec, Population, PopulationConfig, RobotSpec
+from sim_backend.kinematics import Kinematics
+
+from .config import ServiceConfig
+from .optimizers import METHODS, OptimizerConfig
+from .tracker import Frame, Status, Tracker, TrackerConfig
+
+__all__ = ["ServiceError", "SessionManager"]
+
+_TUNABLE = {
+    "update_every",
+    "sigma_t",
+    "sigma_r",
+    "wrench_force",
+    "wrench_torque",
+    "mass_sigma",
+    "friction_sigma",
+    "estimate_lambda",
+    "contact_loss_frames",
+    "uncertain_spread",
+    "reseed_scale",
+    "recover_frames",
+    "seed",
+}
+_OPTIONAL = ("force", "slip", "slip_dir", "spin", "spin_sense")
+
+
+class ServiceError(Exception):
+    """A request the service refuses: a protocol error code and a message naming the numbers."""
+
+    def __init__(self, code: ErrorCode, message: str):
+        super().__init__(message)
+        self.code, self.message = code, message
+
+    def to_message(self) -> Error:
+        return Error(code=self.code, message=self.message)
+
+
+@dataclass
+class _Session:
+    id: str
+    robot: str
+    object: str
+    method: str
+    pool: _Pool
+    group: int
+    next_seq: int = 0
+    pending: deque = field(default_factory=deque)
+    """Accepted frames not yet stepped, in seq order: (frame, receive time)."""
+    frames: int = 0
+    gaps: int = 0
+    duplicates: int = 0
+    late: int = 0
+    errors: int = 0
+    last_error: str | None = None
+    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+    latest: EstimateMessage | None = None
+
+
+@dataclass
+class _Pool:
+    """One population (robot, object, K, tracker settings) with a fixed number of group slots."""
+
+    key: tuple
+    tracker: Tracker
+    sessions: list[_Session | None]
+    controls: np.ndarray
+    """The controls every group holds, (G, D): the last frame's, or the start pose."""
+    q: np.ndarray
+    """The joints every group reports, (G, D)."""
+    touch: dict[str, np.ndarray]
+
+    @property
+    def active(self) -> list[_Session]:
+        return [s for s in self.sessions if s is not None]
+
+
+class SessionManager:
+    """Every session and population of one service; single-threaded by design."""
+
+    def __init__(self, config: ServiceConfig, robots: dict[str, RobotSpec], objects: dict[str, ObjectSpec]):
+        self.config, self.robots, self.objects = config, robots, objects
+        self.sessions: dict[str, _Session] = {}
+        self.pools: dict[tuple, _Pool] = {}
+        self._kinematics: dict[str, Kinematics] = {}
+
+    # ------------------------------------------------------------------ open / close
+    def open(self, request: OpenSession) -> SessionInfo:
+        try:
+            check_version(request.protocol)
+        except ValueError as exc:
+            raise ServiceError(ErrorCode.VERSION_MISMATCH, str(exc)) from None
+        robot = self.robots.get(request.robot)
+        if robot is None:
+            raise ServiceError(ErrorCode.UNKNOWN_ROBOT, f"robot: '{request.robot}' is not one of {sorted(self.robots)}")
+        if request.object not in self.objects:
+            raise ServiceError(
+                ErrorCode.UNKNOWN_OBJECT, f"object: '{request.object}' is not one of {sorted(self.objects)}"
+            )
+        if request.method not in METHODS:
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"method: expected one of {METHODS}, got '{request.method}'")
+        if request.worlds > self.config.max_worlds:
+            raise ServiceError(
+                ErrorCode.CAPACITY, f"worlds: {request.worlds} exceeds this service's limit of {self.config.max_worlds}"
+            )
+        unknown = sorted(set(request.overrides) - _TUNABLE)
+        if unknown:
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: unknown {unknown} (tunable: {sorted(_TUNABLE)})")
+        kin = self._kinematics.setdefault(request.robot, Kinematics(robot))
+        d = kin.layout.dof_count
+        q0 = kin.layout.default_q if request.q0 is None else request.q0
+        if np.shape(q0) != (d,):
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {np.shape(q0)[0]}")
+        pool = self._pool(request, robot)
+        group = pool.sessions.index(None)
+        session = _Session(uuid.uuid4().hex[:12], request.robot, request.object, request.method, pool, group)
+        pool.sessions[group] = session
+        self.sessions[session.id] = session
+        tracker = pool.tracker
+        tracker.set_method(group, request.method)
+        mask = np.zeros(tracker.G, bool)
+        mask[group] = True
+        p0 = np.tile(np.array([0, 0, 0, 0, 0, 0, 1], np.float32), (tracker.G, 1))  # other groups: untouched
+        p0[group] = request.p0
+        p0[group, 3:] /= np.linalg.norm(request.p0[3:])
+        pool.controls[group] = pool.q[group] = q0
+        for v in pool.touch.values():
+            v[group] = 0.0
+        tracker.start(p0, pool.q, sigma_t=request.sigma_t, sigma_r=request.sigma_r, groups=mask)
+        return SessionInfo(
+            session=session.id,
+            robot=request.robot,
+            object=request.object,
+            joint_names=list(kin.layout.joint_names),
+            sensor_names=list(kin.layout.sensor_names),
+            worlds=tracker.K,
+            method=request.method,
+        )
+
+    def _pool(self, request: OpenSession, robot: RobotSpec) -> _Pool:
+        """A population with a free group for this request, built on first use."""
+        key = (request.robot, request.object, request.worlds, tuple(sorted(request.overrides.items())))
+        for k, pool in self.pools.items():
+            if k[:4] == key and None in pool.sessions:
+                return pool
+        cfg = self.config
+        if sum(p.tracker.G * p.tracker.K for p in self.pools.values()) + cfg.groups * request.worlds > cfg.max_worlds:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"worlds: no room for {cfg.groups} x {request.worlds} more worlds (limit {cfg.max_worlds})",
+            )
+        pop = Population(
+            robot,
+            self.objects[request.object],
+            PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device),
+        )
+        overrides = {
+            k: (int(v) if k in ("update_every", "contact_loss_frames", "recover_frames", "seed") else v)
+            for k, v in request.overrides.items()
+        }
+        try:
+            tconf = TrackerConfig(optimizer=OptimizerConfig(method=request.method), **overrides)
+        except ValueError as exc:
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
+        tracker = Tracker(pop, tconf, methods=[request.method] * cfg.groups)
+        g, d, l_count = pop.G, pop.D, pop.L
+        q = np.broadcast_to(self._kinematics[request.robot].layout.default_q, (g, d)).astype(np.float32)
+        touch = {
+            "force": np.zeros((g, l_count, 3), np.float32),
+            "slip": np.zeros((g, l_count), np.float32),
+            "slip_dir": np.zeros((g, l_count, 2), np.float32),
+            "spin": np.zeros((g, l_count), np.float32),
+            "spin_sense": np.zeros((g, l_count), np.float32),
+        }
+        # Idle groups: the object rests on the table out of the hand's reach, where nothing happens.
+        rest = -float(self.objects[request.object].mesh.bounds[0, 2])
+        tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), q)
+        pool = _Pool((*key, len(self.pools)), tracker, [None] * g, q.copy(), q, touch)
+        self.pools[pool.key] = pool
+        return pool
+
+    def close(self, session_id: str) -> None:
+        session = self._get(session_id)
+        session.pool.sessions[session.group] = None
+        del self.sessions[session_id]
+
+    def _get(self, session_id: str) -> _Session:
+        session = self.sessions.get(session_id)
+        if session is None:
+            raise ServiceError(ErrorCode.UNKNOWN_SESSION, f"session: '{session_id}' is not open")
+        return session
+
+    # ------------------------------------------------------------------ frames
+    def submit(self, frame: RobotFrame, received: float | None = None) -> None:
+        """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
+        a frame of the wrong size is refused with the field and the numbers (and counted)."""
+        session = self._get(frame.session)
+        tracker = session.pool.tracker
+        expected = {
+            "controls": (tracker.D,),
+            "q": (tracker.D,),
+            "force": (tracker.L, 3),
+            "slip": (tracker.L,),
+            "slip_dir": (tracker.L, 2),
+            "spin": (tracker.L,),
+            "spin_sense": (tracker.L,),
+        }
+        for name, shape in expected.items():
+            value = getattr(frame, name)
+            if value is not None and value.shape != shape:
+                session.errors += 1
+                session.last_error = f"RobotFrame.{name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"
+                raise ServiceError(ErrorCode.BAD_REQUEST, session.last_error)
+        last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
+        if frame.seq <= last:
+            if frame.seq == last:
+                session.duplicates += 1
+            else:
+                session.late += 1
+            return
+        session.gaps += frame.seq - last - 1
+        session.pending.append((frame, time.perf_counter() if received is None else received))
+
+    def ready(self, max_wait: float) -> list[_Pool]:
+        """Populations to step now: every session has a frame, or the oldest has waited ``max_wait`` [s]."""
+        now = time.perf_counter()
+        out = []
+        for pool in self.pools.values():
+            active = pool.active
+            waiting = [s.pending[0][1] for s in active if s.pending]
+            if waiting and (len(waiting) == len(active) or now - min(waiting) >= max_wait):
+                out.append(pool)
+        return out
+
+    def step(self, pool: _Pool) -> list[EstimateMessage]:
+        """One tick of ``pool``: each session's next frame (others hold their last controls), one
+        tracker step for all groups, an estimate for each session that sent a frame."""
+        stepped: list[tuple[_Session, RobotFrame, float]] = []
+        for s in pool.active:
+            if not s.pending:
+                continue
+            frame, received = s.pending.popleft()
+            g = s.group
+            pool.controls[g], pool.q[g] = frame.controls, frame.q
+            for name in _OPTIONAL:
+                value = getattr(frame, name)
+                pool.touch[name][g] = 0.0 if value is None else value
+            s.next_seq = frame.seq + 1
+            stepped.append((s, frame, received))
+        has = {n: any(getattr(f, n) is not None for _, f, _ in stepped) for n in ("force", "slip", "spin")}
+        est = pool.tracker.step(
+            Frame(
+                controls=pool.controls,
+                q=pool.q,
+                force=pool.touch["force"] if has["force"] else None,
+                slip=pool.touch["slip"] if has["slip"] else None,
+                slip_dir=pool.touch["slip_dir"],
+                spin=pool.touch["spin"] if has["spin"] else None,
+                spin_sense=pool.touch["spin_sense"],
+            )
+        )
+        done = time.perf_counter()
+        out = []
+        for s, frame, received in stepped:
+            g = s.group
+            s.frames += 1
+            latency = (done - received) * 1e3
+            s.latencies.append(latency)
+            s.latest = EstimateMessage(
+                session=s.id,
+                seq=frame.seq,
+                stamp=frame.stamp,
+                pose=est.pose[g],
+                mean_pose=est.mean_pose[g],
+                covariance=est.covariance[g],
+                cost=float(est.cost[g]),
+                mass=float(est.mass[g]),
+                friction=float(est.friction[g]),
+                status=Status(int(est.status[g])).name.lower(),
+                latency_ms=latency,
+            )
+            out.append(s.latest)
+        return out
+
+    def status(self, session_id: str) -> StatusMessage:
+        s = self._get(session_id)
+        lat = np.asarray(s.latencies) if s.latencies else np.zeros(1)
+        cov = s.latest.covariance if s.latest is not None else np.zeros((6, 6))
+        return StatusMessage(
+            session=s.id,
+            frames=s.frames,
+            gaps=s.gaps,
+            duplicates=s.duplicates,
+            late=s.late,
+            errors=s.errors,
+            latency_p50_ms=float(np.percentile(lat, 50)),
+            latency_p99_ms=float(np.percentile(lat, 99)),
+            cost=float(s.latest.cost) if s.latest else 0.0,
+            spread_m=float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
+            last_error=s.last_error,
+        )
+
+    def count_error(self, session_id: str, message: str) -> None:
+        """A frame for this session that could not even be decoded."""
+        s = self.sessions.get(session_id)
+        if s is not None:
+            s.errors += 1
+            s.last_error = message

@@ -1,0 +1,243 @@
+"""The service over real Zenoh sessions on 127.0.0.1 (scouting off, free ports), with the service
+in its own process (`inhand-tracker serve`): estimates equal to the in-process session manager,
+bad input refused with the field and the numbers while the service goes on, a killed robot's
+session closed within the timeout, a restarted service reopened, several sessions at once."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+from client import TrackerClient, TrackerError
+from protocol import PROTOCOL_VERSION, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
+from service.accuracy import DATA_DIR
+
+TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Service:
+    """`inhand-tracker serve` in a subprocess on a free loopback port."""
+
+    def __init__(self, port: int, groups: int = 1, timeout_s: float = 1.0):
+        self.endpoint = f"tcp/127.0.0.1:{port}"
+        env = os.environ | {"INHAND_GROUPS": str(groups), "INHAND_ROBOT_TIMEOUT_S": str(timeout_s)}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--listen", self.endpoint, "--device", "cpu"],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+
+    def wait_ready(self, client: TrackerClient, timeout: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.proc.poll() is None, self.proc.stdout.read()[-3000:]
+            try:
+                client.service_info(timeout=1.0)
+                return
+            except (TimeoutError, TrackerError):
+                time.sleep(0.2)
+        raise TimeoutError("service did not come up")
+
+    def stop(self) -> float:
+        """SIGTERM; returns how long it took to exit."""
+        t0 = time.monotonic()
+        self.proc.send_signal(signal.SIGTERM)
+        self.proc.wait(timeout=30)
+        return time.monotonic() - t0
+
+
+@pytest.fixture(scope="module")
+def service():
+    svc = _Service(_free_port())
+    with TrackerClient(connect=[svc.endpoint]) as probe:
+        svc.wait_ready(probe)
+    yield svc
+    took = svc.stop()
+    assert svc.proc.returncode == 0 and took < 10, (svc.proc.returncode, took)
+
+
+def _open(client: TrackerClient, traj: Trajectory, **kw):
+    return client.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, **kw)
+
+
+def test_client_imports_no_torch_warp_or_newton():
+    code = "import sys, client; bad = {'torch', 'warp', 'newton'} & set(sys.modules); assert not bad, bad"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_tracks_with_the_same_estimates_as_the_in_process_manager(service):
+    from protocol import OpenSession as Open
+    from service.config import ServiceConfig
+    from service.sessions import SessionManager
+    from sim_backend import load_catalog, load_robot
+
+    traj, frames = Trajectory.load(TRAJECTORY), 40
+    with TrackerClient(connect=[service.endpoint]) as client:
+        info = _open(client, traj)
+        assert info.worlds == 40 and info.joint_names[0] == "wrist_x" and len(info.sensor_names) == 4
+        remote = []
+        for i in range(frames):
+            client.send(traj.frame(i, info.session))
+            remote.append(client.latest_pose(timeout=30, after_seq=i))
+        status = client.status()
+        assert (status.frames, status.gaps, status.errors) == (frames, 0, 0) and status.latency_p99_ms > 0
+        client.close_session()
+
+    robot = load_robot(ROOT / "configs/robots/allegro.toml")
+    manager = SessionManager(ServiceConfig(groups=1, device="cpu"), {robot.name: robot}, load_catalog())
+    local_info = manager.open(Open(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose,
+                                   q0=traj.truth.initial_q))  # fmt: skip
+    pool = manager.sessions[local_info.session].pool
+    for i in range(frames):
+        manager.submit(traj.frame(i, local_info.session))
+        (local,) = manager.step(pool)
+        assert local.seq == remote[i].seq == i
+        assert np.array_equal(local.pose, remote[i].pose), f"frame {i}: {local.pose} != {remote[i].pose}"
+        assert np.array_equal(local.covariance, remote[i].covariance)
+
+
+def test_bad_input_is_refused_with_the_field_and_the_service_goes_on(service):
+    traj = Trajectory.load(TRAJECTORY)
+    keys = Keys("default")
+    with TrackerClient(connect=[service.endpoint]) as client:
+        z = client._zenoh
+
+        def rpc(key: str, payload: bytes) -> Error:
+            (reply,) = list(z.get(key, payload=payload, timeout=30))
+            assert reply.err is not None
+            return decode(bytes(reply.err.payload.to_bytes()), Error)
+
+        err = rpc(keys.open, b"\xc1not msgpack")
+        assert err.code == ErrorCode.BAD_REQUEST and "not valid msgpack" in err.message
+        good = OpenSession(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose)
+        err = rpc(keys.open, encode(good.model_copy(update={"protocol": 99})))
+        assert err.code == ErrorCode.VERSION_MISMATCH and "v99" in err.message and f"v{PROTOCOL_VERSION}" in err.message
+        with pytest.raises(TrackerError) as exc:
+            client.open_session("shadow_hand", traj.object, traj.truth.initial_pose)
+        assert exc.value.code == ErrorCode.UNKNOWN_ROBOT and "'shadow_hand'" in exc.value.message
+        with pytest.raises(TrackerError) as exc:
+            client.open_session(traj.robot, "teapot", traj.truth.initial_pose)
+        assert exc.value.code == ErrorCode.UNKNOWN_OBJECT and "allegro" not in exc.value.message
+        raw = msgpack.unpackb(encode(good), raw=False)
+        raw["p0"]["data"] = np.array([0, 0, np.nan, 0, 0, 0, 1], np.float32).tobytes()
+        err = rpc(keys.open, msgpack.packb(raw, use_bin_type=True))
+        assert err.code == ErrorCode.BAD_REQUEST and "OpenSession.p0" in err.message and "nan" in err.message
+        err = rpc(keys.open, b"\x80" + b"x" * (2 << 20))
+        assert err.code == ErrorCode.BAD_REQUEST and "exceeds the limit" in err.message
+        (reply,) = list(z.get(keys.pose("nosuchsession"), timeout=10))
+        assert decode(bytes(reply.err.payload.to_bytes()), Error).code == ErrorCode.UNKNOWN_SESSION
+
+        info = _open(client, traj)
+        client.send(traj.frame(0, info.session))
+        client.latest_pose(timeout=30, after_seq=0)
+        short = traj.frame(1, info.session).model_copy(update={"q": traj.q[1][:21]})
+        raw = msgpack.unpackb(encode(traj.frame(1, info.session)), raw=False)
+        raw["force"]["data"] = np.full(12, np.inf, np.float32).tobytes()
+        bad_frames = [
+            (encode(short), "RobotFrame.q: expected shape (22,), got (21,) (seq 1)"),  # wrong size
+            (msgpack.packb(raw, use_bin_type=True), "RobotFrame.force: Value error, 12 non-finite values"),
+            (b"\x93garbage", "payload: not valid msgpack"),
+        ]
+        for n, (payload, message) in enumerate(bad_frames, start=1):
+            z.put(keys.frame(info.session), payload)
+            deadline = time.monotonic() + 10
+            while (status := client.status()).errors < n and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert status.errors == n and message in status.last_error, status.last_error
+        client.send(traj.frame(0, info.session))  # a duplicate: dropped and counted
+        deadline = time.monotonic() + 10
+        while client.status().duplicates < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert client.status().duplicates == 1
+        client.send(traj.frame(1, info.session))  # and the session goes on
+        assert client.latest_pose(timeout=30, after_seq=1).seq == 1
+        assert client.service_info().sessions == 1
+        client.close_session()
+
+
+@pytest.mark.slow
+def test_a_killed_robot_s_session_is_closed_and_a_restarted_service_reopened():
+    svc = _Service(_free_port(), groups=2, timeout_s=1.0)
+    robot = textwrap.dedent(f"""
+        import numpy as np, time
+        from client import TrackerClient
+        from protocol import Trajectory
+        traj = Trajectory.load({str(TRAJECTORY)!r})
+        c = TrackerClient(connect=[{svc.endpoint!r}])
+        info = c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q)
+        c.send(traj.frame(0, info.session))
+        c.latest_pose(timeout=60, after_seq=0)
+        print("ready", flush=True)
+        time.sleep(600)
+    """)
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as watcher:
+            svc.wait_ready(watcher)
+            proc = subprocess.Popen([sys.executable, "-c", robot], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+            assert proc.stdout.readline().strip() == "ready"
+            assert watcher.service_info().sessions == 1
+            proc.kill()
+            proc.wait()
+            t0 = time.monotonic()
+            while watcher.service_info().sessions and time.monotonic() - t0 < 10:
+                time.sleep(0.1)
+            assert watcher.service_info().sessions == 0, "the dead robot's session is still open"
+            assert time.monotonic() - t0 < 1.0 + 3.0
+
+            traj = Trajectory.load(TRAJECTORY)
+            info = _open(watcher, traj)
+            watcher.send(traj.frame(0, info.session))
+            watcher.latest_pose(timeout=60, after_seq=0)
+            assert svc.stop() < 5.0  # SIGTERM closes everything promptly
+            port = int(svc.endpoint.rsplit(":", 1)[1])
+            svc = _Service(port, groups=2)
+            svc.wait_ready(watcher)
+            with pytest.raises(TrackerError) as exc:
+                watcher.status()
+            assert exc.value.code == ErrorCode.UNKNOWN_SESSION
+            with pytest.raises(TrackerError):  # the old session died with the old service
+                watcher.close_session()
+            info = _open(watcher, traj)
+            watcher.send(traj.frame(0, info.session))
+            assert watcher.latest_pose(timeout=60, after_seq=0).seq == 0
+    finally:
+        if svc.proc.poll() is None:
+            svc.stop()
+
+
+@pytest.mark.slow
+def test_eight_sessions_at_once_all_get_their_estimates():
+    svc = _Service(_free_port(), groups=8)
+    traj = Trajectory.load(TRAJECTORY)
+    clients = []
+    try:
+        clients = [TrackerClient(connect=[svc.endpoint]) for _ in range(8)]
+        svc.wait_ready(clients[0])
+        infos = [_open(c, traj, worlds=8) for c in clients]
+        assert len({i.session for i in infos}) == 8
+        for f in range(5):
+            for c, info in zip(clients, infos, strict=True):
+                c.send(traj.frame(f, info.session))
+            for c in clients:
+                assert c.latest_pose(timeout=60, after_seq=f).seq == f
+        assert clients[0].service_info().sessions == 8
+    finally:
+        for c in clients:
+            c.close()
+        svc.stop()
