@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -11,7 +12,15 @@ from protocol import Estimate, Trajectory
 
 from .tracker_client import TrackerClient
 
-__all__ = ["noisy_start", "replay"]
+__all__ = ["ReplayResult", "noisy_start", "replay"]
+
+
+@dataclass
+class ReplayResult:
+    estimates: list[Estimate]
+    """The estimates received, in seq order."""
+    round_trip_ms: list[float]
+    """Per frame, from the frame's put to its estimate's arrival [ms] (lock-step replays only)."""
 
 
 def noisy_start(trajectory: Trajectory, sigma_t: float, sigma_r: float, seed: int = 0) -> np.ndarray:
@@ -43,7 +52,7 @@ def replay(
     rate: float = 0.0,
     on_estimate: Callable[[int, Estimate], None] | None = None,
     timeout: float = 60.0,
-) -> list[Estimate]:
+) -> ReplayResult:
     """Send every frame of ``trajectory`` on the open session and collect the estimates.
 
     ``rate`` [Hz] paces the frames like a robot's control loop; 0 sends each frame when the
@@ -52,6 +61,7 @@ def replay(
     if client.info is None:
         raise RuntimeError("open a session before replaying")
     estimates: list[Estimate] = []
+    round_trips: list[float] = []
     paced: list[Estimate] = []
     if rate > 0:
         client.on_pose(paced.append)
@@ -60,9 +70,11 @@ def replay(
         for i in range(trajectory.frames):
             if rate > 0:
                 time.sleep(max(0.0, t0 + i / rate - time.perf_counter()))
+            sent = time.perf_counter()
             client.send(trajectory.frame(i, client.info.session, seq=i))
             if rate <= 0:
                 estimates.append(client.latest_pose(timeout=timeout, after_seq=i))
+                round_trips.append((time.perf_counter() - sent) * 1e3)
                 if on_estimate:
                     on_estimate(i, estimates[-1])
         if rate > 0:
@@ -71,4 +83,4 @@ def replay(
     finally:
         if rate > 0:
             client.remove_pose_callback(paced.append)
-    return estimates
+    return ReplayResult(estimates, round_trips)

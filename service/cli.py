@@ -110,6 +110,8 @@ def _serve(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace, client=None, file: str | None = None, live: bool = False) -> int:
 
+    import numpy as np
+
     from client import TrackerClient, noisy_start, replay
     from protocol import Trajectory
 
@@ -156,14 +158,22 @@ def _replay(args: argparse.Namespace, client=None, file: str | None = None, live
                     flush=True,
                 )
 
-        estimates = replay(client, traj, rate=args.rate, on_estimate=show)
+        result = replay(client, traj, rate=args.rate, on_estimate=show)
+        estimates = result.estimates
         status = client.status()
         if live:
             print()
+        print(f"estimates: {len(estimates)}; gaps {status.gaps}, dropped {status.duplicates + status.late}")
         print(
-            f"estimates: {len(estimates)}; service latency p50 {status.latency_p50_ms:.1f} ms, "
-            f"p99 {status.latency_p99_ms:.1f} ms; gaps {status.gaps}, dropped {status.duplicates + status.late}"
+            f"latency, frame received to estimate ready (service): p50 {status.latency_p50_ms:.1f} ms, "
+            f"p99 {status.latency_p99_ms:.1f} ms"
         )
+        if result.round_trip_ms:
+            rt = np.asarray(result.round_trip_ms)
+            print(
+                f"latency, frame put to estimate received (client): p50 {np.percentile(rt, 50):.1f} ms, "
+                f"p99 {np.percentile(rt, 99):.1f} ms"
+            )
         if traj.truth is not None:
             _summary(traj, estimates)
         client.close_session()

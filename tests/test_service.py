@@ -241,3 +241,19 @@ def test_eight_sessions_at_once_all_get_their_estimates():
         for c in clients:
             c.close()
         svc.stop()
+
+
+def test_examples_run_as_processes(service):
+    watcher = subprocess.Popen(
+        [sys.executable, "examples/pose_watcher.py", "--connect", service.endpoint, "--count", "5"],
+        cwd=ROOT, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert watcher.stdout.readline().strip() == "watching"
+    robot = subprocess.run(
+        [sys.executable, "examples/robot_replay.py", str(TRAJECTORY), "--connect", service.endpoint, "--frames", "12"],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert robot.returncode == 0, robot.stderr[-2000:]
+    assert "frame 11: tracking, position error" in robot.stdout and "done: 12 frames" in robot.stdout
+    out, _ = watcher.communicate(timeout=60)
+    assert watcher.returncode == 0 and len([line for line in out.splitlines() if " seq " in line]) == 5

@@ -1,0 +1,44 @@
+"""A robot replaying a trajectory file to a running tracking service, lock-step.
+
+    inhand-tracker serve --listen tcp/127.0.0.1:7447 &
+    python examples/robot_replay.py data/trajectories/smoke-foam_brick_pick_place_0.traj --frames 60
+
+Needs only the light client (`pip install inhand-tracker`): zenoh, msgpack, numpy, pydantic.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from client import TrackerClient
+from protocol import Trajectory
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("file")
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    p.add_argument("--frames", type=int, default=0, help="frames to send (default all)")
+    args = p.parse_args()
+
+    traj = Trajectory.load(args.file)
+    frames = args.frames or traj.frames
+    with TrackerClient(connect=[args.connect]) as client:
+        start = traj.truth.initial_pose if traj.truth else None  # a real robot: its camera's estimate
+        info = client.open_session(traj.robot, traj.object, start, q0=traj.truth.initial_q if traj.truth else None)
+        print(f"session {info.session}", flush=True)
+        for i in range(frames):
+            client.send_frame(traj.controls[i], traj.q[i], force=traj.force[i] if traj.force is not None else None,
+                              slip=traj.slip[i] if traj.slip is not None else None)  # fmt: skip
+            estimate = client.latest_pose(timeout=60, after_seq=i)
+            if traj.truth is not None and (i % 10 == 0 or i == frames - 1):
+                error = np.linalg.norm(traj.truth.pose[i, :3] - estimate.pose[:3]) * 1e3
+                print(f"frame {i}: {estimate.status}, position error {error:.1f} mm", flush=True)
+        status = client.status()
+        print(f"done: {status.frames} frames, latency p50 {status.latency_p50_ms:.1f} ms", flush=True)
+
+
+if __name__ == "__main__":
+    main()
