@@ -238,9 +238,8 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _accuracy(args: argparse.Namespace) -> int:
+    import contextlib
     from pathlib import Path
-
-    import warp as wp
 
     from service.accuracy import CACHE_DIR, NOISE_LEVELS, SUITES, run_suite
     from service.optimizers import METHODS
@@ -266,16 +265,17 @@ def _accuracy(args: argparse.Namespace) -> int:
         if not values or not set(values) <= set(allowed):
             print(f"{name}: expected some of {','.join(allowed)}, got '{','.join(values)}'", file=sys.stderr)
             return 2
-    wp.config.quiet = True  # Warp's kernel-cache log goes to stdout, where the report or the JSON goes
-    results = run_suite(
-        SUITES[args.suite],
-        methods=methods,
-        noises=noises,
-        worlds=args.worlds,
-        ablations=ablations,
-        device=args.device,
-        cache=Path(args.cache) if args.cache else CACHE_DIR,
-    )
+    with contextlib.redirect_stdout(sys.stderr):  # Warp logs with print(); stdout is for the report or the JSON
+        results = run_suite(
+            SUITES[args.suite],
+            methods=methods,
+            noises=noises,
+            worlds=args.worlds,
+            ablations=ablations,
+            device=args.device,
+            cache=Path(args.cache) if args.cache else CACHE_DIR,
+            k_ablation=args.ablation_worlds,
+        )
     out = Path(args.out or f"bench-results/accuracy-{args.suite}")
     report = write_report(results, out, command="inhand-tracker " + " ".join(sys.argv[1:]))
     if args.json:
