@@ -32,10 +32,12 @@ def _podman(*args: str, timeout: float = 120, check: bool = True) -> subprocess.
     return subprocess.run(["podman", *args], capture_output=True, text=True, timeout=timeout, check=check, env=env)
 
 
-def test_the_image_serves_a_client_on_the_host_and_stops_on_sigterm(tmp_path):
+def test_the_image_serves_a_client_on_the_host_and_stops_on_sigterm(tmp_path, capsys):
     build = subprocess.run([str(ROOT / "docker/build-local.sh"), TAG], capture_output=True, text=True, timeout=3000)
     assert build.returncode == 0, (build.stdout + build.stderr)[-4000:]
-    print("\n".join(line for line in build.stdout.splitlines() if line.startswith(("build time", "image size"))))
+    figures = [line for line in build.stdout.splitlines() if line.startswith(("build time", "image size"))]
+    with capsys.disabled():  # shown in CI's log whatever pytest captures
+        print("\n" + "; ".join(figures))
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -74,7 +76,8 @@ def test_the_image_serves_a_client_on_the_host_and_stops_on_sigterm(tmp_path):
         _podman("kill", "--signal", "TERM", name)
         code = _podman("wait", name, timeout=30).stdout.strip()
         took = time.monotonic() - t0
-        print(f"SIGTERM to exit: {took:.2f} s, exit code {code}")
+        with capsys.disabled():
+            print(f"SIGTERM to exit: {took:.2f} s, exit code {code}")
         assert code == "0" and took < 5.0, (code, took, _podman("logs", name, check=False).stdout[-2000:])
     finally:
         _podman("rm", "-f", name, check=False)
