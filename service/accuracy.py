@@ -343,9 +343,11 @@ def run_suite(
     cache: Path | None = CACHE_DIR,
     quiet: bool = False,
     k_ablation: Sequence[int] | None = None,
+    checkpoint: Callable[[dict], None] | None = None,
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
-    (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD)."""
+    (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
+    gets the partial results after each population."""
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"methods: expected some of {METHODS}, got {m!r}")
@@ -370,6 +372,8 @@ def run_suite(
             by_k.setdefault(s.worlds, []).append(s)
         for k_tracks in by_k.values():  # the frames of one population advance all its groups at once
             results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance)
+            if checkpoint:  # what is done so far survives a run cut short (a time limit)
+                checkpoint(_collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0, device))
     bar.close()
     return _collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0 - t_truth, device)
 

@@ -265,6 +265,8 @@ def _accuracy(args: argparse.Namespace) -> int:
         if not values or not set(values) <= set(allowed):
             print(f"{name}: expected some of {','.join(allowed)}, got '{','.join(values)}'", file=sys.stderr)
             return 2
+    out = Path(args.out or f"bench-results/accuracy-{args.suite}")
+    command = "inhand-tracker " + " ".join(sys.argv[1:])
     with contextlib.redirect_stdout(sys.stderr):  # Warp logs with print(); stdout is for the report or the JSON
         results = run_suite(
             SUITES[args.suite],
@@ -275,9 +277,9 @@ def _accuracy(args: argparse.Namespace) -> int:
             device=args.device,
             cache=Path(args.cache) if args.cache else CACHE_DIR,
             k_ablation=args.ablation_worlds,
+            checkpoint=lambda partial: write_report(partial, out, command=command + "  (partial)"),
         )
-    out = Path(args.out or f"bench-results/accuracy-{args.suite}")
-    report = write_report(results, out, command="inhand-tracker " + " ".join(sys.argv[1:]))
+    report = write_report(results, out, command=command)
     if args.json:
         print(json.dumps({"summary": results["summary"], "ablations": results["ablations"]}, indent=2))
     else:
