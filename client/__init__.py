@@ -1,7 +1,7 @@
 """The robot side: a light client of the tracking service (imports zenoh, msgpack, numpy and
 pydantic only; never torch, warp or newton)."""
 
-from .replay import ReplayResult, noisy_start, replay
-from .tracker_client import TrackerClient, TrackerError
+from .replay import NOISE_LEVELS, ReplayResult, noisy_start, replay
+from .tracker_client import TrackerClient, TrackerError, zenoh_config
 
-__all__ = ["ReplayResult", "TrackerClient", "TrackerError", "noisy_start", "replay"]
+__all__ = ["NOISE_LEVELS", "ReplayResult", "TrackerClient", "TrackerError", "noisy_start", "replay", "zenoh_config"]

@@ -12,7 +12,10 @@ from protocol import Estimate, Trajectory
 
 from .tracker_client import TrackerClient
 
-__all__ = ["ReplayResult", "noisy_start", "replay"]
+__all__ = ["NOISE_LEVELS", "ReplayResult", "noisy_start", "replay"]
+
+NOISE_LEVELS: dict[str, tuple[float, float]] = {"low": (0.001, 0.01), "med": (0.005, 0.1), "high": (0.01, 1.0)}
+"""Initial pose noise (Sigma_p) per level, as the paper's: translation [m], rotation [rad]."""
 
 
 @dataclass

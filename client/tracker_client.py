@@ -24,7 +24,7 @@ from protocol import (
     encode,
 )
 
-__all__ = ["TrackerClient", "TrackerError"]
+__all__ = ["TrackerClient", "TrackerError", "zenoh_config"]
 
 _ENCODING = zenoh.Encoding("application/msgpack")
 
@@ -37,7 +37,8 @@ class TrackerError(Exception):
         self.code, self.message = ErrorCode(code), message
 
 
-def _config(connect, listen, scouting: bool) -> zenoh.Config:
+def zenoh_config(listen=(), connect=(), scouting: bool = False) -> zenoh.Config:
+    """A peer config: listen and connect endpoints, multicast scouting on or off."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
@@ -67,7 +68,7 @@ class TrackerClient:
     ):
         self.keys = Keys(service)
         self.timeout = timeout
-        self._zenoh = zenoh.open(_config(connect, listen, scouting))
+        self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting))
         self.info: SessionInfo | None = None
         self._seq = 0
         self._publisher: zenoh.Publisher | None = None

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from client.replay import NOISE_LEVELS
 from protocol.trajectory import Trajectory
 from sim_backend import HandSpec, Kinematics, Population, PopulationConfig, catalog_object
 from sim_backend.demos import DEMO_KINDS, Recording, make_demo, record
@@ -42,8 +43,6 @@ __all__ = [
     "run_suite",
 ]
 
-NOISE_LEVELS: dict[str, tuple[float, float]] = {"low": (0.001, 0.01), "med": (0.005, 0.1), "high": (0.01, 1.0)}
-"""Initial pose noise (Sigma_p) per level, as the paper's: translation [m], rotation [rad]."""
 EXPLORATION: dict[str, float] = {"low": 0.25, "med": 1.0, "high": 4.0}
 """Exploration levels of the ablation: multipliers on the parameter and wrench noise."""
 K_ABLATION = (10, 40, 160, 640, 2560)
@@ -128,8 +127,9 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
     kin = Kinematics(HandSpec())  # the robot's own model plans the demos
     out: list[Trajectory] = []
     for o, name in enumerate(suite.objects):
+        obj = catalog_object(name)
         demos = [
-            make_demo(kin, catalog_object(name), kind, v, suite.seconds, suite.pace)
+            make_demo(kin, obj, kind, v, suite.seconds, suite.pace)
             for kind in suite.kinds
             for v in range(suite.variants)
         ]
@@ -144,7 +144,6 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             continue
         if log:
             log(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
-        obj = catalog_object(name)
         rng = np.random.default_rng([suite.seed, o])
         config = PopulationConfig(
             groups=len(demos), worlds=1, device=device, substeps=suite.gap.substeps, impratio=suite.gap.impratio

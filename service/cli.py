@@ -112,11 +112,10 @@ def _replay(args: argparse.Namespace, client=None, file: str | None = None, live
 
     import numpy as np
 
-    from client import TrackerClient, noisy_start, replay
+    from client import NOISE_LEVELS, TrackerClient, noisy_start, replay
     from protocol import Trajectory
 
-    levels = {"low": (0.001, 0.01), "med": (0.005, 0.1), "high": (0.01, 1.0)}
-    if args.noise not in levels:
+    if args.noise not in NOISE_LEVELS:
         print(f"--noise: expected low, med or high, got '{args.noise}'", file=sys.stderr)
         return 2
     try:
@@ -124,7 +123,7 @@ def _replay(args: argparse.Namespace, client=None, file: str | None = None, live
     except (OSError, ValueError) as exc:
         print(f"replay: {exc}", file=sys.stderr)
         return 2
-    sigma_t, sigma_r = levels[args.noise]
+    sigma_t, sigma_r = NOISE_LEVELS[args.noise]
     own = client is None
     client = client or TrackerClient(connect=_split(args.connect), service=args.name)
     try:

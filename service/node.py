@@ -17,6 +17,7 @@ from pathlib import Path
 
 import zenoh
 
+from client import zenoh_config
 from protocol import (
     CloseSession,
     DecodeError,
@@ -35,22 +36,10 @@ from .config import DEFAULT_CONFIG, ServiceConfig
 from .optimizers import METHODS
 from .sessions import ServiceError, SessionManager
 
-__all__ = ["TrackerNode", "zenoh_config"]
+__all__ = ["TrackerNode"]
 
 _ROOT = DEFAULT_CONFIG.parents[1]
 _ENCODING = zenoh.Encoding("application/msgpack")
-
-
-def zenoh_config(listen=(), connect=(), scouting: bool = False) -> zenoh.Config:
-    """A peer config: listen and connect endpoints, multicast scouting on or off."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
-    if listen:
-        conf.insert_json5("listen/endpoints", str(list(listen)).replace("'", '"'))
-    if connect:
-        conf.insert_json5("connect/endpoints", str(list(connect)).replace("'", '"'))
-    return conf
 
 
 class TrackerNode:

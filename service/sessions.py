@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 import uuid
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -28,21 +28,8 @@ from .tracker import Frame, Status, Tracker, TrackerConfig
 
 __all__ = ["ServiceError", "SessionManager"]
 
-_TUNABLE = {
-    "update_every",
-    "sigma_t",
-    "sigma_r",
-    "wrench_force",
-    "wrench_torque",
-    "mass_sigma",
-    "friction_sigma",
-    "estimate_lambda",
-    "contact_loss_frames",
-    "uncertain_spread",
-    "reseed_scale",
-    "recover_frames",
-    "seed",
-}
+_TUNABLE = {f.name: type(f.default) for f in fields(TrackerConfig) if type(f.default) in (int, float)}
+"""Tracker hyperparameters a session may override, with their types."""
 _OPTIONAL = ("force", "slip", "slip_dir", "spin", "spin_sense")
 
 
@@ -124,10 +111,12 @@ class SessionManager:
             raise ServiceError(
                 ErrorCode.CAPACITY, f"worlds: {request.worlds} exceeds this service's limit of {self.config.max_worlds}"
             )
-        unknown = sorted(set(request.overrides) - _TUNABLE)
+        unknown = sorted(set(request.overrides) - set(_TUNABLE))
         if unknown:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: unknown {unknown} (tunable: {sorted(_TUNABLE)})")
-        kin = self._kinematics.setdefault(request.robot, Kinematics(robot))
+        if request.robot not in self._kinematics:  # a model of its own: built once per robot
+            self._kinematics[request.robot] = Kinematics(robot)
+        kin = self._kinematics[request.robot]
         d = kin.layout.dof_count
         q0 = kin.layout.default_q if request.q0 is None else request.q0
         if np.shape(q0) != (d,):
@@ -175,10 +164,7 @@ class SessionManager:
             self.objects[request.object],
             PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device),
         )
-        overrides = {
-            k: (int(v) if k in ("update_every", "contact_loss_frames", "recover_frames", "seed") else v)
-            for k, v in request.overrides.items()
-        }
+        overrides = {k: _TUNABLE[k](v) for k, v in request.overrides.items()}
         try:
             tconf = TrackerConfig(optimizer=OptimizerConfig(method=request.method), **overrides)
         except ValueError as exc:

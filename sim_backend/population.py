@@ -655,9 +655,9 @@ class Population:
         value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
         if tuple(value.shape) != (self.G, self.K):
             raise ValueError(f"{name}: expected shape ({self.G}, {self.K}), got {tuple(value.shape)}")
-        lo, hi = bounds
-        lo32, hi32 = (torch.tensor(b, dtype=torch.float32).item() for b in bounds)  # float32 clipping rounds past
         if value.device.type == "cpu":  # device tensors come from the tracker, already in range
+            lo, hi = bounds
+            lo32, hi32 = (torch.tensor(b, dtype=torch.float32).item() for b in bounds)  # float32 clipping rounds past
             bad = ~((value >= lo32) & (value <= hi32))
             if bool(bad.any()):
                 raise ValueError(
