@@ -33,6 +33,14 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     sim.add_argument("--json", action="store_true", help="print JSON instead of a table")
 
+    speed = bsub.add_parser("speed", help="whole tracker frame (frame in, estimate out) against the physics alone")
+    speed.add_argument("--worlds", type=_int_list, default=[40, 256, 1024, 4096, 8192], help="W, all worlds")
+    speed.add_argument("--groups", type=_int_list, default=[1], help="G, sessions sharing the worlds (K = W / G)")
+    speed.add_argument("--substeps", type=_int_list, default=[8], help="substeps per frame, e.g. 4,8")
+    speed.add_argument("--frames", type=int, default=200, help="timed frames per size (after 30 warm-up frames)")
+    speed.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    speed.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
     acc = bsub.add_parser("accuracy", help="tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A")
     acc.add_argument("--suite", default="smoke", help="smoke, paper or reality-gap")
     acc.add_argument("--methods", default="OLP,EYE,WRS,REPS,PBO", help="comma-separated: OLP, EYE, WRS, REPS, PBO")
@@ -236,6 +244,31 @@ def _demo(args: argparse.Namespace) -> int:
         return _replay(args, client=client, file=file, live=True)
 
 
+def _speed(args: argparse.Namespace) -> int:
+    import contextlib
+
+    from service.speed import as_dicts, bench_speed, format_table
+
+    def show(r) -> None:
+        print(
+            f"  W={r.worlds} G={r.groups} substeps={r.substeps}: tracker {r.tracker_median_ms:.2f} ms "
+            f"(p99 {r.tracker_p99_ms:.2f}), physics {r.physics_median_ms:.2f} ms, ratio {r.ratio:.2f}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # Warp logs with print(); stdout is for the table or the JSON
+            results = bench_speed(
+                args.worlds, args.groups, args.substeps, frames=args.frames, device=args.device, progress=show
+            )
+    except ValueError as exc:
+        print(f"bench speed: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(as_dicts(results), indent=2) if args.json else format_table(results))
+    return 0
+
+
 def _accuracy(args: argparse.Namespace) -> int:
     import contextlib
     from pathlib import Path
@@ -300,6 +333,8 @@ def main(argv: list[str] | None = None) -> int:
                 )
         print(json.dumps(as_dicts(results), indent=2) if args.json else format_table(results))
         return 0
+    if args.command == "bench" and args.bench == "speed":
+        return _speed(args)
     if args.command == "bench" and args.bench == "accuracy":
         return _accuracy(args)
     if args.command == "serve":

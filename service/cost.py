@@ -136,7 +136,10 @@ class Cost:
     groups: int
     device: torch.device
     running: torch.Tensor = field(init=False)
-    frames: int = field(init=False, default=0)
+    """Running mean magnitude of each term, (G, 10), in the term's unit."""
+    frames: torch.Tensor = field(init=False)
+    """Frames each group's running means have seen, (G,) float64 on the device: a device counter,
+    so that a captured frame graph advances it on every replay."""
     enabled: torch.Tensor | None = None
     """Terms switched on per group, (G, 10) bool (ablations run as groups); default config.enabled."""
     last_terms: torch.Tensor | None = field(init=False, default=None)
@@ -144,6 +147,7 @@ class Cost:
 
     def __post_init__(self) -> None:
         self.running = torch.zeros(self.groups, 10, device=self.device)
+        self.frames = torch.zeros(self.groups, dtype=torch.float64, device=self.device)
         self._floor = _NORM_FLOOR.to(self.device)
         enabled = self.config.enabled if self.enabled is None else self.enabled
         self._enabled = torch.as_tensor(enabled, dtype=torch.float32, device=self.device).expand(self.groups, 10)
@@ -161,6 +165,11 @@ class Cost:
         terms = cost_terms(sim, real, self.config.contact_threshold)
         self.last_terms = terms
         self.frames += 1
-        rate = max(1.0 / self.frames, self.config.norm_rate)
-        self.running.lerp_(terms.mean(dim=1), rate)
+        rate = (1.0 / self.frames).clamp_(min=self.config.norm_rate).float()
+        self.running.lerp_(terms.mean(dim=1), rate[:, None])
         return (terms * self.weights()[:, None, :]).sum(-1)
+
+    def reset(self, groups: torch.Tensor) -> None:
+        """Forget the running term magnitudes of ``groups`` (G,) bool: a new track starts there."""
+        self.running.masked_fill_(groups[:, None], 0.0)
+        self.frames.masked_fill_(groups, 0.0)

@@ -12,7 +12,17 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["METHODS", "OptimizerConfig", "Update", "reps_eta", "reps_pmf", "systematic_resample", "update", "wrs_pmf"]
+__all__ = [
+    "METHODS",
+    "OptimizerConfig",
+    "Update",
+    "method_rows",
+    "reps_eta",
+    "reps_pmf",
+    "systematic_resample",
+    "update",
+    "wrs_pmf",
+]
 
 METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
 
@@ -100,21 +110,34 @@ def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor
 
 
 def update(
-    cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator, methods: tuple[str, ...] | None = None
+    cost: torch.Tensor,
+    config: OptimizerConfig,
+    gen: torch.Generator,
+    methods: tuple[str, ...] | None = None,
+    rows: dict[str, torch.Tensor] | None = None,
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
-    of one population); default ``config.method`` for all. The loop is over methods, not worlds."""
+    of one population); default ``config.method`` for all. The loop is over methods, not worlds.
+    ``rows`` maps each method present to its groups, a (G,) bool tensor on the device; a caller
+    that captures the update passes it, since building it from ``methods`` copies from the host."""
     if methods is None or len(set(methods)) == 1:
         return _update(cost, config.method if methods is None else methods[0], config, gen)
-    index = torch.empty(cost.shape, dtype=torch.long, device=cost.device)
-    explore = torch.empty(cost.shape, dtype=torch.bool, device=cost.device)
+    if rows is None:
+        rows = method_rows(methods, cost.device)
+    index = explore = None
     for method in sorted(set(methods)):
-        rows = torch.tensor([m == method for m in methods], device=cost.device)
         part = _update(cost, method, config, gen)
-        index[rows], explore[rows] = part.index[rows], part.explore[rows]
+        mine = rows[method][:, None]
+        index = part.index if index is None else torch.where(mine, part.index, index)
+        explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
     return Update(index=index, explore=explore)
+
+
+def method_rows(methods: tuple[str, ...], device: torch.device) -> dict[str, torch.Tensor]:
+    """For every method, which groups use it: (G,) bool on ``device``."""
+    return {m: torch.tensor([x == m for x in methods], device=device) for m in METHODS}
 
 
 def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch.Generator) -> Update:

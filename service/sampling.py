@@ -41,5 +41,6 @@ def sample_wrenches(
 ) -> torch.Tensor:
     """Perturbation wrenches v ~ N(0, diag(sigma_force^2 I3, sigma_torque^2 I3)), (G, K, 6) [N, N m]."""
     noise = torch.randn((*shape, 6), generator=gen, device=device)
-    scale = torch.tensor([sigma_force] * 3 + [sigma_torque] * 3, device=device)
+    # Built on the device, not copied from a host list: this runs inside the captured update.
+    scale = torch.where(torch.arange(6, device=device) < 3, sigma_force, sigma_torque)
     return noise * scale

@@ -8,6 +8,11 @@ and a status; a group whose every world lost the object, or whose cost jumps far
 running level, is re-seeded around its last trusted estimate with wider noise.
 
 The tracker reads only what a robot sends (controls, joints, touch) plus p0 and Sigma_p.
+
+A frame is one host-to-device copy of the robot's packed inputs, one graph replay (controls,
+physics, forward kinematics, cost, window, estimate: :mod:`service.capture`), and one asynchronous
+device-to-host copy of the packed estimate, the frame's only wait. The update every T frames is a
+second graph, enqueued behind that copy: its indices never leave the device.
 """
 
 from __future__ import annotations
@@ -22,11 +27,16 @@ import torch
 from sim_backend import HEALTH_OK, Population, SensorFK
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
+from .capture import CapturedOps
 from .cost import Cost, CostConfig, RealObservation
-from .optimizers import METHODS, OptimizerConfig, update, wrs_pmf
+from .optimizers import METHODS, OptimizerConfig, method_rows, update, wrs_pmf
 from .sampling import clipped_normal, sample_poses, sample_wrenches
 
 __all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
+
+_PACKED = 55
+"""Width of the packed estimate: pose 7, mean position 3, mean quaternion 4, covariance 36, cost,
+mass, friction, lost fraction, contact disagreement."""
 
 
 class Status(IntEnum):
@@ -162,10 +172,17 @@ class Tracker:
         enabled = None if terms is None else torch.as_tensor(np.asarray(terms, dtype=bool), device=dev)
         self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
         self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
-        self.real = RealObservation.zeros(self.G, self.D, self.L, dev)
+        self._allocate_io()
         self.window = torch.zeros(self.G, self.K, device=dev)
+        """Sum of each world's cost since the last update, (G, K)."""
+        self._window_frames = torch.zeros((), device=dev)
+        """Frames in the window, on the device (the captured frame counts them)."""
         self.window_frames = 0
+        """The same count on the host, which schedules the update."""
         self.frame = 0
+        self._rows = method_rows(self.methods, dev)
+        self._frame_graph = CapturedOps(self._frame_ops, pop.device)
+        self._update_graph = CapturedOps(self._update_ops, pop.device, generator=self.gen, pool=self._frame_graph)
         obj = pop.object
         self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
         self._status = np.zeros(self.G, dtype=np.int64)
@@ -192,6 +209,8 @@ class Tracker:
         self._trusted[mask] = p0[mask]
         if groups is None:
             self.frame = self.window_frames = 0
+            self._window_frames.zero_()
+        self.cost.reset(torch.as_tensor(mask, device=self.device))
         self._seed(mask, p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
                    cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
         self._status[mask] = Status.TRACKING
@@ -204,8 +223,12 @@ class Tracker:
             raise ValueError(f"tracker method: expected one of {METHODS}, got {method!r}")
         methods = list(self.methods)
         methods[group] = method
+        if set(methods) != set(self.methods):
+            self._update_graph.invalidate()  # the update runs other optimizers now
         self.methods = tuple(methods)
         self._olp[group] = method == "OLP"
+        for name, rows in method_rows(self.methods, self.device).items():
+            self._rows[name].copy_(rows)
 
     def _seed(self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r) -> None:
         """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them."""
@@ -231,54 +254,104 @@ class Tracker:
         self.window.masked_fill_(sel, 0.0)
 
     # ------------------------------------------------------------------ frame
-    def _load_real(self, frame: Frame) -> None:
-        real = self.real
+    def _allocate_io(self) -> None:
+        """The packed input and estimate buffers, and the real observation as views of the input.
 
-        def put(dst: torch.Tensor, src: np.ndarray | None, flag: torch.Tensor | None = None, name: str = "") -> None:
-            if src is None:
-                if flag is not None:
-                    flag.zero_()
-                return
-            if np.shape(src) != tuple(dst.shape):
-                raise ValueError(f"frame {name}: expected shape {tuple(dst.shape)}, got {np.shape(src)}")
-            dst.copy_(torch.as_tensor(src, dtype=torch.float32), non_blocking=True)
-            if flag is not None:
-                flag.fill_(1.0)
+        A robot frame travels as one (G, 2D + 8L + 3) row per group: controls, q, force, slip,
+        slip_dir, spin, spin_sense, then the has_force, has_slip, has_spin flags."""
+        G, D, L, dev = self.G, self.D, self.L, self.device
+        self._fields = {"controls": (D,), "q": (D,), "force": (L, 3), "slip": (L,), "slip_dir": (L, 2),
+                        "spin": (L,), "spin_sense": (L,)}  # fmt: skip
+        widths = [int(np.prod(shape)) for shape in self._fields.values()]
+        self._columns = dict(zip(self._fields, np.cumsum([0, *widths[:-1]]).tolist(), strict=True))
+        flags = sum(widths)
+        self._flag = {"force": flags, "slip": flags + 1, "spin": flags + 2}
+        pinned = dev.type == "cuda"
+        self._host_in = torch.zeros(G, flags + 3, pin_memory=pinned)
+        self._inputs = self._host_in.to(dev) if pinned else self._host_in
+        self._staged = self._host_in.numpy()
 
-        put(real.q, frame.q, name="q")
-        put(real.force, frame.force, real.has_force, "force")
-        put(real.slip, frame.slip, real.has_slip, "slip")
-        put(real.slip_dir, frame.slip_dir, name="slip_dir")
-        put(real.spin, frame.spin, real.has_spin, "spin")
-        put(real.spin_sense, frame.spin_sense, name="spin_sense")
-        self.fk.update(real.q)
-        real.sensor_pos, real.sensor_rot = self.fk.pos, self.fk.rot
+        def view(name: str) -> torch.Tensor:
+            c = self._columns[name]
+            return self._inputs[:, c : c + int(np.prod(self._fields[name]))].unflatten(1, self._fields[name])
+
+        self._controls = view("controls")
+        self.real = RealObservation(
+            q=view("q"), sensor_pos=self.fk.pos, sensor_rot=self.fk.rot, force=view("force"),
+            slip=view("slip"), slip_dir=view("slip_dir"), spin=view("spin"), spin_sense=view("spin_sense"),
+            has_force=self._inputs[:, flags], has_slip=self._inputs[:, flags + 1], has_spin=self._inputs[:, flags + 2],
+        )  # fmt: skip
+        self._packed = torch.zeros(G, _PACKED, device=dev)
+        self._host_out = torch.zeros(G, _PACKED, pin_memory=pinned)
+        self._fetched = torch.cuda.Event() if pinned else None
+
+    def _stage(self, frame: Frame) -> None:
+        """Check the frame and write it into the host staging row; refuses before anything moves."""
+        rows: list[tuple[str, np.ndarray]] = []
+        for name, shape in self._fields.items():
+            value = getattr(frame, name)
+            if value is None:
+                continue
+            arr = np.asarray(value, dtype=np.float32)
+            if arr.shape != (self.G, *shape):
+                raise ValueError(f"frame {name}: expected shape {(self.G, *shape)}, got {arr.shape}")
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                at = np.argwhere(bad)[0]
+                joint = name in ("controls", "q")
+                where = f"joint '{self.pop.layout.joint_names[at[1]]}'" if joint else f"index {tuple(at[1:])}"
+                raise ValueError(
+                    f"frame {name}: {int(bad.sum())} non-finite, first at group {at[0]} {where}: {arr[tuple(at)]}"
+                )
+            rows.append((name, arr.reshape(self.G, -1)))
+        for name in ("controls", "q"):
+            if getattr(frame, name) is None:
+                raise ValueError(f"frame {name}: required, got None")
+        for name, arr in rows:
+            c = self._columns[name]
+            self._staged[:, c : c + arr.shape[1]] = arr
+        for name, col in self._flag.items():
+            self._staged[:, col] = float(getattr(frame, name) is not None)
 
     def step(self, frame: Frame) -> Estimate:
         """Advance every group by one robot frame and return the estimates."""
-        cfg, pop = self.config, self.pop
         if self._trusted is None:
             raise ValueError("tracker: call start(p0, q0) before the first frame")
-        # Everything that can refuse the frame runs before the population moves.
-        self._load_real(frame)
-        pop.set_targets(frame.controls)
+        self._stage(frame)  # everything that can refuse the frame runs before the population moves
+        with self.pop.on_stream():
+            if self._inputs is not self._host_in:
+                self._inputs.copy_(self._host_in, non_blocking=True)
+            self._frame_graph()
+            self._host_out.copy_(self._packed, non_blocking=True)
+            if self._fetched is not None:
+                self._fetched.record()
+        self.frame += 1
+        self.window_frames += 1
+        if self.window_frames >= self.config.update_every:
+            self._update_graph()  # queued behind the copy: the host does not wait for it
+            self.window_frames = 0
+        if self._fetched is not None:
+            self._fetched.synchronize()  # the one wait of the frame: the estimate itself
+        estimate = self._unpack(self._host_out.numpy().copy())
+        self._watch(estimate, frame)
+        return estimate
+
+    def _frame_ops(self) -> None:
+        """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
+        window and the packed estimate out."""
+        pop = self.pop
+        pop.write_targets(self._controls)
         pop.step()
+        self.fk.update(self.real.q)
         cost = self.cost(pop.obs, self.real)
         # A world that lost its object or went NaN is worst; NaN costs must not win the argmin.
         cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(pop.obs.health != HEALTH_OK, 1e9)
         self.window += cost
-        self.window_frames += 1
-        self.frame += 1
-        window = self.window / self.window_frames
-        packed = self._summary(window).cpu()  # the one host sync of the frame
-        estimate = self._unpack(packed)
-        if self.window_frames >= cfg.update_every:
-            self._update(window)
-        self._watch(estimate, frame)
-        return estimate
+        self._window_frames += 1
+        self._packed.copy_(self._summary(self.window / self._window_frames))
 
     def _summary(self, window: torch.Tensor) -> torch.Tensor:
-        """Everything the estimate needs, packed in one (G, 58) tensor for one device->host copy."""
+        """Everything the estimate needs, packed in one (G, _PACKED) tensor for one device->host copy."""
         obs, pop = self.pop.obs, self.pop
         best = window.argmin(-1)
         take = lambda t: torch.gather(t, 1, best[:, None, None].expand(-1, 1, t.shape[-1]))[:, 0]  # noqa: E731
@@ -305,8 +378,7 @@ class Tracker:
              pop.friction.gather(1, best[:, None])[:, 0]], dim=-1)  # fmt: skip
         return torch.cat([pose, mean_p, mean_q, cov, scalars, lost, disagree], dim=-1)
 
-    def _unpack(self, packed: torch.Tensor) -> Estimate:
-        a = packed.numpy()
+    def _unpack(self, a: np.ndarray) -> Estimate:
         return Estimate(
             frame=self.frame,
             pose=a[:, 0:7],
@@ -320,10 +392,11 @@ class Tracker:
             status=self._status.copy(),
         )
 
-    def _update(self, window: torch.Tensor) -> None:
-        """The optimizer's resample and perturbation; the window starts again."""
+    def _update_ops(self) -> None:
+        """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
-        upd = update(window, cfg.optimizer, self.gen, self.methods)
+        window = self.window / self._window_frames
+        upd = update(window, cfg.optimizer, self.gen, self.methods, self._rows)
         self.pop.resample(upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
@@ -333,7 +406,7 @@ class Tracker:
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
         self.window.zero_()
-        self.window_frames = 0
+        self._window_frames.zero_()
 
     def _explore(self, value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor):
         """theta ~ N(theta, Sigma_theta) clipped to its range, where ``mask``; ``sigma`` is a fraction of the range."""

@@ -17,7 +17,7 @@ from .objects import catalog_object
 from .population import Population, PopulationConfig, resolve_device
 from .robots import HandSpec
 
-__all__ = ["SimBenchResult", "bench_sim"]
+__all__ = ["SimBenchResult", "bench_sim", "used_bytes"]
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class SimBenchResult:
     build_s: float
 
 
-def _used_bytes(device: wp.context.Device) -> int:
+def used_bytes(device: wp.context.Device) -> int:
     if device.is_cuda:
         # Warp's memory pool keeps freed blocks, so the driver's free memory says little; the
         # pool's own count of live bytes, plus torch's, is what a population holds.
@@ -60,7 +60,7 @@ def bench_sim(
     results = []
     for k in worlds:
         wp.synchronize_device(dev)
-        before = _used_bytes(dev)
+        before = used_bytes(dev)
         t0 = time.perf_counter()
         pop = Population(spec, catalog_object(obj), config(k))
         pop.reset_state(grasp.object_pose, grasp.q_touch)
@@ -69,7 +69,7 @@ def bench_sim(
             pop.step()
         wp.synchronize_device(dev)
         build_s = time.perf_counter() - t0
-        used = _used_bytes(dev) - before
+        used = used_bytes(dev) - before
         times = np.empty(frames)
         for i in range(frames):
             t = time.perf_counter()

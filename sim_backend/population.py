@@ -235,9 +235,11 @@ class Population:
         self._coords = world.joint_coord_count
         self._dofs = world.joint_dof_count
         self._nominal_mass = float(world.body_mass[self._object_body])
-        self._nominal_inertia = torch.tensor(
-            np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32
-        ).reshape(3, 3)
+        inertia = torch.tensor(np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32).reshape(3, 3)
+        # Kept on the device: set_params runs inside the tracker's captured update, where a host
+        # copy or a checked inverse would stall or break the capture.
+        self._nominal_inertia = inertia.to(self.torch_device)
+        self._nominal_inv_inertia = torch.linalg.inv(inertia).to(self.torch_device)
 
         solver, iterations, ls_iterations = cfg.solver_settings(self.device)
         with wp.ScopedDevice(self.device):
@@ -487,18 +489,21 @@ class Population:
         return [*views, self._warmstart]
 
     def _snapshot(self) -> list[torch.Tensor]:
-        with self._stream():
+        with self.on_stream():
             return [t.clone() for t in self._state_tensors()]
 
     def _restore(self, saved: list[torch.Tensor]) -> None:
-        with self._stream():
+        with self.on_stream():
             for t, s in zip(self._state_tensors(), saved, strict=True):
                 t.copy_(s)
 
     def step(self) -> None:
-        """Advance every world by one control frame (one graph replay)."""
+        """Advance every world by one control frame (one graph replay).
+
+        Called while an enclosing graph is being captured on the device (the tracker's frame), it
+        launches the frame's kernels into that capture instead."""
         with wp.ScopedDevice(self.device):
-            if self._graph is not None:
+            if self._graph is not None and not self.device.is_capturing:
                 wp.capture_launch(self._graph)
             else:
                 self._simulate()
@@ -509,7 +514,7 @@ class Population:
             self._simulate()
 
     @contextlib.contextmanager
-    def _stream(self):
+    def on_stream(self):
         """Run torch work on Warp's stream so it is ordered with the graph replays."""
         if self._torch_stream is None:
             yield
@@ -534,8 +539,13 @@ class Population:
                     f"'{self.layout.joint_names[d]}' = {arr[g, d]}"
                 )
             src = torch.from_numpy(arr)
-        with self._stream():
-            self._target_stage.copy_(src, non_blocking=True)
+        self.write_targets(src)
+
+    def write_targets(self, targets: torch.Tensor) -> None:
+        """:meth:`set_targets` for targets already checked, (G, D): no host work, so it can run
+        inside a captured graph."""
+        with self.on_stream():
+            self._target_stage.copy_(targets, non_blocking=True)
             torch.clamp(self._target_stage, self._lower, self._upper, out=self._target_stage)
             if self._target_view is not None:
                 self._target_view.copy_(self._target_stage[:, None, :].expand(self.G, self.K, self.D))
@@ -547,7 +557,7 @@ class Population:
         force [N] then torque [N m], world frame, at the centre of mass."""
         if tuple(wrench.shape) != (self.G, self.K, 6):
             raise ValueError(f"wrench: expected shape ({self.G}, {self.K}, 6), got {tuple(wrench.shape)}")
-        with self._stream():
+        with self.on_stream():
             self._wrench.copy_(wrench, non_blocking=True)
 
     def reset_state(
@@ -582,7 +592,7 @@ class Population:
             raise ValueError(f"groups: expected shape ({self.G},), got {tuple(groups.shape)}")
         sel = groups.to(self.torch_device)[:, None, None]
         coords = torch.as_tensor(self.layout.coord_indices, device=self.torch_device)
-        with self._stream():
+        with self.on_stream():
             for state in (self.state_0, self.state_1):
                 jq = self._state_views["joint_q"](state)
                 fresh = jq.clone()
@@ -637,15 +647,14 @@ class Population:
 
     def set_params(self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None) -> None:
         """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K)."""
-        with self._stream():
+        with self.on_stream():
             if mass is not None:
                 mass = self._check_param("mass", mass, self.object.mass_range)
                 scale = (mass / self._nominal_mass)[..., None, None]
-                inertia = self._nominal_inertia.to(self.torch_device)
                 self._mass.copy_(mass)
                 self._inv_mass.copy_(1.0 / mass)
-                self._inertia.copy_(inertia * scale)
-                self._inv_inertia.copy_(torch.linalg.inv(inertia) / scale)
+                self._inertia.copy_(self._nominal_inertia * scale)
+                self._inv_inertia.copy_(self._nominal_inv_inertia / scale)
             if friction is not None:
                 friction = self._check_param("friction", friction, self.object.friction_range)
                 self._shape_mu.copy_(friction[..., None].expand_as(self._shape_mu))
@@ -692,7 +701,7 @@ class Population:
             raise ValueError(
                 f"index: values must lie in [0, {self.K}), got min {int(index.min())} max {int(index.max())}"
             )
-        with self._stream():
+        with self.on_stream():
             tensors = [view(self.state_0) for view in self._state_views.values()]
             tensors += [self._warmstart, self._mass[..., None], self._inv_mass[..., None], self._shape_mu]
             tensors += [self._inertia.view(self.G, self.K, 9), self._inv_inertia.view(self.G, self.K, 9)]

@@ -1,0 +1,170 @@
+"""`inhand-tracker bench speed`: the whole tracker frame (frame in, estimate out) against the
+physics alone, per population size, on a recorded pick and place (the hand in motion, not a held
+pose: the solver works hardest there)."""
+
+from __future__ import annotations
+
+import gc
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import warp as wp
+
+from protocol import Trajectory
+from sim_backend import HandSpec, Population, PopulationConfig, catalog_object, resolve_device
+from sim_backend.bench import used_bytes
+
+from .accuracy import DATA_DIR
+from .tracker import Frame, Tracker, TrackerConfig
+
+__all__ = ["REAL_TIME_MS", "SpeedResult", "as_dicts", "bench_speed", "format_table"]
+
+REAL_TIME_MS = 1e3 / 30.0
+"""A 30 Hz robot sends a frame every 33.3 ms."""
+TRAJECTORY = "smoke-foam_brick_pick_place_0.traj"
+
+
+@dataclass(frozen=True)
+class SpeedResult:
+    device: str
+    worlds: int
+    """W, all worlds of the population."""
+    groups: int
+    """G, sessions sharing the population; each tracks with K = W / G worlds."""
+    substeps: int
+    solver: str
+    frames: int
+    """Timed frames (after the warm-up, which includes the graph captures)."""
+    tracker_median_ms: float
+    tracker_p99_ms: float
+    physics_median_ms: float
+    physics_p99_ms: float
+    bytes_per_world: float
+    captured: bool
+    """Whether the frame ran as one captured graph (CUDA) or as plain calls around a physics graph (CPU)."""
+
+    @property
+    def ratio(self) -> float:
+        """Tracker over physics, medians."""
+        return self.tracker_median_ms / self.physics_median_ms
+
+    @property
+    def real_time(self) -> bool:
+        """p99 within a 30 Hz frame."""
+        return self.tracker_p99_ms <= REAL_TIME_MS
+
+
+def _frames(traj: Trajectory, groups: int) -> list[Frame]:
+    tile = lambda a: np.repeat(a[:, None], groups, axis=1)  # noqa: E731 - every group replays the same robot
+    fields = {n: tile(getattr(traj, n)) for n in ("controls", "q", "force", "slip", "slip_dir", "spin", "spin_sense")}
+    return [Frame(**{n: v[f] for n, v in fields.items()}) for f in range(traj.frames)]
+
+
+def _timed(fn, frames: list, sync) -> np.ndarray:
+    times = np.empty(len(frames))
+    for i, frame in enumerate(frames):
+        t = time.perf_counter()
+        fn(frame)
+        sync()
+        times[i] = (time.perf_counter() - t) * 1e3
+    return times
+
+
+def bench_speed(
+    worlds: list[int],
+    groups: list[int],
+    substeps: list[int],
+    *,
+    frames: int = 200,
+    warmup: int = 30,
+    device: str = "auto",
+    progress=None,
+) -> list[SpeedResult]:
+    """Time ``frames`` tracker steps and as many bare physics frames for every (substeps, G, W)."""
+    dev = resolve_device(device)
+    traj = Trajectory.load(DATA_DIR / TRAJECTORY)
+    obj = catalog_object(traj.object)
+    if warmup + frames > traj.frames:
+        raise ValueError(f"frames: at most {traj.frames - warmup} after {warmup} warm-up frames, got {frames}")
+    for w in worlds:
+        for g in groups:
+            if w % g:
+                raise ValueError(f"worlds: {w} do not split into {g} groups")
+    sync = (lambda: wp.synchronize_device(dev)) if dev.is_cuda else (lambda: None)
+    results = []
+    for n in substeps:
+        for g in groups:
+            recorded = _frames(traj, g)
+            p0 = np.repeat(traj.truth.initial_pose[None], g, axis=0)
+            q0 = np.repeat(traj.truth.initial_q[None], g, axis=0)
+            for w in worlds:
+                sync()
+                before = used_bytes(dev)
+                config = PopulationConfig(groups=g, worlds=w // g, substeps=n, device=dev.alias)
+                pop = Population(HandSpec(), obj, config)
+                tracker = Tracker(pop, TrackerConfig())
+                tracker.start(p0, q0)
+                for frame in recorded[:warmup]:
+                    tracker.step(frame)
+                timed = recorded[warmup : warmup + frames]
+                track = _timed(tracker.step, timed, sync)
+                used = used_bytes(dev) - before
+
+                # The same motion again with nothing but the physics graph.
+                tracker.start(p0, q0)
+                for frame in recorded[:warmup]:
+                    pop.set_targets(frame.controls)
+                    pop.step()
+                physics = np.empty(len(timed))
+                for i, frame in enumerate(timed):
+                    pop.set_targets(frame.controls)
+                    sync()
+                    t = time.perf_counter()
+                    pop.step()
+                    sync()
+                    physics[i] = (time.perf_counter() - t) * 1e3
+                results.append(
+                    SpeedResult(
+                        device=dev.alias,
+                        worlds=w,
+                        groups=g,
+                        substeps=n,
+                        solver=pop.config.solver_settings(dev)[0],
+                        frames=len(timed),
+                        tracker_median_ms=float(np.median(track)),
+                        tracker_p99_ms=float(np.percentile(track, 99)),
+                        physics_median_ms=float(np.median(physics)),
+                        physics_p99_ms=float(np.percentile(physics, 99)),
+                        bytes_per_world=used / w,
+                        captured=tracker._frame_graph.captured,
+                    )
+                )
+                if progress:
+                    progress(results[-1])
+                del tracker, pop
+                gc.collect()  # the solver and the graphs hold reference cycles: free them before the next size
+                if dev.is_cuda:
+                    torch.cuda.empty_cache()
+    return results
+
+
+def format_table(results: list[SpeedResult]) -> str:
+    lines = [
+        "| device | W | G | K per group | substeps | tracker median ms | tracker p99 ms | physics median ms "
+        "| physics p99 ms | ratio | 30 Hz (p99) | memory/world |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r.device} | {r.worlds} | {r.groups} | {r.worlds // r.groups} | {r.substeps} | "
+            f"{r.tracker_median_ms:.2f} | {r.tracker_p99_ms:.2f} | {r.physics_median_ms:.2f} | "
+            f"{r.physics_p99_ms:.2f} | {r.ratio:.2f} | {'yes' if r.real_time else 'no'} | "
+            f"{r.bytes_per_world / 1024:.0f} KiB |"
+        )
+    return "\n".join(lines)
+
+
+def as_dicts(results: list[SpeedResult]) -> list[dict]:
+    return [{**asdict(r), "ratio": r.ratio, "real_time": r.real_time} for r in results]
