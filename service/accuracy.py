@@ -268,6 +268,7 @@ def run_tracks(
     device: str = "auto",
     seed: int = 0,
     progress: Callable[[int], None] | None = None,
+    substeps: int = 8,
 ) -> list[TrackResult]:
     """Run ``tracks`` on ``trajectories`` of one object: one population per world count, every
     track a group of it. The noisy initial pose of a (trajectory, noise) pair is the same for
@@ -282,7 +283,7 @@ def run_tracks(
     results: list[TrackResult] = []
     for k in sorted({t.worlds for t in tracks}):
         group = [t for t in tracks if t.worlds == k]
-        pop = Population(spec, obj, PopulationConfig(groups=len(group), worlds=k, device=device))
+        pop = Population(spec, obj, PopulationConfig(groups=len(group), worlds=k, device=device, substeps=substeps))
         terms = np.ones((len(group), 10), bool)
         for g, t in enumerate(group):
             terms[g, list(_CONTACT_TERMS)] = t.contact_terms
@@ -343,10 +344,12 @@ def run_suite(
     quiet: bool = False,
     k_ablation: Sequence[int] | None = None,
     checkpoint: Callable[[dict], None] | None = None,
+    substeps: int = 8,
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
-    gets the partial results after each population."""
+    gets the partial results after each population. ``substeps``: the tracker's physics substeps per
+    frame (the ground truth keeps its suite's own)."""
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"methods: expected some of {METHODS}, got {m!r}")
@@ -370,11 +373,14 @@ def run_suite(
         for s in plan[o]:
             by_k.setdefault(s.worlds, []).append(s)
         for k_tracks in by_k.values():  # the frames of one population advance all its groups at once
-            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance)
+            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance, substeps)
             if checkpoint:  # what is done so far survives a run cut short (a time limit)
-                checkpoint(_collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0, device))
+                checkpoint(
+                    _collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0, device, substeps)
+                )
     bar.close()
-    return _collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0 - t_truth, device)
+    t_track = time.perf_counter() - t0 - t_truth
+    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps)
 
 
 class _Progress:
@@ -414,6 +420,7 @@ def _collect(
     t_truth: float,
     t_track: float,
     device: str,
+    substeps: int = 8,
 ) -> dict:
     """ADD statistics over tracks: mean of per-track mean ADD, its std over tracks, and the max
     over all frames, per method and noise level (Fig. 2) and per ablation setting (Fig. 3)."""
@@ -457,6 +464,7 @@ def _collect(
         "suite": asdict(suite),
         "device": device,
         "worlds": worlds,
+        "substeps": substeps,
         "seconds": {"ground_truth": t_truth, "tracking": t_track},
         "summary": fig2,
         "ablations": ablation,

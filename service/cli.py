@@ -53,6 +53,7 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="K values of the worlds ablation (default 10,40,160,640,2560)",
     )
+    acc.add_argument("--substeps", type=int, default=8, help="the tracker's physics substeps per frame (even)")
     acc.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     acc.add_argument("--out", default=None, help="output folder (default bench-results/accuracy-SUITE)")
     acc.add_argument("--cache", default=None, help="where generated trajectories are kept")
@@ -297,6 +298,9 @@ def _accuracy(args: argparse.Namespace) -> int:
         if not values or not set(values) <= set(allowed):
             print(f"{name}: expected some of {','.join(allowed)}, got '{','.join(values)}'", file=sys.stderr)
             return 2
+    if args.substeps < 2 or args.substeps % 2:
+        print(f"--substeps: expected a positive even number, got {args.substeps}", file=sys.stderr)
+        return 2
     out = Path(args.out or f"bench-results/accuracy-{args.suite}")
     command = "inhand-tracker " + " ".join(sys.argv[1:])
     with contextlib.redirect_stdout(sys.stderr):  # Warp logs with print(); stdout is for the report or the JSON
@@ -310,6 +314,7 @@ def _accuracy(args: argparse.Namespace) -> int:
             cache=Path(args.cache) if args.cache else CACHE_DIR,
             k_ablation=args.ablation_worlds,
             checkpoint=lambda partial: write_report(partial, out, command=command + "  (partial)"),
+            substeps=args.substeps,
         )
     report = write_report(results, out, command=command)
     if args.json:

@@ -53,6 +53,30 @@ def test_grasp_holds_each_object_for_3_s(hand, name):
     assert (pop.obs.force.norm(dim=-1) > 0.2).all()
 
 
+@pytest.mark.parametrize("name", ["foam_brick", "toy_banana"])
+def test_mass_writes_the_constants_set_const_would(name):
+    """set_params writes the solver's inertial constants of the object itself (no set_const pass);
+    they must equal what MuJoCo-Warp's full recomputation gives."""
+    import newton
+    import warp as wp
+
+    from sim_backend import HandSpec
+
+    obj = catalog_object(name)
+    pop = Population(HandSpec(), obj, PopulationConfig(groups=2, worlds=2, device="cpu", use_graph=False))
+    lo, hi = obj.mass_range
+    pop.set_params(mass=torch.tensor([[lo, hi], [0.5 * (lo + hi), obj.mass]]))
+    fields = ("body_mass", "body_inertia", "body_subtreemass", "body_invweight0", "dof_invweight0")
+    fast = {f: wp.to_torch(getattr(pop.solver.mjw_model, f)).clone() for f in fields}
+    pop.solver.notify_model_changed(newton.ModelFlags.BODY_INERTIAL_PROPERTIES)
+    for f in fields:
+        full = wp.to_torch(getattr(pop.solver.mjw_model, f))
+        torch.testing.assert_close(fast[f], full, rtol=1e-6, atol=1e-9, msg=lambda m, f=f: f"{f}: {m}")
+    # A resample carries the constants with the mass.
+    pop.resample(torch.tensor([[1, 1], [0, 0]]))
+    assert torch.equal(pop._mj["mass"], pop.mass)
+
+
 def test_resampled_copies_stay_bit_identical(hand):
     pop, _ = _grasped(hand, "spam_can", worlds=4)
     pop.set_params(mass=torch.tensor([[0.06, 0.1, 0.15, 0.2]]), friction=torch.tensor([[0.5, 0.8, 1.0, 1.4]]))
