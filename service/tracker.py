@@ -397,12 +397,12 @@ class Tracker:
         cfg = self.config
         window = self.window / self._window_frames
         upd = update(window, cfg.optimizer, self.gen, self.methods, self._rows)
-        self.pop.resample(upd.index)
+        self.pop.resample(upd.index, check=False)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
             mass = self._explore(self.pop.mass, cfg.mass_sigma * scale, self._mass_range, explore)
             friction = self._explore(self.pop.friction, cfg.friction_sigma * scale, self._friction_range, explore)
-            self.pop.set_params(mass=mass, friction=friction)
+            self.pop.set_params(mass=mass, friction=friction, check=False)
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
         self.window.zero_()

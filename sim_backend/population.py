@@ -671,11 +671,16 @@ class Population:
         """Object friction coefficient per world, shape (G, K) (a view: change it with :meth:`set_params`)."""
         return self._friction
 
-    def set_params(self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None) -> None:
-        """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K)."""
+    def set_params(
+        self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None, *, check: bool = True
+    ) -> None:
+        """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K).
+
+        ``check=False``: the caller guarantees the ranges (the tracker's update, where a range check
+        would read values back to the host)."""
         with self.on_stream():
             if mass is not None:
-                mass = self._check_param("mass", mass, self.object.mass_range)
+                mass = self._check_param("mass", mass, self.object.mass_range, check)
                 scale = (mass / self._nominal_mass)[..., None, None]
                 self._mass.copy_(mass)
                 self._inv_mass.copy_(1.0 / mass)
@@ -683,7 +688,7 @@ class Population:
                 self._inv_inertia.copy_(self._nominal_inv_inertia / scale)
                 self._write_solver_inertia()
             if friction is not None:
-                friction = self._check_param("friction", friction, self.object.friction_range)
+                friction = self._check_param("friction", friction, self.object.friction_range, check)
                 self._shape_mu.copy_(friction[..., None].expand_as(self._shape_mu))
         # The inertial constants are written above; the shape notify also drops the solver's cached
         # contact parameters, which a new mass or friction makes stale.
@@ -700,11 +705,11 @@ class Population:
         mj["invweight"].copy_(mj0["invweight"] / scale[..., None])
         mj["dof_invweight"].copy_(mj0["dof_invweight"] / scale[..., None])
 
-    def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
+    def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float], check: bool) -> torch.Tensor:
         value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
         if tuple(value.shape) != (self.G, self.K):
             raise ValueError(f"{name}: expected shape ({self.G}, {self.K}), got {tuple(value.shape)}")
-        if value.device.type == "cpu":  # device tensors come from the tracker, already in range
+        if check and value.device.type == "cpu":  # CUDA tensors come from the tracker, already in range
             lo, hi = bounds
             lo32, hi32 = (torch.tensor(b, dtype=torch.float32).item() for b in bounds)  # float32 clipping rounds past
             bad = ~((value >= lo32) & (value <= hi32))
@@ -725,19 +730,20 @@ class Population:
                 self.solver.notify_model_changed(flags)
 
     # ------------------------------------------------------------------ resampling
-    def resample(self, index: torch.Tensor) -> None:
+    def resample(self, index: torch.Tensor, *, check: bool = True) -> None:
         """World k of group g becomes a copy of world ``index[g, k]`` of the same group.
 
         Copies all state (positions, velocities, body poses, the solver's warm start) and the
         physics parameters in place, so a copy evolves bit for bit like its source.
-        index: shape (G, K), integer, values in [0, K).
+        index: shape (G, K), integer, values in [0, K); ``check=False`` trusts the range (the
+        tracker's update, whose indices never leave the device).
         """
         if tuple(index.shape) != (self.G, self.K):
             raise ValueError(f"index: expected shape ({self.G}, {self.K}), got {tuple(index.shape)}")
         if index.dtype not in (torch.int32, torch.int64):
             raise ValueError(f"index: expected an integer tensor, got {index.dtype}")
         index = index.to(self.torch_device, torch.int64)
-        if index.device.type == "cpu" and bool(((index < 0) | (index >= self.K)).any()):
+        if check and index.device.type == "cpu" and bool(((index < 0) | (index >= self.K)).any()):
             raise ValueError(
                 f"index: values must lie in [0, {self.K}), got min {int(index.min())} max {int(index.max())}"
             )

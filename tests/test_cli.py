@@ -24,3 +24,17 @@ def test_bench_sim_prints_timings_and_memory_per_world():
 def test_bad_arguments_are_refused_with_the_value():
     out = _run("bench", "sim", "--worlds", "40,abc")
     assert out.returncode == 2 and "expected comma-separated integers, got '40,abc'" in out.stderr
+
+
+def test_bench_speed_times_the_tracker_against_the_physics():
+    out = _run("bench", "speed", "--worlds", "4", "--groups", "1,2", "--frames", "5", "--device", "cpu", "--json")
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = json.loads(out.stdout)
+    assert [(r["worlds"], r["groups"]) for r in rows] == [(4, 1), (4, 2)]
+    for r in rows:
+        assert r["device"] == "cpu" and r["frames"] == 5 and r["substeps"] == 8
+        assert 0 < r["tracker_median_ms"] <= r["tracker_p99_ms"] and 0 < r["physics_median_ms"] <= r["physics_p99_ms"]
+        assert r["ratio"] == r["tracker_median_ms"] / r["physics_median_ms"]
+        assert r["captured"] is False  # torch has no CPU graphs: plain calls around the physics graph
+    bad = _run("bench", "speed", "--worlds", "5", "--groups", "2", "--device", "cpu")
+    assert bad.returncode == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr

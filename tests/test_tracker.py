@@ -111,8 +111,9 @@ def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording
         with _OpCounter() as updating:
             tr.step(frame)  # frame 5: the optimizer's update
         counts[(groups, worlds)] = (len(plain.ops), len(updating.ops))
-        syncs = [op for op in plain.ops if "local_scalar" in op or "nonzero" in op]
-        assert not syncs, f"host syncs in a frame: {syncs}"
+        for ops in (plain.ops, updating.ops):
+            syncs = [op for op in ops if "local_scalar" in op or "nonzero" in op]
+            assert not syncs, f"host syncs in a frame: {syncs}"
     assert counts[(1, 4)] == counts[(2, 16)], counts
 
 
@@ -125,7 +126,22 @@ def test_a_bad_frame_is_refused_with_the_field_and_shapes(hand, recording):
         tr.step(Frame(controls=good.controls, q=good.q[:, :21]))
     with pytest.raises(ValueError, match=r"frame force: expected shape \(2, 4, 3\), got \(2, 4\)"):
         tr.step(Frame(controls=good.controls, q=good.q, force=good.force[..., 0]))
+    with pytest.raises(ValueError, match=r"frame controls: 1 non-finite, first at group 1 joint 'index_0': nan"):
+        controls = good.controls.copy()
+        controls[1, 6] = np.nan
+        tr.step(Frame(controls=controls, q=good.q))
     assert tr.frame == 0 and torch.equal(tr.pop.obs.object_pose, before), "a refused frame moved nothing"
     assert tr.step(good).frame == 1  # and the tracker goes on
     with pytest.raises(ValueError, match="optimizer method: expected one of"):
         TrackerConfig(optimizer=OptimizerConfig(method="SGD"))
+
+
+def test_restarting_one_group_resets_only_its_cost_normalisation(hand, recording):
+    tr = _tracker(hand, worlds=2)
+    tr.start(recording.initial_pose, recording.initial_q)
+    for f in range(3):
+        tr.step(_frame(recording, f))
+    running = tr.cost.running.clone()
+    tr.start(recording.initial_pose, recording.initial_q, groups=np.array([True, False]))  # a new session in group 0
+    assert tr.cost.frames.tolist() == [0.0, 3.0]
+    assert not tr.cost.running[0].any() and torch.equal(tr.cost.running[1], running[1])
