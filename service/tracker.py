@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from sim_backend import HEALTH_OK, Population, SensorFK
-from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
+from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
 from .capture import CapturedOps
 from .cost import Cost, CostConfig, RealObservation
@@ -82,6 +82,9 @@ class TrackerConfig:
     """Uncertain when the weighted position spread (RMS) exceeds this [m]."""
     reseed_scale: float = 3.0
     """Re-seeding noise, as a multiple of sigma_t and sigma_r."""
+    drop_sigma_t: float = 0.03
+    """Re-seeding after a drop: horizontal spread of the hypotheses on the table [m] (a falling
+    object bounces and rolls; the rotation spread is the re-seeding one)."""
     recover_frames: int = 20
     """Frames a re-seeded group reports RECOVERING before it is trusted again."""
     seed: int = 0
@@ -137,6 +140,12 @@ class Estimate:
     """Status per group, (G,) int (see :class:`Status`)."""
 
 
+def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
+    shape = (*quat.shape[:-1], len(vertices))
+    return quat_rotate(quat[..., None, :].expand(*shape, 4), vertices.expand(*shape, 3))[..., 2].amin(-1)
+
+
 class Tracker:
     """Algorithm 1 over every group of ``population`` at once.
 
@@ -188,6 +197,8 @@ class Tracker:
         self._status = np.zeros(self.G, dtype=np.int64)
         self._recovering = np.zeros(self.G, dtype=np.int64)
         self._contact_loss = np.zeros(self.G, dtype=np.int64)
+        self._hull = np.asarray(obj.mesh.convex_hull.vertices, dtype=np.float32)
+        """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self._trusted: np.ndarray | None = None
         """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
 
@@ -230,8 +241,13 @@ class Tracker:
         for name, rows in method_rows(self.methods, self.device).items():
             self._rows[name].copy_(rows)
 
-    def _seed(self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r) -> None:
-        """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them."""
+    def _seed(
+        self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r, on_table: bool = False
+    ) -> None:
+        """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them.
+
+        ``on_table``: the object fell out of the hand; each hypothesis keeps its sampled x, y and
+        rotation and is put at rest on the table (its lowest point 2 mm above it)."""
         cfg, dev = self.config, self.device
         mean_t = torch.as_tensor(mean, dtype=torch.float32, device=dev)
         poses = sample_poses(mean_t, sigma_t, sigma_r, self.K, self.gen)
@@ -244,6 +260,9 @@ class Tracker:
         # OLP (and any single world) simulates the estimate itself with the nominal physics.
         open_loop = (self._olp | (self.K == 1))[:, None]
         poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
+        if on_table:
+            hull = torch.as_tensor(self._hull, device=dev)
+            poses[..., 2] = 0.002 - _lowest_point(poses[..., 3:], hull)
         mass = torch.where(open_loop, nominal_mass, mass)
         friction = torch.where(open_loop, nominal_friction, friction)
         sel = torch.as_tensor(groups, device=dev)[:, None]
@@ -428,8 +447,20 @@ class Tracker:
         status = np.where(diverged, Status.DIVERGED, status)
         trusted = status == Status.TRACKING
         self._trusted[trusted] = est.pose[trusted]
+        # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
+        # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
+        # would catch it again, so those hypotheses go onto the table below it.
+        touching = np.zeros(self.G, bool)
+        if frame.force is not None:
+            touching = (np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
+        dropped = diverged & ~touching & (frame.force is not None)
+        held = diverged & ~dropped
+        sigma_r = cfg.sigma_r * cfg.reseed_scale
+        if held.any():
+            self._seed(held, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, sigma_r)
+        if dropped.any():
+            self._seed(dropped, self._trusted, frame.q, cfg.drop_sigma_t, sigma_r, on_table=True)
         if diverged.any():
-            self._seed(diverged, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, cfg.sigma_r * cfg.reseed_scale)
             self._recovering[diverged] = cfg.recover_frames
             self._contact_loss[diverged] = 0
         self._status[:] = status

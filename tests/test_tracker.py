@@ -11,7 +11,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from service.evaluation import add_error
 from service.optimizers import OptimizerConfig
 from service.sampling import sample_poses
-from service.tracker import Frame, Status, Tracker, TrackerConfig
+from service.tracker import Frame, Status, Tracker, TrackerConfig, _lowest_point
 from sim_backend import Population, PopulationConfig, catalog_object
 from sim_backend.demos import make_demo, record
 
@@ -84,6 +84,28 @@ def test_dropping_every_world_diverges_then_recovers(hand, recording):
         first = diverged[0]
         assert first <= 10, f"group {g} took {first} frames to notice"
         assert after_drop[first + 1, g] == Status.RECOVERING
+
+
+def test_a_real_drop_puts_the_hypotheses_on_the_table(hand, recording):
+    """The real fingers feel nothing while every world still holds the object: it fell. Around the
+    last in-hand pose the closed hand would catch it again, so the re-seed lays it on the table."""
+    tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="PBO"))
+    tr.start(recording.initial_pose, recording.initial_q)
+    held = recording.frames - 20  # lifted by now
+    for f in range(held):
+        tr.step(_frame(recording, f))
+    assert (tr.pop.obs.force.norm(dim=-1) > 0.2).any(-1).all(), "every world holds the object"
+    lifted = tr.pop.obs.object_pose[..., 2].min().item()
+    for f in range(held, held + tr.config.contact_loss_frames):
+        numb = _frame(recording, f)
+        numb.force = np.zeros_like(numb.force)
+        status = tr.step(numb).status
+    assert (status == Status.DIVERGED).all()
+    pose = tr.pop._state_views["joint_q"](tr.pop.state_0)[..., tr.pop._free_coords()]
+    hull = torch.as_tensor(tr._hull)
+    z = pose[..., 2] + _lowest_point(pose[..., 3:], hull)
+    assert ((z > 0.0015) & (z < 0.0025)).all(), f"lowest points {z} m: not resting on the table"
+    assert pose[..., 2].max().item() < lifted, "the hypotheses stayed up in the hand"
 
 
 class _OpCounter(TorchDispatchMode):
