@@ -4,8 +4,10 @@ Per frame: write the robot's controls, replay the frame graph, score every world
 robot (eq. 3), keep the window mean since the last update (eq. 1), take the best world (eq. 2).
 Every T frames the optimizer resamples and perturbs the group. Beyond the paper each estimate
 carries the group's cost-weighted mean pose and covariance, the best world's mass and friction,
-and a status; a group whose every world lost the object, or whose cost jumps far above its
-running level, is re-seeded around its last trusted estimate with wider noise.
+and a status. A group whose worlds nearly all lost the object, or whose best world disagrees with
+the real robot about contact for several frames, is re-seeded around its last trusted estimate
+with wider noise; when the real fingers touch nothing at that moment the object fell, and the
+hypotheses are laid on the table below that estimate instead.
 
 The tracker reads only what a robot sends (controls, joints, touch) plus p0 and Sigma_p.
 
@@ -44,7 +46,8 @@ class Status(IntEnum):
     UNCERTAIN = 1
     """The population is spread wider than ``uncertain_spread``."""
     DIVERGED = 2
-    """Every world lost the object or the cost jumped: the group was re-seeded this frame."""
+    """The worlds lost the object, or the real hand and the best world disagree about contact: the
+    group was re-seeded this frame."""
     RECOVERING = 3
     """Re-seeded recently; not yet trusted."""
 
