@@ -35,8 +35,13 @@ class ServiceConfig:
     """A session whose robot's liveliness token is gone this long is closed and its worlds freed."""
     max_wait_s: float = 0.05
     """A population steps when every session sent a frame, or when a frame waited this long."""
+    substeps: int = 8
+    """Physics substeps per frame (even). 4 halves the GPU time per frame and costs accuracy
+    (docs/benchmarks.md)."""
 
     def __post_init__(self) -> None:
+        if self.substeps < 2 or self.substeps % 2:
+            raise ValueError(f"service substeps: expected a positive even number, got {self.substeps}")
         if self.groups < 1 or self.max_worlds < 1:
             raise ValueError(f"service groups and max_worlds: expected >= 1, got {self.groups}, {self.max_worlds}")
         if self.robot_timeout_s <= 0 or self.max_wait_s < 0:

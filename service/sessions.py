@@ -162,7 +162,7 @@ class SessionManager:
         pop = Population(
             robot,
             self.objects[request.object],
-            PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device),
+            PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device, substeps=cfg.substeps),
         )
         overrides = {k: _TUNABLE[k](v) for k, v in request.overrides.items()}
         try:

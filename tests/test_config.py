@@ -1,0 +1,37 @@
+"""The service's configuration: the shipped TOML, INHAND_* variables, overrides and bad values."""
+
+from __future__ import annotations
+
+import pytest
+
+from service.config import ServiceConfig, load_config
+
+
+def test_the_shipped_config_is_the_defaults():
+    assert load_config() == ServiceConfig()
+
+
+def test_environment_then_overrides(monkeypatch):
+    monkeypatch.setenv("INHAND_SUBSTEPS", "4")
+    monkeypatch.setenv("INHAND_LISTEN", "tcp/127.0.0.1:7500,tcp/127.0.0.1:7501")
+    monkeypatch.setenv("INHAND_SCOUTING", "yes")
+    config = load_config(device="cpu", listen=None)
+    assert config.substeps == 4 and config.device == "cpu" and config.scouting is True
+    assert config.listen == ("tcp/127.0.0.1:7500", "tcp/127.0.0.1:7501")
+    assert load_config(name="lab").name == "lab"
+
+
+def test_bad_values_name_the_key_and_the_value(monkeypatch, tmp_path):
+    monkeypatch.setenv("INHAND_SUBSTEPS", "3")
+    with pytest.raises(ValueError, match="service substeps: expected a positive even number, got 3"):
+        load_config()
+    monkeypatch.setenv("INHAND_SUBSTEPS", "eight")
+    with pytest.raises(ValueError, match="service config substeps: expected int, got 'eight'"):
+        load_config()
+    monkeypatch.delenv("INHAND_SUBSTEPS")
+    bad = tmp_path / "service.toml"
+    bad.write_text('name = "x"\ngpus = 2\n')
+    with pytest.raises(ValueError, match=r"unknown keys \['gpus'\]"):
+        load_config(bad)
+    with pytest.raises(ValueError, match="no such file"):
+        load_config(tmp_path / "missing.toml")
