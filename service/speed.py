@@ -4,17 +4,15 @@ pose: the solver works hardest there)."""
 
 from __future__ import annotations
 
-import gc
 import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import torch
 import warp as wp
 
 from protocol import Trajectory
 from sim_backend import HandSpec, Population, PopulationConfig, catalog_object, resolve_device
-from sim_backend.bench import used_bytes
+from sim_backend.bench import release_memory, used_bytes
 
 from .accuracy import DATA_DIR
 from .tracker import Frame, Tracker, TrackerConfig
@@ -144,9 +142,7 @@ def bench_speed(
                 if progress:
                     progress(results[-1])
                 del tracker, pop
-                gc.collect()  # the solver and the graphs hold reference cycles: free them before the next size
-                if dev.is_cuda:
-                    torch.cuda.empty_cache()
+                release_memory(dev)
     return results
 
 

@@ -200,7 +200,7 @@ class Tracker:
         self._status = np.zeros(self.G, dtype=np.int64)
         self._recovering = np.zeros(self.G, dtype=np.int64)
         self._contact_loss = np.zeros(self.G, dtype=np.int64)
-        self._hull = np.asarray(obj.mesh.convex_hull.vertices, dtype=np.float32)
+        self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self._trusted: np.ndarray | None = None
         """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
@@ -264,8 +264,7 @@ class Tracker:
         open_loop = (self._olp | (self.K == 1))[:, None]
         poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
         if on_table:
-            hull = torch.as_tensor(self._hull, device=dev)
-            poses[..., 2] = 0.002 - _lowest_point(poses[..., 3:], hull)
+            poses[..., 2] = 0.002 - _lowest_point(poses[..., 3:], self._hull)
         mass = torch.where(open_loop, nominal_mass, mass)
         friction = torch.where(open_loop, nominal_friction, friction)
         sel = torch.as_tensor(groups, device=dev)[:, None]
@@ -453,10 +452,9 @@ class Tracker:
         # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
         # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
         # would catch it again, so those hypotheses go onto the table below it.
-        touching = np.zeros(self.G, bool)
+        dropped = np.zeros(self.G, bool)
         if frame.force is not None:
-            touching = (np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
-        dropped = diverged & ~touching & (frame.force is not None)
+            dropped = diverged & ~(np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
         held = diverged & ~dropped
         sigma_r = cfg.sigma_r * cfg.reseed_scale
         if held.any():

@@ -17,7 +17,7 @@ from .objects import catalog_object
 from .population import Population, PopulationConfig, resolve_device
 from .robots import HandSpec
 
-__all__ = ["SimBenchResult", "bench_sim", "used_bytes"]
+__all__ = ["SimBenchResult", "bench_sim", "release_memory", "used_bytes"]
 
 
 @dataclass(frozen=True)
@@ -92,10 +92,16 @@ def bench_sim(
             )
         )
         del pop
-        gc.collect()  # the solver and its graph hold reference cycles: free them before the next K
-        if dev.is_cuda:
-            torch.cuda.empty_cache()
+        release_memory(dev)
     return results
+
+
+def release_memory(device: wp.context.Device) -> None:
+    """Free what a dropped population held before the next one is measured: solvers and graphs
+    hold reference cycles, and torch keeps freed blocks cached."""
+    gc.collect()
+    if device.is_cuda:
+        torch.cuda.empty_cache()
 
 
 def format_table(results: list[SimBenchResult]) -> str:

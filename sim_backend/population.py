@@ -690,9 +690,8 @@ class Population:
             if friction is not None:
                 friction = self._check_param("friction", friction, self.object.friction_range, check)
                 self._shape_mu.copy_(friction[..., None].expand_as(self._shape_mu))
-        # The inertial constants are written above; the shape notify also drops the solver's cached
-        # contact parameters, which a new mass or friction makes stale.
-        self._notify(False, mass is not None or friction is not None)
+        if mass is not None or friction is not None:
+            self._notify_shapes()
 
     def _write_solver_inertia(self) -> None:
         """The solver's copies of the object's inertial constants, from ``mass`` (see _solver_inertia_views)."""
@@ -719,15 +718,12 @@ class Population:
                 )
         return value
 
-    def _notify(self, inertial: bool, shape: bool) -> None:
-        flags = 0
-        if inertial:
-            flags |= newton.ModelFlags.BODY_INERTIAL_PROPERTIES
-        if shape:
-            flags |= newton.ModelFlags.SHAPE_PROPERTIES
-        if flags:
-            with wp.ScopedDevice(self.device):
-                self.solver.notify_model_changed(flags)
+    def _notify_shapes(self) -> None:
+        """Push friction to the solver. It also drops the solver's cached contact parameters, which
+        a new mass makes stale too; the inertial constants themselves are written directly
+        (:meth:`_write_solver_inertia`)."""
+        with wp.ScopedDevice(self.device):
+            self.solver.notify_model_changed(newton.ModelFlags.SHAPE_PROPERTIES)
 
     # ------------------------------------------------------------------ resampling
     def resample(self, index: torch.Tensor, *, check: bool = True) -> None:
@@ -754,4 +750,4 @@ class Population:
             for t in tensors:
                 t.copy_(torch.gather(t, 1, index[..., None].expand(-1, -1, t.shape[-1])))
             self._write_solver_inertia()
-        self._notify(False, True)
+        self._notify_shapes()
