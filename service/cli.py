@@ -37,6 +37,9 @@ def _parser() -> argparse.ArgumentParser:
     speed.add_argument("--worlds", type=_int_list, default=[40, 256, 1024, 4096, 8192], help="W, all worlds")
     speed.add_argument("--groups", type=_int_list, default=[1], help="G, sessions sharing the worlds (K = W / G)")
     speed.add_argument("--substeps", type=_int_list, default=[8], help="substeps per frame, e.g. 4,8")
+    speed.add_argument(
+        "--jacobian", default="auto", help="constraint Jacobian layouts: auto, dense, sparse, e.g. dense,sparse"
+    )
     speed.add_argument("--frames", type=int, default=200, help="timed frames per size (after 30 warm-up frames)")
     speed.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     speed.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -252,7 +255,7 @@ def _speed(args: argparse.Namespace) -> int:
 
     def show(r) -> None:
         print(
-            f"  W={r.worlds} G={r.groups} substeps={r.substeps}: tracker {r.tracker_median_ms:.2f} ms "
+            f"  W={r.worlds} G={r.groups} substeps={r.substeps} {r.solver}: tracker {r.tracker_median_ms:.2f} ms "
             f"(p99 {r.tracker_p99_ms:.2f}), physics {r.physics_median_ms:.2f} ms, ratio {r.ratio:.2f}",
             file=sys.stderr,
             flush=True,
@@ -261,7 +264,13 @@ def _speed(args: argparse.Namespace) -> int:
     try:
         with contextlib.redirect_stdout(sys.stderr):  # Warp logs with print(); stdout is for the table or the JSON
             results = bench_speed(
-                args.worlds, args.groups, args.substeps, frames=args.frames, device=args.device, progress=show
+                args.worlds,
+                args.groups,
+                args.substeps,
+                frames=args.frames,
+                device=args.device,
+                jacobians=args.jacobian.split(","),
+                progress=show,
             )
     except ValueError as exc:
         print(f"bench speed: {exc}", file=sys.stderr)

@@ -4,7 +4,9 @@ pose: the solver works hardest there)."""
 
 from __future__ import annotations
 
+import itertools
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -78,9 +80,11 @@ def bench_speed(
     frames: int = 200,
     warmup: int = 30,
     device: str = "auto",
+    jacobians: Sequence[str] = ("auto",),
     progress=None,
 ) -> list[SpeedResult]:
-    """Time ``frames`` tracker steps and as many bare physics frames for every (substeps, G, W)."""
+    """Time ``frames`` tracker steps and as many bare physics frames for every (substeps,
+    Jacobian layout, G, W)."""
     dev = resolve_device(device)
     traj = Trajectory.load(DATA_DIR / TRAJECTORY)
     obj = catalog_object(traj.object)
@@ -92,69 +96,69 @@ def bench_speed(
                 raise ValueError(f"worlds: {w} do not split into {g} groups")
     sync = (lambda: wp.synchronize_device(dev)) if dev.is_cuda else (lambda: None)
     results = []
-    for n in substeps:
-        for g in groups:
-            recorded = _frames(traj, g)
-            p0 = np.repeat(traj.truth.initial_pose[None], g, axis=0)
-            q0 = np.repeat(traj.truth.initial_q[None], g, axis=0)
-            for w in worlds:
-                sync()
-                before = used_bytes(dev)
-                config = PopulationConfig(groups=g, worlds=w // g, substeps=n, device=dev.alias)
-                pop = Population(HandSpec(), obj, config)
-                tracker = Tracker(pop, TrackerConfig())
-                tracker.start(p0, q0)
-                for frame in recorded[:warmup]:
-                    tracker.step(frame)
-                timed = recorded[warmup : warmup + frames]
-                track = _timed(tracker.step, timed, sync)
-                used = used_bytes(dev) - before
+    for n, jacobian, g in itertools.product(substeps, jacobians, groups):
+        recorded = _frames(traj, g)
+        p0 = np.repeat(traj.truth.initial_pose[None], g, axis=0)
+        q0 = np.repeat(traj.truth.initial_q[None], g, axis=0)
+        for w in worlds:
+            sync()
+            before = used_bytes(dev)
+            config = PopulationConfig(groups=g, worlds=w // g, substeps=n, device=dev.alias, jacobian=jacobian)
+            pop = Population(HandSpec(), obj, config)
+            settings = config.solver_settings(dev)
+            tracker = Tracker(pop, TrackerConfig())
+            tracker.start(p0, q0)
+            for frame in recorded[:warmup]:
+                tracker.step(frame)
+            timed = recorded[warmup : warmup + frames]
+            track = _timed(tracker.step, timed, sync)
+            used = used_bytes(dev) - before
 
-                # The same motion again with nothing but the physics graph.
-                tracker.start(p0, q0)
-                for frame in recorded[:warmup]:
-                    pop.set_targets(frame.controls)
-                    pop.step()
-                physics = np.empty(len(timed))
-                for i, frame in enumerate(timed):
-                    pop.set_targets(frame.controls)
-                    sync()
-                    t = time.perf_counter()
-                    pop.step()
-                    sync()
-                    physics[i] = (time.perf_counter() - t) * 1e3
-                results.append(
-                    SpeedResult(
-                        device=dev.alias,
-                        worlds=w,
-                        groups=g,
-                        substeps=n,
-                        solver=pop.config.solver_settings(dev)[0],
-                        frames=len(timed),
-                        tracker_median_ms=float(np.median(track)),
-                        tracker_p99_ms=float(np.percentile(track, 99)),
-                        physics_median_ms=float(np.median(physics)),
-                        physics_p99_ms=float(np.percentile(physics, 99)),
-                        bytes_per_world=used / w,
-                        captured=tracker._frame_graph.captured,
-                    )
+            # The same motion again with nothing but the physics graph.
+            tracker.start(p0, q0)
+            for frame in recorded[:warmup]:
+                pop.set_targets(frame.controls)
+                pop.step()
+            physics = np.empty(len(timed))
+            for i, frame in enumerate(timed):
+                pop.set_targets(frame.controls)
+                sync()
+                t = time.perf_counter()
+                pop.step()
+                sync()
+                physics[i] = (time.perf_counter() - t) * 1e3
+            results.append(
+                SpeedResult(
+                    device=dev.alias,
+                    worlds=w,
+                    groups=g,
+                    substeps=n,
+                    solver=f"{settings.solver}/{settings.jacobian}",
+                    frames=len(timed),
+                    tracker_median_ms=float(np.median(track)),
+                    tracker_p99_ms=float(np.percentile(track, 99)),
+                    physics_median_ms=float(np.median(physics)),
+                    physics_p99_ms=float(np.percentile(physics, 99)),
+                    bytes_per_world=used / w,
+                    captured=tracker._frame_graph.captured,
                 )
-                if progress:
-                    progress(results[-1])
-                del tracker, pop
-                release_memory(dev)
+            )
+            if progress:
+                progress(results[-1])
+            del tracker, pop
+            release_memory(dev)
     return results
 
 
 def format_table(results: list[SpeedResult]) -> str:
     lines = [
-        "| device | W | G | K per group | substeps | tracker median ms | tracker p99 ms | physics median ms "
+        "| device | W | G | K per group | substeps | solver | tracker median ms | tracker p99 ms | physics median ms "
         "| physics p99 ms | ratio | 30 Hz (p99) | memory/world |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lines.append(
-            f"| {r.device} | {r.worlds} | {r.groups} | {r.worlds // r.groups} | {r.substeps} | "
+            f"| {r.device} | {r.worlds} | {r.groups} | {r.worlds // r.groups} | {r.substeps} | {r.solver} | "
             f"{r.tracker_median_ms:.2f} | {r.tracker_p99_ms:.2f} | {r.physics_median_ms:.2f} | "
             f"{r.physics_p99_ms:.2f} | {r.ratio:.2f} | {'yes' if r.real_time else 'no'} | "
             f"{r.bytes_per_world / 1024:.0f} KiB |"

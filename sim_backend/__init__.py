@@ -5,7 +5,7 @@ from .grasp import Grasp, plan_pinch
 from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
 from .observe import HEALTH_LOST, HEALTH_NAN, HEALTH_OK
-from .population import Observation, Population, PopulationConfig, resolve_device
+from .population import Observation, Population, PopulationConfig, SolverSettings, resolve_device
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot
 
 __all__ = [
@@ -27,6 +27,7 @@ __all__ = [
     "RobotLayout",
     "RobotSpec",
     "SensorFK",
+    "SolverSettings",
     "add_robot",
     "catalog_object",
     "load_catalog",

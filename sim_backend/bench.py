@@ -83,7 +83,7 @@ def bench_sim(
             SimBenchResult(
                 worlds=k,
                 substeps=substeps,
-                solver=pop.config.solver_settings(dev)[0],
+                solver=_solver_name(pop.config.solver_settings(dev)),
                 device=dev.alias,
                 median_ms=float(np.median(times)),
                 p95_ms=float(np.percentile(times, 95)),
@@ -94,6 +94,10 @@ def bench_sim(
         del pop
         release_memory(dev)
     return results
+
+
+def _solver_name(settings) -> str:
+    return f"{settings.solver}/{settings.jacobian}"
 
 
 def release_memory(device: wp.context.Device) -> None:

@@ -40,6 +40,12 @@ _FINGER_ABDUCTION = (6, 10, 14)
 _FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
 _THUMB_SWING = 18
 SQUEEZE = 0.3
+"""How far the fingers close past touching the object [rad]."""
+_FIRMER = {"toy_banana": 0.45}
+"""Objects a pinch of SQUEEZE lets roll out: the banana's curved capsules turn under the pads."""
+_GAITS = 3
+"""Finger gaits per demo: each re-press walks the object a few millimetres over the pads, and an
+open-loop script (unlike a teleoperator) cannot correct that, so more gaits walk it out of the hand."""
 
 
 @dataclass(frozen=True)
@@ -123,7 +129,8 @@ def make_demo(
     rest_z = -float(obj.mesh.bounds[0, 2])  # the object's centre height when it rests on the table
     wrist = np.array([*rng.uniform(-0.05, 0.05, 2), 0.3, 0.0, 0.0, 0.0])
     wrist[2] += rest_z - plan_pinch(kin, obj, wrist_q=wrist).object_pose[2]  # lower the pinch onto it
-    grasp = plan_pinch(kin, obj, wrist_q=wrist, squeeze=SQUEEZE)
+    squeeze = _FIRMER.get(obj.name, SQUEEZE)
+    grasp = plan_pinch(kin, obj, wrist_q=wrist, squeeze=squeeze)
     palm_z = float(wrist[2])
     open_hand = lay.default_q.copy()
     open_hand[:3] = wrist[0], wrist[1], palm_z + 0.12  # straight above: the fingers clear the object
@@ -146,12 +153,17 @@ def make_demo(
         out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn
         return out
 
+    gaits = 0
+
     def gait(direction: float) -> None:
         """Each finger in turn lets go, moves its abduction to ``direction`` (0: the middle, 1: turned)
         and presses again."""
-        for finger, flexion in zip(_FINGER_ABDUCTION, _FINGER_FLEXION, strict=True):
+        nonlocal gaits
+        order = list(zip(_FINGER_ABDUCTION, _FINGER_FLEXION, strict=True))
+        gaits += 1
+        for finger, flexion in order if gaits % 2 else order[::-1]:
             lifted = script.q.copy()
-            lifted[list(flexion)] -= SQUEEZE + 0.05  # just clear of the object: the others hold it meanwhile
+            lifted[list(flexion)] -= squeeze + 0.05  # just clear of the object: the others hold it meanwhile
             script.move("gait", lifted, 0.35)
             moved = lifted.copy()
             moved[finger] = held[finger] - direction * sign * turn
@@ -182,7 +194,7 @@ def make_demo(
     while script.count < (seconds - 3.3) * pace * FRAME_RATE:  # 3.3 s: place, let go, retreat
         carry()
         script.hold("hold", 0.8)
-        if kind == "gaiting":
+        if kind == "gaiting" and gaits < _GAITS:
             gait(0.0)
     down = script.q.copy()
     down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
@@ -201,6 +213,11 @@ def make_demo(
         q=open_hand.astype(np.float32),
         phases=tuple(script.phases),
     )
+
+
+def _axis(field: str) -> int:
+    """Where a recording's field has its group axis: first for what is per track, else after frames."""
+    return 0 if field in ("initial_pose", "initial_q", "mass", "friction", "lengths") else 1
 
 
 @dataclass
@@ -270,6 +287,27 @@ class Recording:
             truth=truth,
             meta=dict(meta or {}),
         )
+
+    @classmethod
+    def gather(cls, tracks: Sequence[tuple[Recording, int]]) -> Recording:
+        """Track ``g`` of recording ``r`` for each ``(r, g)``, in order. The recordings must have
+        the same number of frames (the same demos)."""
+        arrays = {
+            name: np.stack([np.take(getattr(r, name), g, axis=_axis(name)) for r, g in tracks], axis=_axis(name))
+            for name, value in vars(tracks[0][0]).items()
+            if isinstance(value, np.ndarray)
+        }
+        return cls(**arrays, names=tuple(r.names[g] for r, g in tracks))
+
+    def held(self, demos: Sequence[Demo], margin: float = 0.02) -> np.ndarray:
+        """Whether each track kept its object in the hand from the lift to the set-down, (G,): the
+        object's centre stays ``margin`` [m] above where it started (the lift raises it 6 cm)."""
+        out = np.empty(len(demos), bool)
+        for g, d in enumerate(demos):
+            first = {name: i for name, i in reversed(d.phases)}
+            z = self.object_pose[first["carry"] : first["place"], g, 2]
+            out[g] = bool(np.all(z >= self.initial_pose[g, 2] + margin))
+        return out
 
     @classmethod
     def stack(cls, trajectories: Sequence[Trajectory]) -> Recording:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import newton
 import numpy as np
@@ -23,7 +24,7 @@ from . import observe
 from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
 
-__all__ = ["Observation", "Population", "PopulationConfig", "resolve_device"]
+__all__ = ["Observation", "Population", "PopulationConfig", "SolverSettings", "resolve_device"]
 
 
 @dataclass(frozen=True)
@@ -43,10 +44,10 @@ class PopulationConfig:
     use_graph: bool = True
     """Replay a captured graph per frame (False steps eagerly, for debugging)."""
     solver: str = "auto"
-    """MuJoCo constraint solver: "newton", "cg", or "auto": Newton on CUDA, CG on the CPU. Newton
-    needs few iterations but assembles and factors a dense Hessian in each; on the CPU that cost
-    dominates (K=40: 39.7 ms per frame against CG's 29.7), on an H100 CG's many cheap iterations
-    do (K=4096: CG 17.6 ms, Newton 12.0). Both hold the same grasps (docs/benchmarks.md)."""
+    """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in 1-8
+    iterations where CG needs 10-40 (a quarter of CG's steps stop at 40 unconverged); each
+    Newton iteration assembles and factors a Hessian, which the sparse Jacobian keeps cheap on
+    the CPU (K=40 on 2 cores: 41 ms per frame against CG's 75; docs/benchmarks.md)."""
     integrator: str = "implicitfast"
     """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
     cone: str = "elliptic"
@@ -57,6 +58,13 @@ class PopulationConfig:
     """Solver iterations; None: 20 for Newton, 40 for CG."""
     ls_iterations: int | None = None
     """Line-search iterations; None: 10 for Newton, 6 for CG."""
+    jacobian: str = "auto"
+    """Constraint Jacobian layout: "dense", "sparse" or "auto". A contact row touches the wrist,
+    one finger and the object, about half of the DOFs, so the sparse Hessian products do half the
+    work; "auto" is sparse on the CPU and dense on CUDA, where the dense kernels are faster
+    (docs/benchmarks.md)."""
+    tolerance: float = 1e-6
+    """Solver convergence tolerance on the scaled cost improvement and gradient."""
     contacts_per_world: int = 32
     """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
     broad_phase: str = "explicit"
@@ -89,6 +97,10 @@ class PopulationConfig:
             raise ValueError(f"population substeps: expected an even number, got {self.substeps}")
         if self.solver not in ("auto", "newton", "cg"):
             raise ValueError(f"population solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
+        if self.jacobian not in ("auto", "dense", "sparse"):
+            raise ValueError(f"population jacobian: expected 'auto', 'dense' or 'sparse', got {self.jacobian!r}")
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"population tolerance: expected 0 < tolerance < 1, got {self.tolerance}")
         if not (0.0 < self.frame_rate <= 1000.0):
             raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
 
@@ -100,11 +112,21 @@ class PopulationConfig:
     def frame_dt(self) -> float:
         return 1.0 / self.frame_rate
 
-    def solver_settings(self, device: wp.context.Device) -> tuple[str, int, int]:
-        """(solver, iterations, line-search iterations) this config means on ``device``."""
-        solver = self.solver if self.solver != "auto" else ("newton" if device.is_cuda else "cg")
+    def solver_settings(self, device: wp.context.Device) -> SolverSettings:
+        """What the "auto" settings mean on ``device``."""
+        solver = self.solver if self.solver != "auto" else "newton"
+        jacobian = self.jacobian if self.jacobian != "auto" else ("dense" if device.is_cuda else "sparse")
         iterations, ls_iterations = (20, 10) if solver == "newton" else (40, 6)
-        return solver, self.iterations or iterations, self.ls_iterations or ls_iterations
+        return SolverSettings(solver, jacobian, self.iterations or iterations, self.ls_iterations or ls_iterations)
+
+
+class SolverSettings(NamedTuple):
+    """A population's constraint solver, resolved for its device."""
+
+    solver: str
+    jacobian: str
+    iterations: int
+    ls_iterations: int
 
 
 def resolve_device(name: str = "auto") -> wp.context.Device:
@@ -241,17 +263,19 @@ class Population:
         self._nominal_inertia = inertia.to(self.torch_device)
         self._nominal_inv_inertia = torch.linalg.inv(inertia).to(self.torch_device)
 
-        solver, iterations, ls_iterations = cfg.solver_settings(self.device)
+        settings = cfg.solver_settings(self.device)
         with wp.ScopedDevice(self.device):
             self.solver = newton.solvers.SolverMuJoCo(
                 self.model,
                 use_mujoco_contacts=False,
-                solver=solver,
+                solver=settings.solver,
                 integrator=cfg.integrator,
                 cone=cfg.cone,
                 impratio=cfg.impratio,
-                iterations=iterations,
-                ls_iterations=ls_iterations,
+                iterations=settings.iterations,
+                ls_iterations=settings.ls_iterations,
+                jacobian=settings.jacobian,
+                tolerance=cfg.tolerance,
                 nconmax=cfg.contacts_per_world,
                 njmax=cfg.constraints_per_world,
             )
