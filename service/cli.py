@@ -38,7 +38,7 @@ def _parser() -> argparse.ArgumentParser:
     speed.add_argument("--groups", type=_int_list, default=[1], help="G, sessions sharing the worlds (K = W / G)")
     speed.add_argument("--substeps", type=_int_list, default=[8], help="substeps per frame, e.g. 4,8")
     speed.add_argument(
-        "--jacobian", default="auto", help="constraint Jacobian layouts: auto, dense, sparse, e.g. dense,sparse"
+        "--jacobian", default="sparse", help="constraint Jacobian layouts: dense, sparse, e.g. dense,sparse"
     )
     speed.add_argument("--frames", type=int, default=200, help="timed frames per size (after 30 warm-up frames)")
     speed.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")

@@ -80,7 +80,7 @@ def bench_speed(
     frames: int = 200,
     warmup: int = 30,
     device: str = "auto",
-    jacobians: Sequence[str] = ("auto",),
+    jacobians: Sequence[str] = ("sparse",),
     progress=None,
 ) -> list[SpeedResult]:
     """Time ``frames`` tracker steps and as many bare physics frames for every (substeps,

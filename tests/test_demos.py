@@ -4,6 +4,8 @@ makes it again while the object stays held."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -82,3 +84,23 @@ def test_bad_demo_arguments_name_the_value(hand):
         make_demo(kin, obj, pace=0.1)
     with pytest.raises(ValueError, match="has no phase 'dance'"):
         make_demo(kin, obj, seconds=1.0).until("dance")
+
+
+def test_ground_truth_keeps_only_demos_whose_object_stays_in_the_hand(hand, recordings):
+    """A demo whose object slipped out is redone (redrawn) rather than kept: `held` must tell the
+    two apart, and `gather` must pick the kept tracks out of the side-by-side draws."""
+    spec, _ = hand
+    demos, rec = recordings
+    assert rec.held(demos).all(), "the nominal brick stays in the hand from the lift to the set-down"
+    obj = catalog_object("foam_brick")
+    truth = Population(spec, obj, PopulationConfig(groups=2, worlds=1, device="cpu"))
+    # The brick lies 8 cm off where the hand reaches: the fingers close on air and it stays put.
+    missed = [replace(d, object_pose=d.object_pose + np.float32([0.08, 0, 0, 0, 0, 0, 0])) for d in demos]
+    empty = record(truth, missed, np.full(2, obj.mass), np.full(2, obj.friction))
+    assert not empty.held(missed).any()
+    mixed = type(rec).gather([(empty, 1), (rec, 0)])
+    assert mixed.names == (demos[1].name, demos[0].name)
+    np.testing.assert_array_equal(mixed.object_pose[:, 0], empty.object_pose[:, 1])
+    np.testing.assert_array_equal(mixed.force[:, 1], rec.force[:, 0])
+    assert mixed.lengths.tolist() == [demos[1].frames, demos[0].frames]
+    assert mixed.held(demos[::-1]).tolist() == [False, True]

@@ -238,6 +238,10 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
         load_mesh_object("missing", str(tmp_path / "missing.obj"), mass=0.1, mass_range=(0.05, 0.2))
     with pytest.raises(ValueError, match="substeps: expected an even number, got 3"):
         PopulationConfig(substeps=3)
+    with pytest.raises(ValueError, match="jacobian: expected 'dense' or 'sparse', got 'diagonal'"):
+        PopulationConfig(jacobian="diagonal")
+    with pytest.raises(ValueError, match="tolerance: expected 0 < tolerance < 1, got 0"):
+        PopulationConfig(tolerance=0)
     urdf = CONFIGS / "robots" / "example_gripper.urdf"
     assert load_robot(CONFIGS / "robots" / "allegro.toml").finger_ke == 3.0
     bad_cfg = tmp_path / "bad.toml"
