@@ -27,7 +27,7 @@ def _parser() -> argparse.ArgumentParser:
     sim = bsub.add_parser("sim", help="physics population: ms per 30 Hz frame and memory per world")
     sim.add_argument("--worlds", type=_int_list, default=[40, 256, 1024, 4096], help="K values, e.g. 40,256,1024")
     sim.add_argument("--substeps", type=_int_list, default=[8], help="substeps per frame, e.g. 4,8")
-    sim.add_argument("--solver", default="auto", help="MuJoCo solvers: auto (newton on CUDA, cg on CPU), cg, newton")
+    sim.add_argument("--solver", default="auto", help="MuJoCo solvers: auto (newton), cg, newton")
     sim.add_argument("--frames", type=int, default=60, help="timed frames per K")
     sim.add_argument("--object", default="foam_brick", help="catalog object held in the grasp")
     sim.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")

@@ -17,7 +17,7 @@ def test_bench_sim_prints_timings_and_memory_per_world():
     rows = json.loads(out.stdout[out.stdout.index("[") :])
     assert [r["worlds"] for r in rows] == [2, 4]
     for r in rows:
-        assert r["device"] == "cpu" and r["solver"] == "cg" and r["substeps"] == 8
+        assert r["device"] == "cpu" and r["solver"] == "newton/sparse" and r["substeps"] == 8
         assert 0 < r["median_ms"] <= r["p95_ms"] and isinstance(r["bytes_per_world"], float)
 
 
