@@ -38,7 +38,7 @@ def _parser() -> argparse.ArgumentParser:
     speed.add_argument("--groups", type=_int_list, default=[1], help="G, sessions sharing the worlds (K = W / G)")
     speed.add_argument("--substeps", type=_int_list, default=[8], help="substeps per frame, e.g. 4,8")
     speed.add_argument(
-        "--jacobian", default="sparse", help="constraint Jacobian layouts: dense, sparse, e.g. dense,sparse"
+        "--jacobian", default=None, help="constraint Jacobian layouts, e.g. dense,sparse (default: the population's)"
     )
     speed.add_argument("--frames", type=int, default=200, help="timed frames per size (after 30 warm-up frames)")
     speed.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
@@ -269,8 +269,8 @@ def _speed(args: argparse.Namespace) -> int:
                 args.substeps,
                 frames=args.frames,
                 device=args.device,
-                jacobians=args.jacobian.split(","),
                 progress=show,
+                **({"jacobians": args.jacobian.split(",")} if args.jacobian else {}),
             )
     except ValueError as exc:
         print(f"bench speed: {exc}", file=sys.stderr)

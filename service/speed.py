@@ -80,7 +80,7 @@ def bench_speed(
     frames: int = 200,
     warmup: int = 30,
     device: str = "auto",
-    jacobians: Sequence[str] = ("sparse",),
+    jacobians: Sequence[str] = (PopulationConfig.jacobian,),
     progress=None,
 ) -> list[SpeedResult]:
     """Time ``frames`` tracker steps and as many bare physics frames for every (substeps,
@@ -94,6 +94,8 @@ def bench_speed(
         for g in groups:
             if w % g:
                 raise ValueError(f"worlds: {w} do not split into {g} groups")
+    for jacobian in jacobians:
+        PopulationConfig(jacobian=jacobian)  # a bad name fails before anything is measured
     sync = (lambda: wp.synchronize_device(dev)) if dev.is_cuda else (lambda: None)
     results = []
     for n, jacobian, g in itertools.product(substeps, jacobians, groups):
@@ -105,7 +107,6 @@ def bench_speed(
             before = used_bytes(dev)
             config = PopulationConfig(groups=g, worlds=w // g, substeps=n, device=dev.alias, jacobian=jacobian)
             pop = Population(HandSpec(), obj, config)
-            settings = config.solver_settings(dev)
             tracker = Tracker(pop, TrackerConfig())
             tracker.start(p0, q0)
             for frame in recorded[:warmup]:
@@ -133,7 +134,7 @@ def bench_speed(
                     worlds=w,
                     groups=g,
                     substeps=n,
-                    solver=f"{settings.solver}/{settings.jacobian}",
+                    solver=config.solver_settings.name,
                     frames=len(timed),
                     tracker_median_ms=float(np.median(track)),
                     tracker_p99_ms=float(np.percentile(track, 99)),

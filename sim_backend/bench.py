@@ -83,7 +83,7 @@ def bench_sim(
             SimBenchResult(
                 worlds=k,
                 substeps=substeps,
-                solver=_solver_name(pop.config.solver_settings(dev)),
+                solver=pop.config.solver_settings.name,
                 device=dev.alias,
                 median_ms=float(np.median(times)),
                 p95_ms=float(np.percentile(times, 95)),
@@ -94,10 +94,6 @@ def bench_sim(
         del pop
         release_memory(dev)
     return results
-
-
-def _solver_name(settings) -> str:
-    return f"{settings.solver}/{settings.jacobian}"
 
 
 def release_memory(device: wp.context.Device) -> None:

@@ -47,7 +47,8 @@ class PopulationConfig:
     """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in 1-8
     iterations where CG needs 10-40 (a quarter of CG's steps stop at 40 unconverged); each
     Newton iteration assembles and factors a Hessian, which the sparse Jacobian keeps cheap on
-    the CPU (K=40 on 2 cores: 41 ms per frame against CG's 75; docs/benchmarks.md)."""
+    the CPU (K=40 on 2 cores, the hand in motion: 49 ms of physics per frame against CG's 94;
+    docs/benchmarks.md)."""
     integrator: str = "implicitfast"
     """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
     cone: str = "elliptic"
@@ -112,20 +113,26 @@ class PopulationConfig:
     def frame_dt(self) -> float:
         return 1.0 / self.frame_rate
 
-    def solver_settings(self, device: wp.context.Device) -> SolverSettings:
-        """What the "auto" settings mean on ``device``."""
+    @property
+    def solver_settings(self) -> SolverSettings:
+        """The solver as it runs: "auto" resolved and the default iteration counts filled in."""
         solver = self.solver if self.solver != "auto" else "newton"
         iterations, ls_iterations = (20, 10) if solver == "newton" else (40, 6)
         return SolverSettings(solver, self.jacobian, self.iterations or iterations, self.ls_iterations or ls_iterations)
 
 
 class SolverSettings(NamedTuple):
-    """A population's constraint solver, resolved for its device."""
+    """A population's constraint solver as it runs."""
 
     solver: str
     jacobian: str
     iterations: int
     ls_iterations: int
+
+    @property
+    def name(self) -> str:
+        """E.g. "newton/sparse", as the benchmark tables show it."""
+        return f"{self.solver}/{self.jacobian}"
 
 
 def resolve_device(name: str = "auto") -> wp.context.Device:
@@ -262,7 +269,7 @@ class Population:
         self._nominal_inertia = inertia.to(self.torch_device)
         self._nominal_inv_inertia = torch.linalg.inv(inertia).to(self.torch_device)
 
-        settings = cfg.solver_settings(self.device)
+        settings = cfg.solver_settings
         with wp.ScopedDevice(self.device):
             self.solver = newton.solvers.SolverMuJoCo(
                 self.model,
