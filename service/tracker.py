@@ -36,9 +36,9 @@ from .sampling import clipped_normal, sample_poses, sample_wrenches
 
 __all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
 
-_PACKED = 55
+_PACKED = 58
 """Width of the packed estimate: pose 7, mean position 3, mean quaternion 4, covariance 36, cost,
-mass, friction, lost fraction, contact disagreement."""
+mass, friction, lost fraction, contact disagreement, hand position 3."""
 
 
 class Status(IntEnum):
@@ -204,6 +204,12 @@ class Tracker:
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self._trusted: np.ndarray | None = None
         """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
+        self._trusted_hand = np.zeros((self.G, 3), np.float32)
+        """The real hand's position at the last trusted frame, (G, 3) [m] (see ``_hand``)."""
+        self._trusted_held = np.zeros(self.G, bool)
+        """Whether the real hand touched the object at the last trusted frame, (G,)."""
+        self._hand = np.zeros((self.G, 3), np.float32)
+        """The real hand's position in the last frame: the mean of its sensor positions, (G, 3) [m]."""
 
     # ------------------------------------------------------------------ start
     def start(
@@ -221,6 +227,7 @@ class Tracker:
         if self._trusted is None:
             self._trusted = p0.copy()
         self._trusted[mask] = p0[mask]
+        self._trusted_held[mask] = False
         if groups is None:
             self.frame = self.window_frames = 0
             self._window_frames.zero_()
@@ -397,9 +404,11 @@ class Tracker:
         scalars = torch.stack(
             [window.gather(1, best[:, None])[:, 0], pop.mass.gather(1, best[:, None])[:, 0],
              pop.friction.gather(1, best[:, None])[:, 0]], dim=-1)  # fmt: skip
-        return torch.cat([pose, mean_p, mean_q, cov, scalars, lost, disagree], dim=-1)
+        hand = self.real.sensor_pos.mean(1)
+        return torch.cat([pose, mean_p, mean_q, cov, scalars, lost, disagree, hand], dim=-1)
 
     def _unpack(self, a: np.ndarray) -> Estimate:
+        self._hand = a[:, 55:58]
         return Estimate(
             frame=self.frame,
             pose=a[:, 0:7],
@@ -447,18 +456,26 @@ class Tracker:
         status = np.where(spread > cfg.uncertain_spread, Status.UNCERTAIN, Status.TRACKING)
         status = np.where(recovering, Status.RECOVERING, status)
         status = np.where(diverged, Status.DIVERGED, status)
+        touching = np.zeros(self.G, bool)
+        if frame.force is not None:
+            touching = (np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
         trusted = status == Status.TRACKING
         self._trusted[trusted] = est.pose[trusted]
+        self._trusted_hand[trusted] = self._hand[trusted]
+        self._trusted_held[trusted] = touching[trusted]
         # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
         # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
         # would catch it again, so those hypotheses go onto the table below it.
-        dropped = np.zeros(self.G, bool)
-        if frame.force is not None:
-            dropped = diverged & ~(np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
+        dropped = diverged & ~touching if frame.force is not None else np.zeros(self.G, bool)
         held = diverged & ~dropped
         sigma_r = cfg.sigma_r * cfg.reseed_scale
         if held.any():
-            self._seed(held, self._trusted, frame.q, cfg.sigma_t * cfg.reseed_scale, sigma_r)
+            # An object held when last trusted went where the hand went since. Re-seeding at the
+            # old place in the world put the hypotheses inside the lifted fingers, where they burst
+            # out, were lost and re-seeded there again, frame after frame.
+            anchor = self._trusted.copy()
+            anchor[:, :3] += self._trusted_held[:, None] * (self._hand - self._trusted_hand)
+            self._seed(held, anchor, frame.q, cfg.sigma_t * cfg.reseed_scale, sigma_r)
         if dropped.any():
             self._seed(dropped, self._trusted, frame.q, cfg.drop_sigma_t, sigma_r, on_table=True)
         if diverged.any():
