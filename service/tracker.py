@@ -6,8 +6,9 @@ Every T frames the optimizer resamples and perturbs the group. Beyond the paper 
 carries the group's cost-weighted mean pose and covariance, the best world's mass and friction,
 and a status. A group whose worlds nearly all lost the object, or whose best world disagrees with
 the real robot about contact for several frames, is re-seeded around its last trusted estimate
-with wider noise; when the real fingers touch nothing at that moment the object fell, and the
-hypotheses are laid on the table below that estimate instead.
+(moved with the real hand since, if the hand held the object then) with wider noise; when the
+real fingers touch nothing at that moment the object fell, and the hypotheses are laid on the
+table below that estimate instead.
 
 The tracker reads only what a robot sends (controls, joints, touch) plus p0 and Sigma_p.
 
@@ -205,11 +206,9 @@ class Tracker:
         self._trusted: np.ndarray | None = None
         """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
         self._trusted_hand = np.zeros((self.G, 3), np.float32)
-        """The real hand's position at the last trusted frame, (G, 3) [m] (see ``_hand``)."""
+        """The real hand's position (the mean of its sensor positions) at the last trusted frame, (G, 3) [m]."""
         self._trusted_held = np.zeros(self.G, bool)
         """Whether the real hand touched the object at the last trusted frame, (G,)."""
-        self._hand = np.zeros((self.G, 3), np.float32)
-        """The real hand's position in the last frame: the mean of its sensor positions, (G, 3) [m]."""
 
     # ------------------------------------------------------------------ start
     def start(
@@ -360,8 +359,9 @@ class Tracker:
             self.window_frames = 0
         if self._fetched is not None:
             self._fetched.synchronize()  # the one wait of the frame: the estimate itself
-        estimate = self._unpack(self._host_out.numpy().copy())
-        self._watch(estimate, frame)
+        packed = self._host_out.numpy().copy()
+        estimate = self._unpack(packed)
+        self._watch(estimate, frame, hand=packed[:, 55:58])
         return estimate
 
     def _frame_ops(self) -> None:
@@ -408,7 +408,6 @@ class Tracker:
         return torch.cat([pose, mean_p, mean_q, cov, scalars, lost, disagree, hand], dim=-1)
 
     def _unpack(self, a: np.ndarray) -> Estimate:
-        self._hand = a[:, 55:58]
         return Estimate(
             frame=self.frame,
             pose=a[:, 0:7],
@@ -444,8 +443,9 @@ class Tracker:
         return torch.where(mask, clipped_normal(value.clone(), sigma * (hi - lo), lo, hi, self.gen), value)
 
     # ------------------------------------------------------------------ divergence
-    def _watch(self, est: Estimate, frame: Frame) -> None:
-        """Host-side status from the estimate just copied back; re-seed diverged groups."""
+    def _watch(self, est: Estimate, frame: Frame, hand: np.ndarray) -> None:
+        """Host-side status from the estimate just copied back; re-seed diverged groups. ``hand``:
+        the real hand's position this frame, (G, 3) [m], copied back with the estimate."""
         cfg = self.config
         self._recovering = np.maximum(self._recovering - 1, 0)
         recovering = self._recovering > 0
@@ -461,7 +461,7 @@ class Tracker:
             touching = (np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
         trusted = status == Status.TRACKING
         self._trusted[trusted] = est.pose[trusted]
-        self._trusted_hand[trusted] = self._hand[trusted]
+        self._trusted_hand[trusted] = hand[trusted]
         self._trusted_held[trusted] = touching[trusted]
         # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
         # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
@@ -474,7 +474,7 @@ class Tracker:
             # old place in the world put the hypotheses inside the lifted fingers, where they burst
             # out, were lost and re-seeded there again, frame after frame.
             anchor = self._trusted.copy()
-            anchor[:, :3] += self._trusted_held[:, None] * (self._hand - self._trusted_hand)
+            anchor[:, :3] += self._trusted_held[:, None] * (hand - self._trusted_hand)
             self._seed(held, anchor, frame.q, cfg.sigma_t * cfg.reseed_scale, sigma_r)
         if dropped.any():
             self._seed(dropped, self._trusted, frame.q, cfg.drop_sigma_t, sigma_r, on_table=True)
