@@ -40,7 +40,7 @@ class OptimizerConfig:
     """Leave the best world unperturbed, so an update never loses the current estimate."""
     min_spread: float = 0.5
     """Skip the update of a group whose window costs differ by less than this (the default cost
-    normalises each term to about 1): before the hand touches the object every world scores
+    weighs each term's typical magnitude as 1): before the hand touches the object every world scores
     alike up to noise, and resampling on noise only throws away the spread of initial poses."""
 
     def __post_init__(self) -> None:

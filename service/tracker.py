@@ -6,7 +6,8 @@ Every T frames the optimizer resamples and perturbs the group. Beyond the paper 
 carries the group's cost-weighted mean pose and covariance, the best world's mass and friction,
 and a status. A group whose worlds nearly all lost the object, or whose best world disagrees with
 the real robot about contact for several frames, is re-seeded around its last trusted estimate
-(moved with the real hand since, if the hand held the object then) with wider noise; when the
+(the last one whose best world felt the contacts the real hand felt; moved with the real hand
+since, if the hand held the object then) with wider noise; when the
 real fingers touch nothing at that moment the object fell, and the hypotheses are laid on the
 table below that estimate instead.
 
@@ -204,7 +205,8 @@ class Tracker:
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self._trusted: np.ndarray | None = None
-        """Best pose at the last trusted frame, (G, 7): where a diverged group is re-seeded."""
+        """Best pose at the last trusted frame (tracking, or with a best world that agrees with the
+        real hand on every sensor), (G, 7): where a diverged group is re-seeded."""
         self._trusted_hand = np.zeros((self.G, 3), np.float32)
         """The real hand's position (the mean of its sensor positions) at the last trusted frame, (G, 3) [m]."""
         self._trusted_held = np.zeros(self.G, bool)
@@ -459,7 +461,15 @@ class Tracker:
         touching = np.zeros(self.G, bool)
         if frame.force is not None:
             touching = (np.linalg.norm(frame.force, axis=-1) > cfg.cost.contact_threshold).any(-1)
-        trusted = status == Status.TRACKING
+        # The re-seed anchor is the best pose of the last frame on which the best world felt what
+        # the real hand felt. A tracking frame whose best world already misses the real contacts
+        # does not count: the contact-loss rule takes a few frames to call the divergence, and
+        # those frames' pose (the object knocked out of every simulated hand) made the anchor. An
+        # uncertain frame whose best world agrees on every sensor does count: a grasp that only
+        # a few worlds made is uncertain until the lift, and anchoring before it put the
+        # hypotheses back on the table under the lifted object.
+        agrees = ~diverged & ~lost_contact & (est.contact_disagreement == 0)
+        trusted = ~diverged & ~lost_contact & (status == Status.TRACKING) | agrees
         self._trusted[trusted] = est.pose[trusted]
         self._trusted_hand[trusted] = hand[trusted]
         self._trusted_held[trusted] = touching[trusted]
