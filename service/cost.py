@@ -143,13 +143,14 @@ def cost_terms(sim: Observation, real: RealObservation, contact_threshold: float
 
 @dataclass
 class Cost:
-    """Eq. (3) with its weights; keeps the running term magnitudes for the default normalisation."""
+    """Eq. (3) with its weights; under the online normalisation (``weights=None``) it keeps each
+    term's running mean magnitude."""
 
     config: CostConfig
     groups: int
     device: torch.device
     running: torch.Tensor = field(init=False)
-    """Running mean magnitude of each term, (G, 10), in the term's unit."""
+    """Running mean magnitude of each term, (G, 10), in the term's unit (online normalisation only)."""
     frames: torch.Tensor = field(init=False)
     """Frames each group's running means have seen, (G,) float64 on the device: a device counter,
     so that a captured frame graph advances it on every replay."""
@@ -174,12 +175,13 @@ class Cost:
         return self._enabled / torch.maximum(self.running, self._floor)
 
     def __call__(self, sim: Observation, real: RealObservation) -> torch.Tensor:
-        """Weighted cost of every world, (G, K); updates the running term magnitudes."""
+        """Weighted cost of every world, (G, K); updates the running term magnitudes when they weigh."""
         terms = cost_terms(sim, real, self.config.contact_threshold)
         self.last_terms = terms
-        self.frames += 1
-        rate = (1.0 / self.frames).clamp_(min=self.config.norm_rate).float()
-        self.running.lerp_(terms.mean(dim=1), rate[:, None])
+        if self._fixed is None:  # fixed weights need no running means: nothing more per frame
+            self.frames += 1
+            rate = (1.0 / self.frames).clamp_(min=self.config.norm_rate).float()
+            self.running.lerp_(terms.mean(dim=1), rate[:, None])
         return (terms * self.weights()[:, None, :]).sum(-1)
 
     def reset(self, groups: torch.Tensor) -> None:

@@ -7,9 +7,9 @@ carries the group's cost-weighted mean pose and covariance, the best world's mas
 and a status. A group whose worlds nearly all lost the object, or whose best world disagrees with
 the real robot about contact for several frames, is re-seeded around its last trusted estimate
 (the last one whose best world felt the contacts the real hand felt; moved with the real hand
-since, if the hand held the object then) with wider noise; when the
-real fingers touch nothing at that moment the object fell, and the hypotheses are laid on the
-table below that estimate instead.
+since, if the hand held the object then) with wider noise; when the real fingers touch nothing
+at that moment the object fell, and the hypotheses are laid on the table below that estimate
+instead.
 
 The tracker reads only what a robot sends (controls, joints, touch) plus p0 and Sigma_p.
 
@@ -468,8 +468,8 @@ class Tracker:
         # uncertain frame whose best world agrees on every sensor does count: a grasp that only
         # a few worlds made is uncertain until the lift, and anchoring before it put the
         # hypotheses back on the table under the lifted object.
-        agrees = ~diverged & ~lost_contact & (est.contact_disagreement == 0)
-        trusted = ~diverged & ~lost_contact & (status == Status.TRACKING) | agrees
+        tracking = (status == Status.TRACKING) & ~lost_contact
+        trusted = tracking | (~diverged & (est.contact_disagreement == 0))
         self._trusted[trusted] = est.pose[trusted]
         self._trusted_hand[trusted] = hand[trusted]
         self._trusted_held[trusted] = touching[trusted]
