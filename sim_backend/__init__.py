@@ -1,6 +1,6 @@
 """Simulation backend: K worlds of hand + object per group on Newton, stepped as one graph."""
 
-from .demos import DEMO_KINDS, Demo, Recording, make_demo, record
+from .demos import DEMO_KINDS, Demo, Recording, make_demo, record, sensitivity
 from .grasp import Grasp, plan_pinch
 from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
@@ -38,4 +38,5 @@ __all__ = [
     "plan_pinch",
     "record",
     "resolve_device",
+    "sensitivity",
 ]
