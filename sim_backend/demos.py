@@ -41,8 +41,9 @@ _FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
 _THUMB_SWING = 18
 SQUEEZE = 0.3
 """How far the fingers close past touching the object [rad]."""
-_FIRMER = {"toy_banana": 0.45}
-"""Objects a pinch of SQUEEZE lets roll out: the banana's curved capsules turn under the pads."""
+_FIRMER: dict[str, float] = {"toy_banana": 0.38}
+"""Objects a pinch of SQUEEZE lets slip out during carries: the banana's round tube is held by a
+line of pads on one side and the thumb on the other."""
 _GAITS = 3
 """Finger gaits per demo: each re-press walks the object a few millimetres over the pads, and an
 open-loop script (unlike a teleoperator) cannot correct that, so more gaits walk it out of the hand."""

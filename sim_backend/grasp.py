@@ -57,6 +57,12 @@ def plan_pinch(kin: Kinematics, obj: ObjectSpec, wrist_q: np.ndarray | None = No
     c, s = math.cos(yaw), math.sin(yaw)
     verts = obj.surface_points(4096).astype(np.float64) @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
     mid = verts[np.abs(verts[:, 1]) < 0.1 * np.ptp(verts[:, 1]) + 1e-3]
+    # A curved object's mid cross-section lies off its centre of mass along the squeeze: the pads
+    # must close on that cross-section evenly, or the side touched first pushes the object over
+    # before the other arrives. (Sub-nanometre offsets are sampling rounding on symmetric shapes.)
+    offset = 0.5 * float(mid[:, 0].min() + mid[:, 0].max())
+    offset = offset if abs(offset) > 1e-9 else 0.0
+    mid = mid - np.array([offset, 0.0, 0.0])
     half_width = float(np.abs(mid[:, 0]).max())
     centre_z = float(0.5 * (mid[:, 2].min() + mid[:, 2].max()))
     centre = q[:3] + PINCH_OFFSET
@@ -72,5 +78,5 @@ def plan_pinch(kin: Kinematics, obj: ObjectSpec, wrist_q: np.ndarray | None = No
     flexion = [7, 8, 11, 12, 15, 16, 20, 21]  # proximal and middle flexion joints of every digit
     q_squeeze[flexion] += squeeze
     q_squeeze = np.clip(q_squeeze, lay.lower, lay.upper)
-    pose = np.concatenate([centre - np.array([0.0, 0.0, centre_z]), _yaw_quat(yaw)])
+    pose = np.concatenate([centre - np.array([offset, 0.0, centre_z]), _yaw_quat(yaw)])
     return Grasp(object_pose=pose, q_touch=q_touch, q_squeeze=q_squeeze, half_width=half_width)
