@@ -392,7 +392,7 @@ def sensitivity(
     ``population`` holds 2n groups of one world: each demo ``n`` as given and shifted, with hidden
     ``mass`` and ``friction`` (n,). A demo whose micrometre shift grows into millimetres is chaotic:
     no tracker can follow its object to the millimetre from a noisy start, whatever its K (the
-    banana's fingertip pinch on the table, docs/benchmarks.md)."""
+    banana's pinch when it lay on its back: 64 mm by the lift, docs/benchmarks.md)."""
     n = len(demos)
     if population.G != 2 * n:
         raise ValueError(f"sensitivity: expected a population of {2 * n} groups (two per demo), got {population.G}")

@@ -116,8 +116,7 @@ def test_ground_truth_keeps_only_demos_whose_object_stays_in_the_hand(hand, reco
 
 def test_a_micrometre_at_the_start_of_the_brick_pick_and_place_stays_below_a_millimetre(hand, recordings):
     """The tracker's millimetres are not lost to chaos in the demo itself. Gaiting amplifies more
-    (each re-press: 4.7 mm from 1 um over the short demo) and the banana's pinch on the table most
-    (64 mm by the lift), docs/benchmarks.md."""
+    (each re-press: 4.7 mm from 1 um over the short demo), docs/benchmarks.md."""
     spec, _ = hand
     demos, _ = recordings
     obj = catalog_object("foam_brick")
