@@ -75,6 +75,7 @@ class CapturedOps:
         # A tracker and its graphs form a reference cycle, so a dropped tracker's graphs are freed by
         # the cycle collector, whenever it runs. Freeing a CUDA graph while another is being
         # captured invalidates that capture (the paper suite failed so at its fourth population).
+        # torch.cuda.graph no longer collects on entry (only under force_cudagraph_gc), so we do.
         gc.collect()
         collecting = gc.isenabled()
         gc.disable()
