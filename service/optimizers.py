@@ -16,6 +16,7 @@ __all__ = [
     "METHODS",
     "OptimizerConfig",
     "Update",
+    "duplicates",
     "method_rows",
     "reps_eta",
     "reps_pmf",
@@ -107,6 +108,15 @@ def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor
     cdf = torch.cumsum(pmf, dim=-1)
     cdf = cdf / cdf[:, -1:]
     return torch.searchsorted(cdf, points).clamp_(max=k - 1)
+
+
+def duplicates(index: torch.Tensor) -> torch.Tensor:
+    """Which worlds of a resample ``index`` (G, K) are a second or later copy of their source,
+    (G, K) bool. On the device, without a sync: each source's first slot is a scatter-min."""
+    g, k = index.shape
+    slots = torch.arange(k, device=index.device).expand(g, k)
+    first = torch.full((g, k), k, dtype=index.dtype, device=index.device).scatter_reduce(1, index, slots, "amin")
+    return first.gather(1, index) != slots
 
 
 def update(

@@ -33,7 +33,7 @@ from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_
 
 from .capture import CapturedOps
 from .cost import Cost, CostConfig, RealObservation
-from .optimizers import METHODS, OptimizerConfig, method_rows, update, wrs_pmf
+from .optimizers import METHODS, OptimizerConfig, duplicates, method_rows, update, wrs_pmf
 from .sampling import clipped_normal, sample_poses, sample_wrenches
 
 __all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
@@ -74,6 +74,14 @@ class TrackerConfig:
     """Exploration: perturbation force standard deviation [N] (Sigma_v)."""
     wrench_torque: float = 0.001
     """Exploration: perturbation torque standard deviation [N m] (Sigma_v)."""
+    jitter_t: float = 0.0005
+    """Exploration beyond the paper: the object of every second or later copy of a world is
+    displaced at an update, translation standard deviation [m]. Copies are exact, and a held
+    object's pose along directions the sensors cannot see (a shift or turn about the squeeze) is
+    kept by friction, so without it K=40 collapsed onto one wrong grasp outcome within a few
+    updates and never left it (roughening, as in particle filters)."""
+    jitter_r: float = 0.01
+    """The same displacement's rotation standard deviation [rad], about the object's origin."""
     estimate_lambda: float = 5.0
     """Sharpness of the cost weights behind the mean pose and covariance (as WRS's lambda)."""
     lost_fraction: float = 0.9
@@ -99,7 +107,8 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.update_every < 1:
             raise ValueError(f"tracker update_every: expected >= 1 frame, got {self.update_every}")
-        for name in ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "mass_sigma", "friction_sigma"):
+        for name in ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "jitter_t", "jitter_r", "mass_sigma",
+                     "friction_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"tracker {name}: expected >= 0, got {getattr(self, name)}")
 
@@ -436,6 +445,12 @@ class Tracker:
             self.pop.set_params(mass=mass, friction=friction, check=False)
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
+            if cfg.jitter_t > 0 or cfg.jitter_r > 0:
+                shift = sample_wrenches((self.G, self.K), cfg.jitter_t, cfg.jitter_r, self.gen, self.device)
+                # Only extra copies move: each surviving world keeps one exact copy, so the estimate
+                # does not jitter with the spread it buys.
+                moved = explore & duplicates(upd.index)
+                self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         self.window.zero_()
         self._window_frames.zero_()
 

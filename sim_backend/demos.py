@@ -25,7 +25,7 @@ import torch
 
 from protocol.trajectory import GroundTruth, Trajectory
 
-from .grasp import plan_pinch
+from .grasp import SQUEEZE_JOINTS, plan_pinch
 from .kinematics import Kinematics
 from .objects import ObjectSpec
 from .population import Population
@@ -44,6 +44,8 @@ SQUEEZE = 0.3
 _FIRMER: dict[str, float] = {"toy_banana": 0.38}
 """Objects a pinch of SQUEEZE lets slip out during carries: the banana's round tube is held by a
 line of pads on one side and the thumb on the other."""
+_CLEAR = 0.2
+"""How far past touching the digits open to let go [rad]."""
 _GAITS = 3
 """Finger gaits per demo: each re-press walks the object a few millimetres over the pads, and an
 open-loop script (unlike a teleoperator) cannot correct that, so more gaits walk it out of the hand."""
@@ -201,8 +203,11 @@ def make_demo(
     down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
     script.move("place", down, 1.2)
     script.hold("place", 0.3)
-    release = above.copy()
-    release[:6] = down[:6]
+    # Let go by uncurling the digits just clear of the object where they are, then rise straight
+    # up. Opening to the rest pose at table height swept the turned fingers and the thumb
+    # sideways through the object and flung it (the banana half a metre).
+    release = script.q.copy()
+    release[SQUEEZE_JOINTS] -= squeeze + _CLEAR
     script.move("release", release, 0.8)
     retreat = release.copy()
     retreat[2] += 0.08

@@ -16,11 +16,13 @@ from .kinematics import Kinematics
 from .objects import ObjectSpec
 from .robots import TIP_RADIUS
 
-__all__ = ["PINCH_OFFSET", "Grasp", "plan_pinch"]
+__all__ = ["PINCH_OFFSET", "SQUEEZE_JOINTS", "Grasp", "plan_pinch"]
 
 PINCH_OFFSET = np.array([0.045, 0.0, -0.11])
 """Where the pinch centre sits relative to the palm origin (world frame, wrist angles zero) [m]."""
 _FINGER_Y = (0.03, 0.0, -0.03)
+SQUEEZE_JOINTS = [7, 8, 11, 12, 15, 16, 20, 21]
+"""The proximal and middle flexion joints of every digit: a squeeze closes them past touching."""
 
 
 @dataclass(frozen=True)
@@ -75,8 +77,7 @@ def plan_pinch(kin: Kinematics, obj: ObjectSpec, wrist_q: np.ndarray | None = No
     active[6:] = True
     q_touch = kin.solve_tips(start, targets, active=active)
     q_squeeze = q_touch.copy()
-    flexion = [7, 8, 11, 12, 15, 16, 20, 21]  # proximal and middle flexion joints of every digit
-    q_squeeze[flexion] += squeeze
+    q_squeeze[SQUEEZE_JOINTS] += squeeze
     q_squeeze = np.clip(q_squeeze, lay.lower, lay.upper)
     pose = np.concatenate([centre - np.array([offset, 0.0, centre_z]), _yaw_quat(yaw)])
     return Grasp(object_pose=pose, q_touch=q_touch, q_squeeze=q_squeeze, half_width=half_width)

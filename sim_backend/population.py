@@ -23,6 +23,7 @@ import warp as wp
 from . import observe
 from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
+from .rotations import quat_exp, quat_multiply
 
 __all__ = ["Observation", "Population", "PopulationConfig", "SolverSettings", "resolve_device"]
 
@@ -669,6 +670,20 @@ class Population:
                 newton.eval_fk(self.model, state.joint_q, state.joint_qd, state, mask=articulations)
             # flags=0: clear MuJoCo's warm start and applied forces, keep the state just written.
             self.solver.reset(self.state_0, world_mask=wp.array([*worlds, False], dtype=bool), flags=0)
+
+    def displace_object(self, displacement: torch.Tensor) -> None:
+        """Move each world's object by a small rigid displacement, shape (G, K, 6): translation
+        [m] in the world frame, then rotation vector [rad] in the object's frame about its origin.
+
+        Velocities and the robot stay as they are, so contacts push an object displaced into a
+        finger back out within a few substeps. Torch ops only: it runs inside the captured update."""
+        if tuple(displacement.shape) != (self.G, self.K, 6):
+            raise ValueError(f"displacement: expected shape ({self.G}, {self.K}, 6), got {tuple(displacement.shape)}")
+        with self.on_stream():
+            free = self._state_views["joint_q"](self.state_0)[..., self._free_coords()]
+            rot = quat_multiply(free[..., 3:], quat_exp(displacement[..., 3:]))
+            free[..., :3] += displacement[..., :3]
+            free[..., 3:] = torch.nn.functional.normalize(rot, dim=-1)
 
     def _free_coords(self) -> slice:
         start = self._coords - 7  # the object's free joint is the last joint of a world

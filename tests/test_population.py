@@ -97,6 +97,31 @@ def test_resampled_copies_stay_bit_identical(hand):
         assert torch.equal(tensor[0, 0], tensor[0, 1]) and torch.equal(tensor[0, 2], tensor[0, 3])
 
 
+def test_a_displaced_object_keeps_what_the_grasp_cannot_see_and_loses_what_it_can(hand):
+    """The tracker's roughening: copies of one world, their held object displaced. The pinch
+    squeezes along world x, so a shift along x is pushed back by the pads while a turn about x
+    (the squeeze axis) is held by friction: the copies stay apart only where the sensors are blind."""
+    pop, _ = _grasped(hand, "spam_can", worlds=3)
+    for _ in range(15):
+        pop.step()
+    pop.resample(torch.zeros(1, 3, dtype=torch.int64))
+    shift = torch.zeros(1, 3, 6)
+    shift[0, 1, 0] = 0.002  # 2 mm along the squeeze
+    shift[0, 2, 3] = 0.05  # 0.05 rad about the object's x, which the planned grasp keeps along world x
+    pop.displace_object(shift)
+    for _ in range(30):
+        pop.step()
+    pose = pop.obs.object_pose[0]
+    assert (pop.obs.health == HEALTH_OK).all()
+    assert (pop.obs.force.norm(dim=-1) > 0.2).all(), "every displaced copy is still pinched"
+    along = abs(pose[1, 0] - pose[0, 0]).item()
+    assert along < 0.0005, f"a 2 mm shift along the squeeze stays {along * 1e3:.2f} mm"
+    turn = 2 * math.acos(min(1.0, abs(float((pose[2, 3:] * pose[0, 3:]).sum()))))
+    assert 0.03 < turn < 0.07, f"a 0.05 rad turn about the squeeze axis became {turn:.3f} rad"
+    with pytest.raises(ValueError, match=r"displacement: expected shape \(1, 3, 6\), got \(3, 6\)"):
+        pop.displace_object(torch.zeros(3, 6))
+
+
 def test_graph_replay_equals_eager_stepping(hand):
     pop, _ = _grasped(hand, "foam_brick", worlds=2)
     saved = pop._snapshot()
