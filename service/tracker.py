@@ -107,8 +107,8 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.update_every < 1:
             raise ValueError(f"tracker update_every: expected >= 1 frame, got {self.update_every}")
-        for name in ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "jitter_t", "jitter_r", "mass_sigma",
-                     "friction_sigma"):
+        noise = ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "jitter_t", "jitter_r")
+        for name in (*noise, "mass_sigma", "friction_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"tracker {name}: expected >= 0, got {getattr(self, name)}")
 
