@@ -447,8 +447,8 @@ class Tracker:
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
             if cfg.jitter_t > 0 or cfg.jitter_r > 0:
                 shift = sample_wrenches((self.G, self.K), cfg.jitter_t, cfg.jitter_r, self.gen, self.device)
-                # Only extra copies move: each surviving world keeps one exact copy, so the estimate
-                # does not jitter with the spread it buys.
+                # Only extra copies move: each surviving world keeps one copy where it was, so the
+                # estimate does not jitter with the spread it buys.
                 moved = explore & duplicates(upd.index)
                 self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         self.window.zero_()

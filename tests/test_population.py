@@ -107,7 +107,9 @@ def test_a_displaced_object_keeps_what_the_grasp_cannot_see_and_loses_what_it_ca
     pop.resample(torch.zeros(1, 3, dtype=torch.int64))
     shift = torch.zeros(1, 3, 6)
     shift[0, 1, 0] = 0.002  # 2 mm along the squeeze
-    shift[0, 2, 3] = 0.05  # 0.05 rad about the object's x, which the planned grasp keeps along world x
+    # 0.05 rad about the squeeze: the plan turns the can's longer side (its x) along world y, so
+    # its y lies along the squeeze.
+    shift[0, 2, 4] = 0.05
     pop.displace_object(shift)
     for _ in range(30):
         pop.step()
