@@ -9,6 +9,8 @@ The tracker sees only what the robot sends plus a noisy initial pose; ADD scores
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -225,6 +227,9 @@ class TrackSetting:
     slip_terms: bool = True
     study: str = "main"
     """main (Fig. 2) or the ablation it belongs to (exploration, worlds, contact, slip)."""
+    repeat: int = 0
+    """Which run of the suite the track belongs to: each run draws its own noisy initial poses
+    and its own tracker noise, so several runs put an interval on a suite's mean."""
 
 
 @dataclass
@@ -255,22 +260,29 @@ def settings(
     ablations: Sequence[str],
     worlds: int,
     k_ablation: Sequence[int] = K_ABLATION,
+    repeats: int = 1,
 ) -> list[TrackSetting]:
     """The tracks of a run: every trajectory x noise x method, then the ablations (PBO at medium
-    noise, as the paper's Fig. 3)."""
-    # OLP simulates the initial estimate alone: one world, in a population of its own.
-    out = [
-        TrackSetting(t, n, m, 1 if m == "OLP" else worlds) for t in range(trajectories) for n in noises for m in methods
-    ]
-    for t in range(trajectories):
-        if "exploration" in ablations:
-            out += [TrackSetting(t, "med", "PBO", worlds, exploration=e, study="exploration") for e in ("low", "high")]
-        if "contact" in ablations:
-            out.append(TrackSetting(t, "med", "PBO", worlds, contact_terms=False, study="contact"))
-        if "slip" in ablations:
-            out.append(TrackSetting(t, "med", "PBO", worlds, slip_terms=False, study="slip"))
-        if "worlds" in ablations:
-            out += [TrackSetting(t, "med", "PBO", k, study="worlds") for k in k_ablation if k != worlds]
+    noise, as the paper's Fig. 3); all of it ``repeats`` times."""
+    out: list[TrackSetting] = []
+    for r in range(repeats):
+        # OLP simulates the initial estimate alone: one world, in a population of its own.
+        out += [
+            TrackSetting(t, n, m, 1 if m == "OLP" else worlds, repeat=r)
+            for t in range(trajectories)
+            for n in noises
+            for m in methods
+        ]
+        ablation = functools.partial(TrackSetting, noise="med", method="PBO", repeat=r)
+        for t in range(trajectories):
+            if "exploration" in ablations:
+                out += [ablation(t, worlds=worlds, exploration=e, study="exploration") for e in ("low", "high")]
+            if "contact" in ablations:
+                out.append(ablation(t, worlds=worlds, contact_terms=False, study="contact"))
+            if "slip" in ablations:
+                out.append(ablation(t, worlds=worlds, slip_terms=False, study="slip"))
+            if "worlds" in ablations:
+                out += [ablation(t, worlds=k, study="worlds") for k in k_ablation if k != worlds]
     return out
 
 
@@ -281,16 +293,19 @@ def run_tracks(
     seed: int = 0,
     progress: Callable[[int], None] | None = None,
     substeps: int = 8,
+    config: TrackerConfig | None = None,
 ) -> list[TrackResult]:
     """Run ``tracks`` on ``trajectories`` of one object: one population per world count, every
     track a group of it. The noisy initial pose of a (trajectory, noise) pair is the same for
-    every method, so methods are compared on equal footing."""
+    every method, so methods are compared on equal footing; each repeat draws its own."""
     obj = catalog_object(trajectories[0].object)
     spec = HandSpec()
     rec = Recording.stack(trajectories)
     gen = torch.Generator().manual_seed(seed)
     start = torch.tensor(rec.initial_pose, dtype=torch.float32)
-    p0 = {n: _noisy(start, *NOISE_LEVELS[n], gen) for n in NOISE_LEVELS}  # the "vision" estimates
+    # The "vision" estimates, per noise level and repeat; repeat 0 draws what a single run always drew.
+    repeats = max(t.repeat for t in tracks) + 1
+    p0 = {(n, r): _noisy(start, *NOISE_LEVELS[n], gen) for r in range(repeats) for n in NOISE_LEVELS}
     points = obj.surface_points(1000)
     results: list[TrackResult] = []
     for k in sorted({t.worlds for t in tracks}):
@@ -302,14 +317,14 @@ def run_tracks(
             terms[g, list(_SLIP_TERMS)] = t.slip_terms
         tracker = Tracker(
             pop,
-            TrackerConfig(seed=seed),
+            dataclasses.replace(config or TrackerConfig(), seed=seed),
             methods=[t.method for t in group],
             exploration=[EXPLORATION[t.exploration] for t in group],
             terms=terms,
         )
         rows = np.array([t.trajectory for t in group])
         tracker.start(
-            np.stack([p0[t.noise][t.trajectory] for t in group]),
+            np.stack([p0[t.noise, t.repeat][t.trajectory] for t in group]),
             rec.initial_q[rows],
             sigma_t=np.array([NOISE_LEVELS[t.noise][0] for t in group]),
             sigma_r=np.array([NOISE_LEVELS[t.noise][1] for t in group]),
@@ -357,17 +372,23 @@ def run_suite(
     k_ablation: Sequence[int] | None = None,
     checkpoint: Callable[[dict], None] | None = None,
     substeps: int = 8,
+    repeats: int = 1,
+    config: TrackerConfig | None = None,
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
     gets the partial results after each population. ``substeps``: the tracker's physics substeps per
-    frame (the ground truth keeps its suite's own)."""
+    frame (the ground truth keeps its suite's own). ``repeats``: independent runs of every track,
+    batched as more groups; the summary then also gives each run's mean. ``config``: the tracker's
+    settings (default ``TrackerConfig()``; its seed is the suite's)."""
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"methods: expected some of {METHODS}, got {m!r}")
     for n in noises:
         if n not in NOISE_LEVELS:
             raise ValueError(f"noise: expected some of {tuple(NOISE_LEVELS)}, got {n!r}")
+    if repeats < 1:
+        raise ValueError(f"repeats: expected >= 1, got {repeats}")
     log = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     trajectories = ground_truth(suite, device, cache, log)
@@ -376,7 +397,9 @@ def run_suite(
     for t in trajectories:
         by_object.setdefault(t.object, []).append(t)
     k_ablation = tuple(k_ablation or K_ABLATION)
-    plan = {o: settings(len(ts), methods, noises, ablations, worlds, k_ablation) for o, ts in by_object.items()}
+    plan = {
+        o: settings(len(ts), methods, noises, ablations, worlds, k_ablation, repeats) for o, ts in by_object.items()
+    }
     total = sum(max(t.frames for t in by_object[o]) * sum(s.worlds for s in p) for o, p in plan.items())
     bar = _Progress(total, "tracking", quiet)
     results: list[TrackResult] = []
@@ -385,14 +408,16 @@ def run_suite(
         for s in plan[o]:
             by_k.setdefault(s.worlds, []).append(s)
         for k_tracks in by_k.values():  # the frames of one population advance all its groups at once
-            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance, substeps)
+            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance, substeps, config)
             if checkpoint:  # what is done so far survives a run cut short (a time limit)
                 checkpoint(
-                    _collect(suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0, device, substeps)
+                    _collect(
+                        suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0, device, substeps, config
+                    )
                 )
     bar.close()
     t_track = time.perf_counter() - t0 - t_truth
-    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps)
+    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config)
 
 
 class _Progress:
@@ -419,9 +444,15 @@ class _Progress:
             print(file=sys.stderr, flush=True)
 
 
-def _stats(values: Sequence[float]) -> dict:
-    a = np.asarray(values) * 1e3
-    return {"mean_mm": float(a.mean()), "std_mm": float(a.std()), "max_mm": float(a.max()), "tracks": int(a.size)}
+def _stats(results: Sequence[TrackResult]) -> dict:
+    """Mean, std and max over tracks of each track's mean ADD [mm]; with several repeats also the
+    mean of each run, whose spread says how far one run's mean is to be trusted."""
+    a = np.array([r.add.mean() for r in results]) * 1e3
+    out = {"mean_mm": float(a.mean()), "std_mm": float(a.std()), "max_mm": float(a.max()), "tracks": int(a.size)}
+    runs = np.array([r.setting.repeat for r in results])
+    if runs.max() > 0:
+        out["run_means_mm"] = [float(a[runs == r].mean()) for r in np.unique(runs)]
+    return out
 
 
 def _collect(
@@ -433,6 +464,7 @@ def _collect(
     t_track: float,
     device: str,
     substeps: int = 8,
+    config: TrackerConfig | None = None,
 ) -> dict:
     """ADD statistics over tracks: mean of per-track mean ADD, its std over tracks, and the max
     over all frames, per method and noise level (Fig. 2) and per ablation setting (Fig. 3)."""
@@ -442,17 +474,14 @@ def _collect(
         if s.study == "main":
             summary.setdefault(s.method, {}).setdefault(s.noise, []).append(r)
     fig2 = {
-        m: {
-            n: {**_stats([r.add.mean() for r in rs]), "max_mm": float(max(r.add.max() for r in rs) * 1e3)}
-            for n, rs in by_noise.items()
-        }
+        m: {n: {**_stats(rs), "max_mm": float(max(r.add.max() for r in rs) * 1e3)} for n, rs in by_noise.items()}
         for m, by_noise in summary.items()
     }
     ablation: dict[str, dict[str, dict]] = {}
 
     def add_row(study: str, label: str, rs: list[TrackResult]) -> None:
         if rs:
-            ablation.setdefault(study, {})[label] = _stats([r.add.mean() for r in rs])
+            ablation.setdefault(study, {})[label] = _stats(rs)
 
     base = [r for r in results if r.setting.study == "main" and r.setting.method == "PBO" and r.setting.noise == "med"]
     studies = {r.setting.study for r in results} - {"main"}
@@ -476,9 +505,22 @@ def _collect(
         "suite": asdict(suite),
         "device": device,
         "worlds": worlds,
+        "repeats": 1 + max((r.setting.repeat for r in results), default=0),
+        "tracker": _changed(asdict(config or TrackerConfig()), asdict(TrackerConfig())),
         "substeps": substeps,
         "seconds": {"ground_truth": t_truth, "tracking": t_track},
         "summary": fig2,
         "ablations": ablation,
         "tracks": [r.summary() | {"add_mm": np.round(r.add * 1e3, 3).tolist()} for r in results],
     }
+
+
+def _changed(config: dict, default: dict) -> dict:
+    """The settings of ``config`` that differ from ``default``, nested ones as ``outer.inner``."""
+    out = {}
+    for key, value in config.items():
+        if isinstance(value, dict):
+            out |= {f"{key}.{k}": v for k, v in _changed(value, default[key]).items()}
+        elif key != "seed" and value != default[key]:
+            out[key] = value
+    return out

@@ -57,6 +57,19 @@ def _parser() -> argparse.ArgumentParser:
         help="K values of the worlds ablation (default 10,40,160,640,2560)",
     )
     acc.add_argument("--substeps", type=int, default=8, help="the tracker's physics substeps per frame (even)")
+    acc.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="independent runs of every track, batched together: each run's mean is reported (an interval)",
+    )
+    acc.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a tracker setting other than its default: jitter_bandwidth=0, optimizer.pbo_keep=0.25 (repeatable)",
+    )
     acc.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     acc.add_argument("--out", default=None, help="output folder (default bench-results/accuracy-SUITE)")
     acc.add_argument("--cache", default=None, help="where generated trajectories are kept")
@@ -279,6 +292,34 @@ def _speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tracker_config(settings: list[str]):
+    """A TrackerConfig from NAME=VALUE strings: its number and flag fields, and its optimizer's
+    as optimizer.NAME."""
+    import dataclasses
+
+    from service.optimizers import OptimizerConfig
+    from service.tracker import TrackerConfig
+
+    def settable(cls) -> dict[str, type]:
+        return {f.name: type(f.default) for f in dataclasses.fields(cls) if type(f.default) in (int, float, bool, str)}
+
+    top = {k: t for k, t in settable(TrackerConfig).items() if k != "seed"}
+    nested = {f"optimizer.{k}": t for k, t in settable(OptimizerConfig).items() if k != "method"}  # --methods
+    values: dict[str, dict] = {"": {}, "optimizer": {}}
+    for item in settings:
+        name, sep, text = item.partition("=")
+        kind = top.get(name) or nested.get(name)
+        if not sep or kind is None:
+            raise ValueError(f"expected NAME=VALUE with NAME one of {sorted(top) + sorted(nested)}, got '{item}'")
+        try:
+            value = text.lower() in ("1", "true", "yes") if kind is bool else kind(text)
+        except ValueError:
+            raise ValueError(f"{name}: expected a value of type {kind.__name__}, got '{text}'") from None
+        outer, _, inner = name.rpartition(".")
+        values[outer][inner] = value
+    return TrackerConfig(optimizer=OptimizerConfig(**values["optimizer"]), **values[""])
+
+
 def _accuracy(args: argparse.Namespace) -> int:
     import contextlib
     from pathlib import Path
@@ -310,6 +351,14 @@ def _accuracy(args: argparse.Namespace) -> int:
     if args.substeps < 2 or args.substeps % 2:
         print(f"--substeps: expected a positive even number, got {args.substeps}", file=sys.stderr)
         return 2
+    if args.repeats < 1:
+        print(f"--repeats: expected >= 1, got {args.repeats}", file=sys.stderr)
+        return 2
+    try:
+        config = _tracker_config(args.set)
+    except ValueError as exc:
+        print(f"--set: {exc}", file=sys.stderr)
+        return 2
     out = Path(args.out or f"bench-results/accuracy-{args.suite}")
     command = "inhand-tracker " + " ".join(sys.argv[1:])
     with contextlib.redirect_stdout(sys.stderr):  # Warp logs with print(); stdout is for the report or the JSON
@@ -324,6 +373,8 @@ def _accuracy(args: argparse.Namespace) -> int:
             k_ablation=args.ablation_worlds,
             checkpoint=lambda partial: write_report(partial, out, command=command + "  (partial)"),
             substeps=args.substeps,
+            repeats=args.repeats,
+            config=config,
         )
     report = write_report(results, out, command=command)
     if args.json:

@@ -40,11 +40,18 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         f"({', '.join(suite['kinds'])}; {', '.join(suite['objects'])}); "
         f"ground truth {results['seconds']['ground_truth']:.0f} s, tracking {results['seconds']['tracking']:.0f} s",
         f"- truth physics off from the tracker's: {suite['gap']}; sensor noise: {suite['sensors']}",
+        f"- tracker settings other than the defaults: {results['tracker']}" if results.get("tracker") else None,
         "",
         "## ADD per method and initial noise (the paper's Fig. 2)",
         "",
         "Mean over tracks of each track's mean ADD over its frames, its std over tracks, and the max over all"
-        " frames [mm].",
+        " frames [mm]"
+        + (
+            f"; the suite was run {repeats} times (each its own noisy initial poses and tracker noise), and"
+            " each run's mean follows in brackets."
+            if (repeats := results.get("repeats", 1)) > 1
+            else "."
+        ),
         "",
         "| method | "
         + " | ".join(f"{n} ({NOISE_LEVELS[n][0] * 1e3:g} mm, {NOISE_LEVELS[n][1]:g} rad)" for n in noises)
@@ -52,10 +59,7 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         "|---|" + "---|" * len(noises),
     ]
     for m in methods:
-        cells = [
-            f"{s['mean_mm']:.2f} ± {s['std_mm']:.2f} (max {s['max_mm']:.1f})" if (s := summary[m].get(n)) else "-"
-            for n in noises
-        ]
+        cells = [_cell(s) if (s := summary[m].get(n)) else "-" for n in noises]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     mean = np.array([[summary[m].get(n, {}).get("mean_mm", np.nan) for m in methods] for n in noises])
     std = np.array([[summary[m].get(n, {}).get("std_mm", 0.0) for m in methods] for n in noises])
@@ -70,7 +74,7 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
             "| setting | mean ADD [mm] | std [mm] | tracks |",
             "|---|---|---|---|",
         ]
-        lines += [f"| {k} | {v['mean_mm']:.2f} | {v['std_mm']:.2f} | {v['tracks']} |" for k, v in rows.items()]
+        lines += [f"| {k} | {_runs(v)} | {v['std_mm']:.2f} | {v['tracks']} |" for k, v in rows.items()]
         bar_chart(
             out / f"ablation_{study}.png",
             study,
@@ -85,18 +89,36 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
     noise = "med" if "med" in noises else noises[0]
     names = sorted({t["trajectory"] for t in tracks})
     lines += [
-        f"## Per trajectory ({noise} noise): mean ADD [mm], frames the tracker re-seeded in brackets",
+        f"## Per trajectory ({noise} noise): mean ADD [mm], frames the tracker re-seeded in brackets"
+        + (", one entry per run" if results.get("repeats", 1) > 1 else ""),
         "",
         "| trajectory | " + " | ".join(methods) + " |",
         "|---|" + "---|" * len(methods),
     ]
     for name in names:
-        row = {t["method"]: t for t in tracks if t["trajectory"] == name and t["noise"] == noise}
-        cells = [f"{row[m]['add_mean_mm']:.2f} [{row[m]['diverged_frames']}]" if m in row else "-" for m in methods]
+        runs: dict[str, list[dict]] = {}
+        for t in tracks:
+            if t["trajectory"] == name and t["noise"] == noise:
+                runs.setdefault(t["method"], []).append(t)
+        cells = [
+            " / ".join(f"{t['add_mean_mm']:.2f} [{t['diverged_frames']}]" for t in runs[m]) if m in runs else "-"
+            for m in methods
+        ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-        series = {m: np.asarray(row[m]["add_mm"]) for m in methods if m in row}
+        series = {m: np.asarray(runs[m][0]["add_mm"]) for m in methods if m in runs}  # the first run's
         line_chart(out / f"add_{name}.png", f"{name} {noise}", series, x_step=1 / 30)
-    lines += ["", "ADD over time per trajectory:", ""] + [f"![{n}](add_{n}.png)" for n in names]
+    first = " (the first run)" if results.get("repeats", 1) > 1 else ""
+    lines += ["", f"ADD over time per trajectory{first}:", ""] + [f"![{n}](add_{n}.png)" for n in names]
     path = out / "report.md"
     path.write_text("\n".join(line for line in lines if line is not None) + "\n")
     return path
+
+
+def _runs(s: dict) -> str:
+    """A mean ADD [mm], with each run's mean when the suite was repeated."""
+    runs = s.get("run_means_mm")
+    return f"{s['mean_mm']:.2f}" + (f" [{' / '.join(f'{r:.2f}' for r in runs)}]" if runs else "")
+
+
+def _cell(s: dict) -> str:
+    return f"{_runs(s)} ± {s['std_mm']:.2f} (max {s['max_mm']:.1f})"

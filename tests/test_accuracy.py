@@ -9,9 +9,12 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from service.accuracy import DATA_DIR, SUITES, ground_truth
+from service.accuracy import DATA_DIR, SUITES, ground_truth, run_suite
+from service.report import write_report
+from service.tracker import TrackerConfig
 
 
 def test_the_smoke_suite_ships_its_trajectories():
@@ -40,3 +43,28 @@ def test_optimizers_beat_eye_and_eye_beats_olp(tmp_path):
     assert "| REPS |" in report and "![ADD per method and noise](fig2.png)" in report
     for png in ("fig2.png", "add_foam_brick_pick_place_0.png"):
         assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
+    # OLP simulates its noisy initial estimate alone with the nominal physics: its ADD is decided
+    # by the initial pose drawn, so it shows which start each run got.
+    run = lambda repeats, config=None: run_suite(  # noqa: E731
+        SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True, repeats=repeats,
+        config=config,
+    )  # fmt: skip
+    once, thrice = run(1), run(3, TrackerConfig(jitter_bandwidth=0.5))
+    assert once["tracker"] == {} and thrice["tracker"] == {"jitter_bandwidth": 0.5}  # the settings are reported
+    assert thrice["repeats"] == 3 and len(thrice["tracks"]) == 3 * len(once["tracks"]) == 6
+    first = [t for t in thrice["tracks"] if t["repeat"] == 0]
+    # Repeat 0 starts where the single run starts. Later frames differ slightly: a population of
+    # another size does not reproduce the physics bit for bit, and the difference grows.
+    assert [t["add_mm"][0] for t in first] == [t["add_mm"][0] for t in once["tracks"]]
+    starts = {(t["trajectory"], t["repeat"]): t["add_mm"][0] for t in thrice["tracks"]}
+    assert len(set(starts.values())) == 6, starts  # every run of every trajectory started elsewhere
+    olp = thrice["summary"]["OLP"]["med"]
+    assert len(olp["run_means_mm"]) == 3 and np.isclose(np.mean(olp["run_means_mm"]), olp["mean_mm"])
+    assert "run_means_mm" not in once["summary"]["OLP"]["med"]
+    report = write_report(thrice, tmp_path).read_text()
+    runs = " / ".join(f"{m:.2f}" for m in olp["run_means_mm"])
+    assert f"| OLP | {olp['mean_mm']:.2f} [{runs}] ± " in report, report
+    assert "tracker settings other than the defaults: {'jitter_bandwidth': 0.5}" in report

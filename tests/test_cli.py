@@ -26,6 +26,18 @@ def test_bad_arguments_are_refused_with_the_value():
     assert out.returncode == 2 and "expected comma-separated integers, got '40,abc'" in out.stderr
 
 
+def test_bad_tracker_settings_are_refused_with_the_name_and_value():
+    for setting, message in [
+        ("jitter_bandwith=0", "got 'jitter_bandwith=0'"),  # a typo: the names allowed follow
+        ("update_every=x", "update_every: expected a value of type int, got 'x'"),
+        ("jitter_t=-1", "tracker jitter_t: expected >= 0, got -1.0"),
+        ("optimizer.pbo_keep=2", "optimizer pbo_keep: expected 0 < fraction <= 1, got 2.0"),
+    ]:
+        out = _run("bench", "accuracy", "--suite", "smoke", "--set", setting)
+        assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
+    assert "jitter_bandwidth" in _run("bench", "accuracy", "--set", "jitter_bandwith=0").stderr
+
+
 def test_bench_speed_times_the_tracker_against_the_physics():
     out = _run("bench", "speed", "--worlds", "4", "--groups", "1,2", "--frames", "5", "--device", "cpu", "--json")
     assert out.returncode == 0, out.stderr[-2000:]

@@ -9,7 +9,7 @@ import torch
 
 from service.cost import Cost, CostConfig, RealObservation, cost_terms
 from service.optimizers import OptimizerConfig, reps_eta, reps_pmf, update, wrs_pmf
-from service.sampling import sample_poses
+from service.sampling import roughening_sigma, sample_poses, silverman_bandwidth
 from sim_backend import Observation
 from sim_backend.rotations import quat_exp, quat_log, quat_multiply
 
@@ -179,3 +179,20 @@ def test_quat_log_inverts_exp():
     axis = torch.nn.functional.normalize(torch.randn(1000, 3, generator=gen), dim=-1)
     omega = axis * torch.rand(1000, 1, generator=gen) * 3.1  # angles below pi: log is unique there
     assert torch.allclose(quat_log(quat_exp(omega)), omega, atol=1e-5)
+
+
+def test_roughening_follows_the_spread_between_its_floor_and_ceiling():
+    assert silverman_bandwidth(40) == pytest.approx(0.645, abs=1e-3)
+    assert silverman_bandwidth(4096) < silverman_bandwidth(640) < silverman_bandwidth(40)
+    gen = torch.Generator().manual_seed(5)
+    mean = torch.tensor([[0.1, 0.0, 0.05, 0.0, 0.0, math.sin(0.3), math.cos(0.3)]]).expand(3, 7)
+    # Three groups of 4000 poses: collapsed, spread 2 mm / 0.04 rad, spread 20 mm / 0.5 rad.
+    poses = sample_poses(mean, torch.tensor([1e-5, 0.002, 0.02]), torch.tensor([1e-4, 0.04, 0.5]), 4000, gen)
+    floor = torch.tensor([0.0005] * 3 + [0.01] * 3).view(1, 1, 6)
+    ceiling = torch.tensor([0.005, 0.1])
+    sigma = roughening_sigma(poses, 0.5, floor, ceiling)
+    assert sigma.shape == (3, 1, 6)
+    assert sigma[0, 0].tolist() == pytest.approx(floor.flatten().tolist())  # collapsed: the floor
+    assert sigma[1, 0, :3].tolist() == pytest.approx([0.5 * 0.002] * 3, rel=0.05)  # half the spread
+    assert sigma[1, 0, 3:].tolist() == pytest.approx([0.5 * 0.04] * 3, rel=0.05)
+    assert sigma[2, 0].tolist() == pytest.approx([0.005] * 3 + [0.1] * 3)  # wide: the ceiling
