@@ -9,12 +9,11 @@ The tracker sees only what the robot sends plus a noisy initial pose; ADD scores
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -317,7 +316,7 @@ def run_tracks(
             terms[g, list(_SLIP_TERMS)] = t.slip_terms
         tracker = Tracker(
             pop,
-            dataclasses.replace(config or TrackerConfig(), seed=seed),
+            replace(config or TrackerConfig(), seed=seed),
             methods=[t.method for t in group],
             exploration=[EXPLORATION[t.exploration] for t in group],
             terms=terms,
