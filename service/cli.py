@@ -311,9 +311,10 @@ def _tracker_config(settings: list[str]):
         kind = top.get(name) or nested.get(name)
         if not sep or kind is None:
             raise ValueError(f"expected NAME=VALUE with NAME one of {sorted(top) + sorted(nested)}, got '{item}'")
+        flags = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
         try:
-            value = text.lower() in ("1", "true", "yes") if kind is bool else kind(text)
-        except ValueError:
+            value = flags[text.lower()] if kind is bool else kind(text)
+        except (KeyError, ValueError):
             raise ValueError(f"{name}: expected a value of type {kind.__name__}, got '{text}'") from None
         outer, _, inner = name.rpartition(".")
         values[outer][inner] = value

@@ -32,6 +32,7 @@ def test_bad_tracker_settings_are_refused_with_the_name_and_value():
         ("update_every=x", "update_every: expected a value of type int, got 'x'"),
         ("jitter_t=-1", "tracker jitter_t: expected >= 0, got -1.0"),
         ("optimizer.pbo_keep=2", "optimizer pbo_keep: expected 0 < fraction <= 1, got 2.0"),
+        ("optimizer.keep_best=flase", "optimizer.keep_best: expected a value of type bool, got 'flase'"),
     ]:
         out = _run("bench", "accuracy", "--suite", "smoke", "--set", setting)
         assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
