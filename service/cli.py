@@ -301,7 +301,7 @@ def _tracker_config(settings: list[str]):
     from service.tracker import TrackerConfig
 
     def settable(cls) -> dict[str, type]:
-        return {f.name: type(f.default) for f in dataclasses.fields(cls) if type(f.default) in (int, float, bool, str)}
+        return {f.name: type(f.default) for f in dataclasses.fields(cls) if type(f.default) in (int, float, bool)}
 
     top = {k: t for k, t in settable(TrackerConfig).items() if k != "seed"}
     nested = {f"optimizer.{k}": t for k, t in settable(OptimizerConfig).items() if k != "method"}  # --methods

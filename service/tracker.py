@@ -459,7 +459,7 @@ class Tracker:
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
             if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
-                unit = sample_wrenches((self.G, self.K), 1.0, 1.0, self.gen, self.device)
+                unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
                 shift = unit * self._jitter_sigma(upd.index)
                 # Only extra copies move: each surviving world keeps one copy where it was, so the
                 # estimate does not jitter with the spread it buys.
