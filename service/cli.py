@@ -295,16 +295,12 @@ def _speed(args: argparse.Namespace) -> int:
 def _tracker_config(settings: list[str]):
     """A TrackerConfig from NAME=VALUE strings: its number and flag fields, and its optimizer's
     as optimizer.NAME."""
-    import dataclasses
-
     from service.optimizers import OptimizerConfig
-    from service.tracker import TrackerConfig
+    from service.tracker import TrackerConfig, setting_types
 
-    def settable(cls) -> dict[str, type]:
-        return {f.name: type(f.default) for f in dataclasses.fields(cls) if type(f.default) in (int, float, bool)}
-
-    top = {k: t for k, t in settable(TrackerConfig).items() if k != "seed"}
-    nested = {f"optimizer.{k}": t for k, t in settable(OptimizerConfig).items() if k != "method"}  # --methods
+    kinds = (int, float, bool)
+    top = {k: t for k, t in setting_types(TrackerConfig, kinds).items() if k != "seed"}
+    nested = {f"optimizer.{k}": t for k, t in setting_types(OptimizerConfig, kinds).items()}
     values: dict[str, dict] = {"": {}, "optimizer": {}}
     for item in settings:
         name, sep, text = item.partition("=")

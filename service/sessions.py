@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 import uuid
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,11 +24,11 @@ from sim_backend.kinematics import Kinematics
 
 from .config import ServiceConfig
 from .optimizers import METHODS, OptimizerConfig
-from .tracker import Frame, Status, Tracker, TrackerConfig
+from .tracker import Frame, Status, Tracker, TrackerConfig, setting_types
 
 __all__ = ["ServiceError", "SessionManager"]
 
-_TUNABLE = {f.name: type(f.default) for f in fields(TrackerConfig) if type(f.default) in (int, float)}
+_TUNABLE = setting_types(TrackerConfig)
 """Tracker hyperparameters a session may override, with their types."""
 _OPTIONAL = ("force", "slip", "slip_dir", "spin", "spin_sense")
 

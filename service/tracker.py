@@ -22,7 +22,7 @@ second graph, enqueued behind that copy: its indices never leave the device.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
 
 import numpy as np
@@ -36,7 +36,7 @@ from .cost import Cost, CostConfig, RealObservation
 from .optimizers import METHODS, OptimizerConfig, duplicates, method_rows, update, wrs_pmf
 from .sampling import clipped_normal, roughening_sigma, sample_poses, sample_wrenches, silverman_bandwidth
 
-__all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig"]
+__all__ = ["Estimate", "Frame", "Status", "Tracker", "TrackerConfig", "setting_types"]
 
 _PACKED = 58
 """Width of the packed estimate: pose 7, mean position 3, mean quaternion 4, covariance 36, cost,
@@ -119,6 +119,12 @@ class TrackerConfig:
         for name in (*noise, "mass_sigma", "friction_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"tracker {name}: expected >= 0, got {getattr(self, name)}")
+
+
+def setting_types(config: type, kinds: tuple[type, ...] = (int, float)) -> dict[str, type]:
+    """The fields of the settings dataclass ``config`` whose defaults are of ``kinds``, with their
+    types: what a session's overrides and ``bench accuracy --set`` may change."""
+    return {f.name: type(f.default) for f in fields(config) if type(f.default) in kinds}
 
 
 @dataclass
