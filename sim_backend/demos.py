@@ -39,13 +39,18 @@ FRAME_RATE = 30.0
 _FINGER_ABDUCTION = (6, 10, 14)
 _FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
 _THUMB_SWING = 18
-SQUEEZE = 0.3
-"""How far the fingers close past touching the object [rad]."""
-_FIRMER: dict[str, float] = {"toy_banana": 0.38}
-"""Objects a pinch of SQUEEZE lets slip out during carries: the banana's round tube is held by a
-line of pads on one side and the thumb on the other."""
+_TURN = (0.55, 0.65)
+"""Range of the finger abduction and thumb swing that turn the object in the hand [rad]."""
+_LONG = 0.15
+"""Objects longer than this in the horizontal plane [m] lie along the fingers' row and turn less."""
+_TURN_LONG = (0.35, 0.4)
+"""The turn for an object long along the fingers' row (the banana): the thumb pushing its middle
+turns it further (33-44 degrees) and its ends swing off the outer pads; 0.55-0.65 rad turned it
+50-60 degrees and let it fall in carries and gaits with most physics drawn (docs/benchmarks.md)."""
 _CLEAR = 0.2
 """How far past touching the digits open to let go [rad]."""
+_GAIT_CLEAR = 0.2
+"""How far past touching a gaiting finger lifts off [rad]: just clear, the others hold meanwhile."""
 _GAITS = 3
 """Finger gaits per demo: each re-press walks the object a few millimetres over the pads, and an
 open-loop script (unlike a teleoperator) cannot correct that, so more gaits walk it out of the hand."""
@@ -127,13 +132,13 @@ def make_demo(
     # Fingers abduct towards -y and the thumb swings towards +y: the planned pinch leaves the
     # thumb's swing next to its upper limit, so the other way barely turns the object.
     sign = 1.0
-    turn = float(rng.uniform(0.55, 0.65))  # finger abduction and thumb swing [rad]
+    long = float(obj.mesh.extents[:2].max()) > _LONG
+    turn = float(rng.uniform(*(_TURN_LONG if long else _TURN)))
 
     rest_z = -float(obj.mesh.bounds[0, 2])  # the object's centre height when it rests on the table
     wrist = np.array([*rng.uniform(-0.05, 0.05, 2), 0.3, 0.0, 0.0, 0.0])
     wrist[2] += rest_z - plan_pinch(kin, obj, wrist_q=wrist).object_pose[2]  # lower the pinch onto it
-    squeeze = _FIRMER.get(obj.name, SQUEEZE)
-    grasp = plan_pinch(kin, obj, wrist_q=wrist, squeeze=squeeze)
+    grasp = plan_pinch(kin, obj, wrist_q=wrist)
     palm_z = float(wrist[2])
     open_hand = lay.default_q.copy()
     open_hand[:3] = wrist[0], wrist[1], palm_z + 0.12  # straight above: the fingers clear the object
@@ -166,7 +171,7 @@ def make_demo(
         gaits += 1
         for finger, flexion in order if gaits % 2 else order[::-1]:
             lifted = script.q.copy()
-            lifted[list(flexion)] -= squeeze + 0.05  # just clear of the object: the others hold it meanwhile
+            lifted[list(flexion)] = grasp.q_touch[list(flexion)] - _GAIT_CLEAR
             script.move("gait", lifted, 0.35)
             moved = lifted.copy()
             moved[finger] = held[finger] - direction * sign * turn
@@ -207,7 +212,7 @@ def make_demo(
     # up. Opening to the rest pose at table height swept the turned fingers and the thumb
     # sideways through the object and flung it (the banana half a metre).
     release = script.q.copy()
-    release[SQUEEZE_JOINTS] -= squeeze + _CLEAR
+    release[SQUEEZE_JOINTS] = grasp.q_touch[SQUEEZE_JOINTS] - _CLEAR
     script.move("release", release, 0.8)
     retreat = release.copy()
     retreat[2] += 0.08

@@ -56,6 +56,19 @@ def test_pick_turn_in_hand_place_and_let_go(recordings, g):
     assert (np.abs(demo.controls - demo.controls.clip(*_limits(demo))) < 1e-6).all(), "targets within limits"
 
 
+@pytest.mark.parametrize("g", [0, 1], ids=DEMO_KINDS)
+def test_the_pinch_lifts_the_object_where_it_lay(recordings, g):
+    """From the first touch to the lift the pads press straight in and the object barely moves.
+    Closing the flexion joints past touching swung the thumb's tip up and sideways and shoved it
+    16-31 mm over the table: a shove that no tracker can follow from a noisy start."""
+    demos, rec = recordings
+    touched = np.flatnonzero((np.linalg.norm(rec.force[:, g], axis=-1) > 0.2).any(axis=1))[0]
+    lifted = _first(demos[g], "lift")
+    pose = rec.object_pose[:, g]
+    shove = np.linalg.norm(pose[lifted, :3] - pose[touched - 1, :3])
+    assert shove < 0.004, f"the pinch moved the object {shove * 1e3:.1f} mm before the lift"
+
+
 def _limits(demo):
     from sim_backend import HandSpec, Kinematics
 
