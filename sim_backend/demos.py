@@ -39,14 +39,17 @@ FRAME_RATE = 30.0
 _FINGER_ABDUCTION = (6, 10, 14)
 _FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
 _THUMB_SWING = 18
-_TURN = (0.55, 0.65)
-"""Range of the finger abduction and thumb swing that turn the object in the hand [rad]."""
-_LONG = 0.15
-"""Objects longer than this in the horizontal plane [m] lie along the fingers' row and turn less."""
-_TURN_LONG = (0.35, 0.4)
-"""The turn for an object long along the fingers' row (the banana): the thumb pushing its middle
-turns it further (33-44 degrees) and its ends swing off the outer pads; 0.55-0.65 rad turned it
-50-60 degrees and let it fall in carries and gaits with most physics drawn (docs/benchmarks.md)."""
+_TURNS = ((0.08, (0.55, 0.65), 1.0), (0.15, (0.55, 0.65), 1.3), (math.inf, (0.35, 0.4), 1.0))
+"""How the fingers turn an object, by its length along the fingers' row: (up to [m], the range of
+the finger abduction that turns it [rad], how much further the thumb swings). Measured on the CPU
+at friction x0.7-1.3 (docs/benchmarks.md):
+
+- up to 8 cm (the brick) turns 32-37 degrees; a thumb swinging further turned it 50-62 and set it
+  down on an edge, where 1 um at the start ended up to 40 mm apart;
+- up to 15 cm (the spam can): the outer fingers' abduction stops at its limit (0.47 rad), and a
+  thumb that swung no further turned it only 26-30 degrees; at 1.3 times it turns 31-42;
+- longer (the banana): the thumb pushing its middle turns it 30-64 degrees at a smaller swing, and
+  0.55-0.65 rad turned it so far that its ends left the outer pads and it fell."""
 _CLEAR = 0.2
 """How far past touching the digits open to let go [rad]."""
 _GAIT_CLEAR = 0.2
@@ -132,8 +135,9 @@ def make_demo(
     # Fingers abduct towards -y and the thumb swings towards +y: the planned pinch leaves the
     # thumb's swing next to its upper limit, so the other way barely turns the object.
     sign = 1.0
-    long = float(obj.mesh.extents[:2].max()) > _LONG
-    turn = float(rng.uniform(*(_TURN_LONG if long else _TURN)))
+    length = float(obj.mesh.extents[:2].max())  # the pinch lays the longer side along the row
+    turn_range, lead = next((r, lead) for up_to, r, lead in _TURNS if length <= up_to)
+    turn = float(rng.uniform(*turn_range))
 
     rest_z = -float(obj.mesh.bounds[0, 2])  # the object's centre height when it rests on the table
     wrist = np.array([*rng.uniform(-0.05, 0.05, 2), 0.3, 0.0, 0.0, 0.0])
@@ -158,7 +162,7 @@ def make_demo(
         """Fingers abduct one way and the thumb swings the other, rolling the pads over the object."""
         out = q.copy()
         out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - direction * sign * turn
-        out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn
+        out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn * lead
         return out
 
     gaits = 0
@@ -191,19 +195,20 @@ def make_demo(
         script.hold("carry", 0.3)
         script.move("carry", back, 0.8)
 
-    # One turn (with a gait in the gaiting demo), then carrying about until the demo lasts
-    # ``seconds``, with a gait between carries in the gaiting demo. Turning back and forth more
-    # often walks the object out of an open-loop grasp, which a teleoperator would not do.
+    # The gaiting demo gaits before the turn, while all four pads press the object: a finger
+    # lifts only while the two others and the thumb carry it. Turned, the object rests on the
+    # index and thumb alone (docs/benchmarks.md), and lifting either drops it. Turning back and
+    # forth more often walks the object out of an open-loop grasp, which a teleoperator would not do.
     carry()
+    while kind == "gaiting" and gaits < _GAITS:
+        gait(0.0)
+        script.hold("hold", 0.5)
+        carry()
     script.move("turn", turned(script.q, 1.0), 3.0)
     script.hold("turn", 0.5)
-    if kind == "gaiting":
-        gait(0.0)  # the fingers go back to the middle one by one; the object stays turned
     while script.count < (seconds - 3.3) * pace * FRAME_RATE:  # 3.3 s: place, let go, retreat
         carry()
         script.hold("hold", 0.8)
-        if kind == "gaiting" and gaits < _GAITS:
-            gait(0.0)
     down = script.q.copy()
     down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
     script.move("place", down, 1.2)
