@@ -50,6 +50,8 @@ at friction x0.7-1.3 (docs/benchmarks.md):
   thumb that swung no further turned it only 26-30 degrees; at 1.3 times it turns 31-42;
 - longer (the banana): the thumb pushing its middle turns it 30-64 degrees at a smaller swing, and
   0.55-0.65 rad turned it so far that its ends left the outer pads and it fell."""
+_PLACE_DEPTH = 0.01
+"""How far below where it picked the object up the hand sets it down [m]: it presses on the table and slips."""
 _CLEAR = 0.2
 """How far past touching the digits open to let go [rad]."""
 _GAIT_CLEAR = 0.2
@@ -210,7 +212,7 @@ def make_demo(
         carry()
         script.hold("hold", 0.8)
     down = script.q.copy()
-    down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
+    down[2] = palm_z - _PLACE_DEPTH
     script.move("place", down, 1.2)
     script.hold("place", 0.3)
     # Let go by uncurling the digits just clear of the object where they are, then rise straight
