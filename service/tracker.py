@@ -28,7 +28,7 @@ from enum import IntEnum
 import numpy as np
 import torch
 
-from sim_backend import HEALTH_OK, Population, SensorFK
+from sim_backend import HEALTH_NAN, HEALTH_OK, Population, SensorFK
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
 from .capture import CapturedOps
@@ -222,6 +222,8 @@ class Tracker:
         self._jitter_floor = torch.tensor([cfg.jitter_t] * 3 + [cfg.jitter_r] * 3, device=dev).view(1, 1, 6)
         ceiling = [max(cfg.sigma_t, cfg.jitter_t), max(cfg.sigma_r, cfg.jitter_r)]
         self._jitter_ceiling = torch.tensor(ceiling, device=dev)
+        self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
+        """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._bandwidth = cfg.jitter_bandwidth * silverman_bandwidth(self.K)
         self._frame_graph = CapturedOps(self._frame_ops, pop.device)
         self._update_graph = CapturedOps(self._update_ops, pop.device, generator=self.gen, pool=self._frame_graph)
@@ -402,8 +404,10 @@ class Tracker:
         pop.step()
         self.fk.update(self.real.q)
         cost = self.cost(pop.obs, self.real)
-        # A world that lost its object or went NaN is worst; NaN costs must not win the argmin.
+        # A world that lost its object is worst, and one that went NaN worse still: when every
+        # world has lost the object (the hand let go and rose), the argmin must not pick a NaN pose.
         cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(pop.obs.health != HEALTH_OK, 1e9)
+        cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
         self._window_frames += 1
         self._packed.copy_(self._summary(self.window / self._window_frames))
@@ -413,10 +417,12 @@ class Tracker:
         obs, pop = self.pop.obs, self.pop
         best = window.argmin(-1)
         take = lambda t: torch.gather(t, 1, best[:, None, None].expand(-1, 1, t.shape[-1]))[:, 0]  # noqa: E731
-        pose = take(obs.object_pose)
+        # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
+        poses = torch.where(torch.isfinite(obs.object_pose).all(-1, keepdim=True), obs.object_pose, self._origin)
+        pose = take(poses)
         weights = wrs_pmf(window, self.config.estimate_lambda)  # (G, K)
-        position = obs.object_pose[..., :3]
-        quat = obs.object_pose[..., 3:]
+        position = poses[..., :3]
+        quat = poses[..., 3:]
         # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
         quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
         mean_p = (weights[..., None] * position).sum(1)

@@ -39,13 +39,23 @@ FRAME_RATE = 30.0
 _FINGER_ABDUCTION = (6, 10, 14)
 _FINGER_FLEXION = ((7, 8, 9), (11, 12, 13), (15, 16, 17))
 _THUMB_SWING = 18
-SQUEEZE = 0.3
-"""How far the fingers close past touching the object [rad]."""
-_FIRMER: dict[str, float] = {"toy_banana": 0.38}
-"""Objects a pinch of SQUEEZE lets slip out during carries: the banana's round tube is held by a
-line of pads on one side and the thumb on the other."""
+_TURNS = ((0.08, (0.55, 0.65), 1.0), (0.15, (0.55, 0.65), 1.3), (math.inf, (0.35, 0.4), 1.0))
+"""How the fingers turn an object, by its length along the fingers' row: (up to [m], the range of
+the finger abduction that turns it [rad], how much further the thumb swings). Measured on the CPU
+at friction x0.7-1.3 (docs/benchmarks.md):
+
+- up to 8 cm (the brick) turns 32-37 degrees; a thumb swinging further turned it 50-62 and set it
+  down on an edge, where 1 um at the start ended up to 40 mm apart;
+- up to 15 cm (the spam can): the outer fingers' abduction stops at its limit (0.47 rad), and a
+  thumb that swung no further turned it only 26-30 degrees; at 1.3 times it turns 31-42;
+- longer (the banana): the thumb pushing its middle turns it 30-64 degrees at a smaller swing, and
+  0.55-0.65 rad turned it so far that its ends left the outer pads and it fell."""
+_PLACE_DEPTH = 0.01
+"""How far below where it picked the object up the hand sets it down [m]: it presses on the table and slips."""
 _CLEAR = 0.2
 """How far past touching the digits open to let go [rad]."""
+_GAIT_CLEAR = 0.2
+"""How far past touching a gaiting finger lifts off [rad]: just clear, the others hold meanwhile."""
 _GAITS = 3
 """Finger gaits per demo: each re-press walks the object a few millimetres over the pads, and an
 open-loop script (unlike a teleoperator) cannot correct that, so more gaits walk it out of the hand."""
@@ -127,13 +137,14 @@ def make_demo(
     # Fingers abduct towards -y and the thumb swings towards +y: the planned pinch leaves the
     # thumb's swing next to its upper limit, so the other way barely turns the object.
     sign = 1.0
-    turn = float(rng.uniform(0.55, 0.65))  # finger abduction and thumb swing [rad]
+    length = float(obj.mesh.extents[:2].max())  # the pinch lays the longer side along the row
+    turn_range, lead = next((r, lead) for up_to, r, lead in _TURNS if length <= up_to)
+    turn = float(rng.uniform(*turn_range))
 
     rest_z = -float(obj.mesh.bounds[0, 2])  # the object's centre height when it rests on the table
     wrist = np.array([*rng.uniform(-0.05, 0.05, 2), 0.3, 0.0, 0.0, 0.0])
     wrist[2] += rest_z - plan_pinch(kin, obj, wrist_q=wrist).object_pose[2]  # lower the pinch onto it
-    squeeze = _FIRMER.get(obj.name, SQUEEZE)
-    grasp = plan_pinch(kin, obj, wrist_q=wrist, squeeze=squeeze)
+    grasp = plan_pinch(kin, obj, wrist_q=wrist)
     palm_z = float(wrist[2])
     open_hand = lay.default_q.copy()
     open_hand[:3] = wrist[0], wrist[1], palm_z + 0.12  # straight above: the fingers clear the object
@@ -153,7 +164,7 @@ def make_demo(
         """Fingers abduct one way and the thumb swings the other, rolling the pads over the object."""
         out = q.copy()
         out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - direction * sign * turn
-        out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn
+        out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn * lead
         return out
 
     gaits = 0
@@ -166,7 +177,7 @@ def make_demo(
         gaits += 1
         for finger, flexion in order if gaits % 2 else order[::-1]:
             lifted = script.q.copy()
-            lifted[list(flexion)] -= squeeze + 0.05  # just clear of the object: the others hold it meanwhile
+            lifted[list(flexion)] = grasp.q_touch[list(flexion)] - _GAIT_CLEAR
             script.move("gait", lifted, 0.35)
             moved = lifted.copy()
             moved[finger] = held[finger] - direction * sign * turn
@@ -186,28 +197,29 @@ def make_demo(
         script.hold("carry", 0.3)
         script.move("carry", back, 0.8)
 
-    # One turn (with a gait in the gaiting demo), then carrying about until the demo lasts
-    # ``seconds``, with a gait between carries in the gaiting demo. Turning back and forth more
-    # often walks the object out of an open-loop grasp, which a teleoperator would not do.
+    # The gaiting demo gaits before the turn, while all four pads press the object: a finger
+    # lifts only while the two others and the thumb carry it. Turned, the object rests on the
+    # index and thumb alone (docs/benchmarks.md), and lifting either drops it. Turning back and
+    # forth more often walks the object out of an open-loop grasp, which a teleoperator would not do.
     carry()
+    while kind == "gaiting" and gaits < _GAITS:
+        gait(0.0)
+        script.hold("hold", 0.5)
+        carry()
     script.move("turn", turned(script.q, 1.0), 3.0)
     script.hold("turn", 0.5)
-    if kind == "gaiting":
-        gait(0.0)  # the fingers go back to the middle one by one; the object stays turned
     while script.count < (seconds - 3.3) * pace * FRAME_RATE:  # 3.3 s: place, let go, retreat
         carry()
         script.hold("hold", 0.8)
-        if kind == "gaiting" and gaits < _GAITS:
-            gait(0.0)
     down = script.q.copy()
-    down[2] = palm_z - 0.01  # 1 cm below where it was picked up: it presses on the table and slips
+    down[2] = palm_z - _PLACE_DEPTH
     script.move("place", down, 1.2)
     script.hold("place", 0.3)
     # Let go by uncurling the digits just clear of the object where they are, then rise straight
     # up. Opening to the rest pose at table height swept the turned fingers and the thumb
     # sideways through the object and flung it (the banana half a metre).
     release = script.q.copy()
-    release[SQUEEZE_JOINTS] -= squeeze + _CLEAR
+    release[SQUEEZE_JOINTS] = grasp.q_touch[SQUEEZE_JOINTS] - _CLEAR
     script.move("release", release, 0.8)
     retreat = release.copy()
     retreat[2] += 0.08

@@ -56,6 +56,19 @@ def test_pick_turn_in_hand_place_and_let_go(recordings, g):
     assert (np.abs(demo.controls - demo.controls.clip(*_limits(demo))) < 1e-6).all(), "targets within limits"
 
 
+@pytest.mark.parametrize("g", [0, 1], ids=DEMO_KINDS)
+def test_the_pinch_lifts_the_object_where_it_lay(recordings, g):
+    """From the first touch to the lift the pads press straight in and the object barely moves.
+    Closing the flexion joints past touching swung the thumb's tip up and sideways and shoved it
+    16-31 mm over the table: a shove that no tracker can follow from a noisy start."""
+    demos, rec = recordings
+    touched = np.flatnonzero((np.linalg.norm(rec.force[:, g], axis=-1) > 0.2).any(axis=1))[0]
+    lifted = _first(demos[g], "lift")
+    pose = rec.object_pose[:, g]
+    shove = np.linalg.norm(pose[lifted, :3] - pose[touched - 1, :3])
+    assert shove < 0.004, f"the pinch moved the object {shove * 1e3:.1f} mm before the lift"
+
+
 def _limits(demo):
     from sim_backend import HandSpec, Kinematics
 
@@ -114,28 +127,33 @@ def test_ground_truth_keeps_only_demos_whose_object_stays_in_the_hand(hand, reco
     assert mixed.held(demos[::-1]).tolist() == [False, True]
 
 
-def test_a_micrometre_at_the_start_of_the_brick_pick_and_place_stays_below_a_millimetre(hand, recordings):
-    """The tracker's millimetres are not lost to chaos in the demo itself. Gaiting amplifies more
-    (each re-press: 4.7 mm from 1 um over the short demo), docs/benchmarks.md."""
+def test_a_micrometre_at_the_start_of_the_brick_stays_below_a_millimetre_while_held(hand, recordings):
+    """The tracker's millimetres are not lost to chaos in the demo itself. The set-down is another
+    matter: a turned box pressed on the table tips one way or the other (2.0 mm from 1 um by the
+    end of this short pick and place, up to 40 mm where the thumb turned the brick 50-62 degrees),
+    docs/benchmarks.md."""
     spec, _ = hand
     demos, _ = recordings
     obj = catalog_object("foam_brick")
     mass, friction = np.full(2, obj.mass), np.full(2, obj.friction)
     pop = Population(spec, obj, PopulationConfig(groups=4, worlds=1, device="cpu"))
-    assert sensitivity(pop, demos, mass, friction, shift=1e-6)[DEMO_KINDS.index("pick_place")] < 1e-3
+    held = [d.until("place") for d in demos]
+    gap = sensitivity(pop, held, mass, friction, shift=1e-6)  # 0.45 mm; 1.05 mm with the re-presses of the gaits
+    assert (gap < np.array([1e-3, 2e-3])).all(), f"1 um at the start: {gap * 1e3} mm apart before the set-down"
     # The measure sees a shift that persists: the brick rests 5 mm further along until the grasp.
-    assert (sensitivity(pop, demos, mass, friction, shift=5e-3) >= 5e-3 - 1e-5).all()
+    assert (sensitivity(pop, held, mass, friction, shift=5e-3) >= 5e-3 - 1e-5).all()
     with pytest.raises(ValueError, match="expected a population of 4 groups"):
         sensitivity(Population(spec, obj, PopulationConfig(groups=2, worlds=1, device="cpu")), demos, mass, friction)
 
 
 def test_the_banana_pinch_is_not_a_knife_edge(hand):
     """On its back the banana balanced on its curve and the first touch tipped it: 1 um at the start
-    became 64 mm by the lift (1.5 mm over this short demo's faster lift). On its side, pinched at
-    its middle, it moves 0.003 mm."""
+    became 64 mm by the lift. On its side, pinched at its middle with every pad pressed straight
+    in, it ends 0.4-1.4 mm apart (0.003 mm when the flexion joints closed, but that pinch shoved
+    the object 16-31 mm over the table)."""
     spec, kin = hand
     obj = catalog_object("toy_banana")
-    demos = [make_demo(kin, obj, "pick_place", v, seconds=10.0, pace=0.7).until("carry") for v in range(2)]
+    demos = [make_demo(kin, obj, "pick_place", v).until("carry") for v in range(2)]
     pop = Population(spec, obj, PopulationConfig(groups=4, worlds=1, device="cpu"))
     gap = sensitivity(pop, demos, np.full(2, obj.mass), np.full(2, obj.friction))
-    assert (gap < 1e-4).all(), f"1 um at the start moved the lifted banana by {gap * 1e3} mm"
+    assert (gap < 3e-3).all(), f"1 um at the start moved the lifted banana by {gap * 1e3} mm"

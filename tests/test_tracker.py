@@ -148,8 +148,8 @@ def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):
     stay = np.linalg.norm(seeded - recording.object_pose[lift, :, :3], axis=-1)
     # Re-seeded at the last trusted place, they were 70 mm off. Where the hand took it they are
     # 5-36 mm off over seeds 0-5 (the best of 8 worlds when last trusted, and the mean of 8 draws
-    # 15 mm wide), at most about half as far (0.50) from it as from where it was lifted.
-    assert (off < 0.6 * stay).all(), f"re-seeded {off * 1e3} mm from the held object, {stay * 1e3} from the table"
+    # 15 mm wide); with the straight-in pinch 0.64 times as far from it as from where it was lifted.
+    assert (off < 0.75 * stay).all(), f"re-seeded {off * 1e3} mm from the held object, {stay * 1e3} from the table"
 
 
 class _OpCounter(TorchDispatchMode):
@@ -211,3 +211,23 @@ def test_restarting_one_group_resets_only_its_cost_normalisation(hand, recording
     tr.start(recording.initial_pose, recording.initial_q, groups=np.array([True, False]))  # a new session in group 0
     assert tr.cost.frames.tolist() == [0.0, 3.0]
     assert not tr.cost.running[0].any() and torch.equal(tr.cost.running[1], running[1])
+
+
+def test_a_nan_world_never_becomes_the_estimate_when_every_world_lost_the_object(hand, recording):
+    """After the hand lets go and rises, every world counts as lost: the argmin over equal costs
+    picked world 0, and where world 0 had gone NaN the estimate was NaN (H100, EYE, 2 frames of
+    the paper suite)."""
+    tr = _tracker(hand, worlds=4, optimizer=OptimizerConfig(method="EYE"))
+    tr.start(recording.initial_pose, recording.initial_q)
+    for f in range(10):
+        tr.step(_frame(recording, f))
+    pose = np.tile(recording.initial_pose[:, None], (1, tr.K, 1))
+    pose[..., :3] += [0.0, 0.5, 0.0]  # every object half a metre from the hand: lost
+    tr.pop.reset_state(pose, np.tile(recording.q[9][:, None], (1, tr.K, 1)))
+    qd = tr.pop._state_views["joint_qd"](tr.pop.state_0)
+    qd[:, 0, 3] = float("nan")  # and world 0 of every group blows up
+    est = tr.step(_frame(recording, 10))
+    # The estimate comes before the divergence's re-seed, which clears the worlds' health.
+    assert (est.lost == 1.0).all() and torch.isnan(tr.pop.obs.object_pose[:, 0]).any(-1).all()
+    assert np.isfinite(est.pose).all() and np.isfinite(est.mean_pose).all() and np.isfinite(est.covariance).all()
+    assert (est.pose[:, 1] > recording.initial_pose[:, 1] + 0.4).all(), "a lost world's pose, not a stand-in"
