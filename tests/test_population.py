@@ -42,7 +42,8 @@ def _grasped(hand, obj_name: str, worlds: int, **cfg) -> tuple[Population, objec
 @pytest.mark.parametrize("name", sorted(CATALOG))
 def test_grasp_holds_each_object_for_3_s(hand, name):
     pop, _grasp = _grasped(hand, name, worlds=2)
-    pop.step()
+    for _ in range(10):  # the pads close on the object from touching: it sinks 5-6 mm into them first
+        pop.step()
     start = pop.obs.object_pose[..., 2].clone()
     for _ in range(FRAMES_3S):
         pop.step()
@@ -147,8 +148,9 @@ def test_low_friction_slips_where_high_friction_holds(hand):
         pop.step()
     start = pop.obs.object_pose[0, :, :3].clone()
     push = torch.zeros(1, 2, 6)
-    # The same 10 N downward push on both: more than 0.3 x the ~20 N grip, less than 1.5 x it.
-    push[0, :, 2] = -10.0
+    # The same 6 N downward push on both: more than 0.3 x the ~18 N the pads press with, less
+    # than 1.5 x it (10 N moved the high-friction can 14 mm: the pads give as well as slip).
+    push[0, :, 2] = -6.0
     slipped = torch.zeros(2)
     for _ in range(10):
         pop.set_wrench(push)
