@@ -6,8 +6,8 @@ Allegro-like hand on a 6-DoF wrist) so that any number can be made with known tr
 - ``pick_place``: reach the object on the table, pinch it with the fingertips, lift it, carry it
   about (quick moves, so it slips from inertia), turn it in the hand by 30 degrees or more with
   the fingers and thumb, set it down pressing against the table (it slips again), let go.
-- ``gaiting``: the same, but while the object is held each finger in turn breaks contact, moves
-  and re-establishes it (finger gaiting), again and again.
+- ``gaiting``: the same, but before the turn, while all four pads hold the object, each finger in
+  turn breaks contact and makes it again (finger gaiting), three times over.
 
 A demo is a sequence of joint targets (F, D). Running it in a population with hidden physics
 (one world per group) records what the real robot would send (joint positions, fingertip
@@ -160,29 +160,26 @@ def make_demo(
     held[2] += 0.06
     script.move("lift", held, 1.2)
 
-    def turned(q: np.ndarray, direction: float) -> np.ndarray:
+    def turned(q: np.ndarray) -> np.ndarray:
         """Fingers abduct one way and the thumb swings the other, rolling the pads over the object."""
         out = q.copy()
-        out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - direction * sign * turn
-        out[_THUMB_SWING] = held[_THUMB_SWING] - direction * sign * turn * lead
+        out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - sign * turn
+        out[_THUMB_SWING] = held[_THUMB_SWING] - sign * turn * lead
         return out
 
     gaits = 0
 
-    def gait(direction: float) -> None:
-        """Each finger in turn lets go, moves its abduction to ``direction`` (0: the middle, 1: turned)
-        and presses again."""
+    def gait() -> None:
+        """Each finger in turn lifts just clear of the object, stays clear a moment and presses
+        again, the first finger first in odd gaits and last in even ones."""
         nonlocal gaits
-        order = list(zip(_FINGER_ABDUCTION, _FINGER_FLEXION, strict=True))
         gaits += 1
-        for finger, flexion in order if gaits % 2 else order[::-1]:
+        for flexion in _FINGER_FLEXION if gaits % 2 else _FINGER_FLEXION[::-1]:
             lifted = script.q.copy()
             lifted[list(flexion)] = grasp.q_touch[list(flexion)] - _GAIT_CLEAR
             script.move("gait", lifted, 0.35)
-            moved = lifted.copy()
-            moved[finger] = held[finger] - direction * sign * turn
-            script.move("gait", moved, 0.35)
-            pressed = moved.copy()
+            script.hold("gait", 0.35)
+            pressed = lifted.copy()
             pressed[list(flexion)] = held[list(flexion)]
             script.move("gait", pressed, 0.35)
             script.hold("gait", 0.2)
@@ -203,10 +200,10 @@ def make_demo(
     # forth more often walks the object out of an open-loop grasp, which a teleoperator would not do.
     carry()
     while kind == "gaiting" and gaits < _GAITS:
-        gait(0.0)
+        gait()
         script.hold("hold", 0.5)
         carry()
-    script.move("turn", turned(script.q, 1.0), 3.0)
+    script.move("turn", turned(script.q), 3.0)
     script.hold("turn", 0.5)
     while script.count < (seconds - 3.3) * pace * FRAME_RATE:  # 3.3 s: place, let go, retreat
         carry()

@@ -51,8 +51,9 @@ def plan_pinch(
     """Plan a pinch of ``obj`` by the hand at ``wrist_q`` (6,: x, y, z [m], then zero angles).
 
     The object is turned about z so its narrower horizontal side lies along the squeeze; the
-    pads touch it at its mid-length cross-section; the squeeze targets put every pad ``depth``
-    [m] inside the object, straight along the squeeze.
+    pads touch its surface at the height of its mid-length cross-section, each at its own
+    place along the row; the squeeze targets put every pad ``depth`` [m] inside the object,
+    straight along the squeeze.
     """
     lay = kin.layout
     q = lay.default_q.copy()

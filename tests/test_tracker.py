@@ -148,7 +148,8 @@ def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):
     stay = np.linalg.norm(seeded - recording.object_pose[lift, :, :3], axis=-1)
     # Re-seeded at the last trusted place, they were 70 mm off. Where the hand took it they are
     # 5-36 mm off over seeds 0-5 (the best of 8 worlds when last trusted, and the mean of 8 draws
-    # 15 mm wide); with the straight-in pinch 0.64 times as far from it as from where it was lifted.
+    # 15 mm wide), with the flexion pinch; with the straight-in pinch, seed 0: 0.64 times as far from
+    # it as from where it was lifted.
     assert (off < 0.75 * stay).all(), f"re-seeded {off * 1e3} mm from the held object, {stay * 1e3} from the table"
 
 
