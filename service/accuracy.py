@@ -122,7 +122,7 @@ CACHE_DIR = Path.home() / ".cache" / "inhand-tracker" / "trajectories"
 
 def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR, log=None) -> list[Trajectory]:
     """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
-    written to ``cache``) with one truth population per object, one group per demo, hidden mass
+    written to ``cache``) with one truth population per object, one group per physics draw of a demo, hidden mass
     and friction drawn from the tracker's prior (among those with which the hand can lift it)."""
     spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
     kin = Kinematics(HandSpec())  # the robot's own model plans the demos
@@ -147,8 +147,9 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             log(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
         t0 = time.perf_counter()
         rng = np.random.default_rng([suite.seed, o])
-        # A GPU steps 64 one-world groups as fast as 16: it tries a demo's draws side by side
-        # rather than one round after another (a redrawn round costs a whole demo's time).
+        # A GPU's frame costs little more for more worlds (a held pinch: 4.9 ms at 40, 7.1 ms at
+        # 1024, issue 7), so it tries a demo's draws side by side rather than one round after
+        # another (a redrawn round costs a whole demo's time). Not timed at 64 against 16.
         candidates = _CANDIDATES if resolve_device(device).is_cpu else 4 * _CANDIDATES
         config = PopulationConfig(
             groups=len(demos) * candidates,

@@ -53,9 +53,8 @@ at friction x0.7-1.3 (docs/benchmarks.md):
 _PLACE_DEPTH = 0.01
 """How far below where it picked the object up the hand sets it down [m]: it presses on the table and slips."""
 _CLEAR = 0.2
-"""How far past touching the digits open to let go [rad]."""
-_GAIT_CLEAR = 0.2
-"""How far past touching a gaiting finger lifts off [rad]: just clear, the others hold meanwhile."""
+"""How far past touching the flexion joints open [rad]: just clear of the object, for a gaiting
+finger (the others hold it meanwhile) and for letting go."""
 _GAITS = 3
 """Finger gaits per demo: each re-press walks the object a few millimetres over the pads, and an
 open-loop script (unlike a teleoperator) cannot correct that, so more gaits walk it out of the hand."""
@@ -134,9 +133,6 @@ def make_demo(
         raise ValueError(f"demo pace: expected 0.2 to 5, got {pace}")
     lay = kin.layout
     rng = np.random.default_rng([variant, DEMO_KINDS.index(kind)])
-    # Fingers abduct towards -y and the thumb swings towards +y: the planned pinch leaves the
-    # thumb's swing next to its upper limit, so the other way barely turns the object.
-    sign = 1.0
     length = float(obj.mesh.extents[:2].max())  # the pinch lays the longer side along the row
     turn_range, lead = next((r, lead) for up_to, r, lead in _TURNS if length <= up_to)
     turn = float(rng.uniform(*turn_range))
@@ -161,10 +157,13 @@ def make_demo(
     script.move("lift", held, 1.2)
 
     def turned(q: np.ndarray) -> np.ndarray:
-        """Fingers abduct one way and the thumb swings the other, rolling the pads over the object."""
+        """Fingers abduct one way and the thumb swings the other, rolling the pads over the object.
+
+        Fingers towards -y and the thumb towards +y: the planned pinch leaves the thumb's swing
+        next to its upper limit, so the other way barely turns the object."""
         out = q.copy()
-        out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - sign * turn
-        out[_THUMB_SWING] = held[_THUMB_SWING] - sign * turn * lead
+        out[list(_FINGER_ABDUCTION)] = held[list(_FINGER_ABDUCTION)] - turn
+        out[_THUMB_SWING] = held[_THUMB_SWING] - turn * lead
         return out
 
     gaits = 0
@@ -176,7 +175,7 @@ def make_demo(
         gaits += 1
         for flexion in _FINGER_FLEXION if gaits % 2 else _FINGER_FLEXION[::-1]:
             lifted = script.q.copy()
-            lifted[list(flexion)] = grasp.q_touch[list(flexion)] - _GAIT_CLEAR
+            lifted[list(flexion)] = grasp.q_touch[list(flexion)] - _CLEAR
             script.move("gait", lifted, 0.35)
             script.hold("gait", 0.35)
             pressed = lifted.copy()
