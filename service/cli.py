@@ -132,8 +132,8 @@ def _serve(args: argparse.Namespace) -> int:
         stop.wait()
         print("inhand-tracker: stopping", flush=True)
     # Everything is closed; what is left is Python's final full collection, which walks every object
-    # torch, warp and newton made (about 3 s of a 7 s stop on a 2-core CPU, past the 5 s a
-    # container gets after SIGTERM). Frozen objects are skipped, and the process exits either way.
+    # torch, warp and newton made: SIGTERM to exit took 6.8 s on a 2-core CPU, past the 5 s a
+    # container gets, and 2.0 s with the heap frozen (frozen objects are not walked).
     gc.freeze()
     return 0
 
