@@ -41,6 +41,12 @@ class OptimizerConfig:
     5.04, 5.39, 5.89 and 8.62 mm, 0.35 with the narrowest spread of run means (4.80 to 5.26 mm).
     Keeping more lets a population drift; the gain over 0.5 is within one run's spread
     (docs/benchmarks.md)."""
+    pbo_rank_power: float = 0.0
+    """PBO: draw the K - K_best copies with weight (K_best - rank) ** p over the kept worlds, rank 0
+    the best. 0 draws them uniformly, as the paper; p = 1 gives the best K_best times the share of
+    the last kept. Still a function of the ordering only. Not yet measured on the paper suite: the
+    candidate that docs/benchmarks.md names for PBO's tail, since REPS, whose copies fall off with
+    rank, has a third of PBO's tracks above 10 mm."""
     keep_best: bool = True
     """Leave the best world unperturbed, so an update never loses the current estimate."""
     min_spread: float = 0.5
@@ -53,6 +59,8 @@ class OptimizerConfig:
             raise ValueError(f"optimizer method: expected one of {METHODS}, got {self.method!r}")
         if not (0.0 < self.pbo_keep <= 1.0):
             raise ValueError(f"optimizer pbo_keep: expected 0 < fraction <= 1, got {self.pbo_keep}")
+        if self.pbo_rank_power < 0:
+            raise ValueError(f"optimizer pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
             raise ValueError(
                 f"optimizer reps_epsilon and wrs_lambda must be positive, got {self.reps_epsilon}, {self.wrs_lambda}"
@@ -164,7 +172,14 @@ def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch
         keep = max(1, round(config.pbo_keep * k))
         order = torch.argsort(cost, dim=-1)
         best = order[:, :keep]
-        pick = torch.randint(0, keep, (g, k - keep), generator=gen, device=dev)
+        if config.pbo_rank_power > 0:
+            weight = (keep - torch.arange(keep, device=dev, dtype=cost.dtype)) ** config.pbo_rank_power
+            cdf = torch.cumsum(weight, 0) / weight.sum()
+            # Inverse CDF rather than torch.multinomial: the same capture-safe ops as systematic_resample.
+            u = torch.rand((g, k - keep), generator=gen, device=dev, dtype=cost.dtype)
+            pick = torch.searchsorted(cdf, u).clamp_(max=keep - 1)
+        else:
+            pick = torch.randint(0, keep, (g, k - keep), generator=gen, device=dev)
         index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
     else:
         pmf = wrs_pmf(cost, config.wrs_lambda) if method == "WRS" else reps_pmf(cost, config.reps_epsilon)

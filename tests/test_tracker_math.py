@@ -144,6 +144,21 @@ def test_pbo_keeps_the_best_and_copies_them_uniformly():
     assert not upd.explore[:, 0].any() and upd.explore[:, 1:].all()
 
 
+def test_pbo_rank_power_copies_the_better_kept_worlds_more_often():
+    k, g = 12, 3000
+    gen = torch.Generator().manual_seed(3)
+    cost = 10.0 * torch.rand(g, k, generator=gen)
+    upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25, pbo_rank_power=1.0), gen)
+    best = torch.argsort(cost, -1)[:, :3]
+    assert torch.equal(upd.index[:, :3], best)
+    rank = (upd.index[:, 3:, None] == best[:, None, :]).float().argmax(-1)
+    observed = torch.nn.functional.one_hot(rank, 3).sum((0, 1)).float()
+    expected = observed.sum() * torch.tensor([3.0, 2.0, 1.0]) / 6.0  # weights K_best - rank
+    assert (((observed - expected) ** 2) / expected).sum().item() < 13.8  # 2 dof, p = 0.001
+    with pytest.raises(ValueError, match="pbo_rank_power: expected >= 0, got -1"):
+        OptimizerConfig(method="PBO", pbo_rank_power=-1.0)
+
+
 def test_groups_whose_costs_do_not_differ_are_left_alone():
     cost = torch.tensor([[1.0, 1.1, 1.2, 1.3], [0.0, 5.0, 9.0, 9.0]])
     upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.5, min_spread=0.5), torch.Generator())
