@@ -37,16 +37,15 @@ class OptimizerConfig:
     """REPS KL bound epsilon between the new sample distribution and the uniform one [nats]."""
     pbo_keep: float = 0.35
     """PBO: the fraction K_best / K of worlds kept; the paper does not give it. On one H100 truth
-    of the paper suite (med noise, K=40, four runs each) 0.25, 0.35, 0.5, 0.6 and 0.75 gave 5.23,
-    5.04, 5.39, 5.89 and 8.62 mm, 0.35 with the narrowest spread of run means (4.80 to 5.26 mm).
-    Keeping more lets a population drift; the gain over 0.5 is within one run's spread
-    (docs/benchmarks.md)."""
+    of the paper suite (med noise, K=40, 32 runs per track) 0.6 is clearly worse than 0.35 (7.64
+    against 5.69 mm, paired +1.94 +- 0.42), and 0.25 is within noise of it (-0.35 +- 0.39, 24
+    runs); four runs each of 0.5 and 0.75 gave 5.39 and 8.62 mm (docs/benchmarks.md)."""
     pbo_rank_power: float = 0.0
     """PBO: draw the K - K_best copies with weight (K_best - rank) ** p over the kept worlds, rank 0
     the best. 0 draws them uniformly, as the paper; p = 1 gives the best K_best times the share of
     the last kept. Still a function of the ordering only. Not yet measured on the paper suite: the
     candidate that docs/benchmarks.md names for PBO's tail, since REPS, whose copies fall off with
-    rank, has a third of PBO's tracks above 10 mm."""
+    rank, has 7 tracks above 10 mm in 384 where PBO has 26."""
     keep_best: bool = True
     """Leave the best world unperturbed, so an update never loses the current estimate."""
     min_spread: float = 0.5
