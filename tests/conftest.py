@@ -1,5 +1,10 @@
 import pytest
 
+from service.cli import forward_only_kernels
+
+# Before collection imports a test module that imports newton: Warp reads it per kernel module.
+forward_only_kernels()
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _quiet_warp():
