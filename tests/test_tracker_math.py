@@ -128,11 +128,11 @@ def test_wrs_samples_follow_its_softmax():
     assert torch.allclose(pmf, torch.softmax(-3.0 * torch.linspace(0, 1, k), 0))
 
 
-def test_pbo_keeps_the_best_and_copies_them_uniformly():
+def test_pbo_keeps_the_best_and_copies_them_uniformly_at_rank_power_0():
     k, g = 12, 3000
     gen = torch.Generator().manual_seed(2)
     cost = 10.0 * torch.rand(g, k, generator=gen)  # spreads well above min_spread: every group updates
-    upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25), gen)
+    upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25, pbo_rank_power=0.0), gen)
     best = torch.argsort(cost, -1)[:, :3]
     assert torch.equal(upd.index[:, :3], best)  # the K_best survive, best first
     copies = upd.index[:, 3:]
