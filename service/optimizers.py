@@ -39,7 +39,9 @@ class OptimizerConfig:
     """PBO: the fraction K_best / K of worlds kept; the paper does not give it. On one H100 truth
     of the paper suite (med noise, K=40, 32 runs per track) 0.6 is clearly worse than 0.35 (7.64
     against 5.69 mm, paired +1.94 +- 0.42), and 0.25 is within noise of it (-0.35 +- 0.39, 24
-    runs); four runs each of 0.5 and 0.75 gave 5.39 and 8.62 mm (docs/benchmarks.md)."""
+    runs); four runs each of 0.5 and 0.75 gave 5.39 and 8.62 mm. Those copied uniformly
+    (``pbo_rank_power`` 0); with ``pbo_rank_power`` 2, 0.6 matched the defaults on another truth
+    (4.60 against 4.64 mm, 28 runs) and lost fewer tracks (docs/benchmarks.md)."""
     pbo_rank_power: float = 1.0
     """PBO: draw the K - K_best copies with weight (K_best - rank) ** p over the kept worlds, rank 0
     the best, so the best kept world gets K_best times the share of the last; still a function of
