@@ -44,8 +44,8 @@ class OptimizerConfig:
     (4.60 against 4.64 mm, 28 runs) and lost fewer tracks (docs/benchmarks.md)."""
     pbo_rank_power: float = 1.0
     """PBO: draw the K - K_best copies with weight (K_best - rank) ** p over the kept worlds, rank 0
-    the best, so the best kept world gets K_best times the share of the last; still a function of
-    the ordering only. 0 draws them uniformly, as the paper. On an H100 truth of the paper suite
+    the best (at p = 1 the best kept world gets K_best times the share of the last); still a
+    function of the ordering only. 0 draws them uniformly, as the paper. On an H100 truth of the paper suite
     (med noise, K=40, 32 runs per track, paired) p = 1 gave 4.64 against 5.08 mm for p = 0
     (-0.44 +- 0.22) and p = 2 gave 4.66 (-0.42 +- 0.20) (docs/benchmarks.md)."""
     keep_best: bool = True
@@ -173,14 +173,12 @@ def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch
         keep = max(1, round(config.pbo_keep * k))
         order = torch.argsort(cost, dim=-1)
         best = order[:, :keep]
-        if config.pbo_rank_power > 0:
-            weight = (keep - torch.arange(keep, device=dev, dtype=cost.dtype)) ** config.pbo_rank_power
-            cdf = torch.cumsum(weight, 0) / weight.sum()
-            # Inverse CDF rather than torch.multinomial: the same capture-safe ops as systematic_resample.
-            u = torch.rand((g, k - keep), generator=gen, device=dev, dtype=cost.dtype)
-            pick = torch.searchsorted(cdf, u).clamp_(max=keep - 1)
-        else:
-            pick = torch.randint(0, keep, (g, k - keep), generator=gen, device=dev)
+        # p = 0 makes every weight 1: the paper's uniform draw is the same path.
+        weight = (keep - torch.arange(keep, device=dev, dtype=cost.dtype)) ** config.pbo_rank_power
+        cdf = torch.cumsum(weight, 0) / weight.sum()
+        # Inverse CDF rather than torch.multinomial: the same capture-safe ops as systematic_resample.
+        u = torch.rand((g, k - keep), generator=gen, device=dev, dtype=cost.dtype)
+        pick = torch.searchsorted(cdf, u).clamp_(max=keep - 1)
         index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
     else:
         pmf = wrs_pmf(cost, config.wrs_lambda) if method == "WRS" else reps_pmf(cost, config.reps_epsilon)
