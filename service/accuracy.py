@@ -311,10 +311,12 @@ def run_tracks(
     progress: Callable[[int], None] | None = None,
     substeps: int = 8,
     config: TrackerConfig | None = None,
+    population: dict[str, int | float | bool] | None = None,
 ) -> list[TrackResult]:
     """Run ``tracks`` on ``trajectories`` of one object: one population per world count, every
     track a group of it. The noisy initial pose of a (trajectory, noise) pair is the same for
-    every method, so methods are compared on equal footing; each repeat draws its own."""
+    every method, so methods are compared on equal footing; each repeat draws its own.
+    ``population``: the tracker's physics settings other than PopulationConfig's defaults."""
     obj = catalog_object(trajectories[0].object)
     spec = HandSpec()
     rec = Recording.stack(trajectories)
@@ -327,7 +329,8 @@ def run_tracks(
     results: list[TrackResult] = []
     for k in sorted({t.worlds for t in tracks}):
         group = [t for t in tracks if t.worlds == k]
-        pop = Population(spec, obj, PopulationConfig(groups=len(group), worlds=k, device=device, substeps=substeps))
+        physics = PopulationConfig(groups=len(group), worlds=k, device=device, substeps=substeps, **(population or {}))
+        pop = Population(spec, obj, physics)
         terms = np.ones((len(group), 10), bool)
         for g, t in enumerate(group):
             terms[g, list(_CONTACT_TERMS)] = t.contact_terms
@@ -395,13 +398,16 @@ def run_suite(
     substeps: int = 8,
     repeats: int = 1,
     config: TrackerConfig | None = None,
+    population: dict[str, int | float | bool] | None = None,
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
     gets the partial results after each population. ``substeps``: the tracker's physics substeps per
     frame (the ground truth keeps its suite's own). ``repeats``: independent runs of every track,
     batched as more groups; the summary then also gives each run's mean. ``config``: the tracker's
-    settings (default ``TrackerConfig()``; its seed is the suite's)."""
+    settings (default ``TrackerConfig()``; its seed is the suite's). ``population``: the tracker's
+    physics settings other than PopulationConfig's defaults, e.g. ``{"impratio": 30.0}`` (the
+    ground truth keeps the defaults and its suite's gap)."""
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"methods: expected some of {METHODS}, got {m!r}")
@@ -430,7 +436,7 @@ def run_suite(
             by_k.setdefault(s.worlds, []).append(s)
         for k, k_tracks in by_k.items():  # the frames of one population advance all its groups at once
             t1 = time.perf_counter()
-            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance, substeps, config)
+            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance, substeps, config, population)
             frames = max(t.frames for t in ts)
             seconds = time.perf_counter() - t1
             bar.note(
@@ -440,12 +446,21 @@ def run_suite(
             if checkpoint:  # what is done so far survives a run cut short (a time limit)
                 checkpoint(
                     _collect(
-                        suite, results, worlds, k_ablation, t_truth, time.perf_counter() - t0, device, substeps, config
+                        suite,
+                        results,
+                        worlds,
+                        k_ablation,
+                        t_truth,
+                        time.perf_counter() - t0,
+                        device,
+                        substeps,
+                        config,
+                        population,
                     )
                 )
     bar.close()
     t_track = time.perf_counter() - t0 - t_truth
-    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config)
+    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config, population)
 
 
 class _Progress:
@@ -501,6 +516,7 @@ def _collect(
     device: str,
     substeps: int = 8,
     config: TrackerConfig | None = None,
+    population: dict[str, int | float | bool] | None = None,
 ) -> dict:
     """ADD statistics over tracks: mean of per-track mean ADD, its std over tracks, and the max
     over all frames, per method and noise level (Fig. 2) and per ablation setting (Fig. 3)."""
@@ -550,6 +566,7 @@ def _collect(
         "repeats": 1 + max((r.setting.repeat for r in results), default=0),
         "tracker": _changed(asdict(config or TrackerConfig()), asdict(TrackerConfig())),
         "substeps": substeps,
+        "population": dict(population or {}),
         "seconds": {"ground_truth": t_truth, "tracking": t_track},
         "summary": fig2,
         "summary_mean_pose": mean_pose,

@@ -68,7 +68,8 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="a tracker setting other than its default: jitter_bandwidth=0, optimizer.pbo_keep=0.25 (repeatable)",
+        help="a tracker or physics setting other than its default: jitter_bandwidth=0, optimizer.pbo_keep=0.25, "
+        "population.impratio=30 (repeatable)",
     )
     acc.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     acc.add_argument("--out", default=None, help="output folder (default bench-results/accuracy-SUITE)")
@@ -297,16 +298,21 @@ def _speed(args: argparse.Namespace) -> int:
     return 0
 
 
-def _tracker_config(settings: list[str]):
-    """A TrackerConfig from NAME=VALUE strings: its number and flag fields, and its optimizer's
-    as optimizer.NAME."""
+def _settings(settings: list[str]):
+    """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
+    tracker's number and flag fields, its optimizer's as optimizer.NAME, and the population's
+    physics numbers (impratio, tolerance, ...) as population.NAME."""
     from service.optimizers import OptimizerConfig
     from service.tracker import TrackerConfig, setting_types
+    from sim_backend.population import PopulationConfig
 
     kinds = (int, float, bool)
-    top = {k: t for k, t in setting_types(TrackerConfig, kinds).items() if k != "seed"}
+    # Layout, rate and seeds have their own flags or belong to the suite.
+    own = {"seed", "groups", "worlds", "substeps", "frame_rate"}
+    top = {k: t for k, t in setting_types(TrackerConfig, kinds).items() if k not in own}
     nested = {f"optimizer.{k}": t for k, t in setting_types(OptimizerConfig, kinds).items()}
-    values: dict[str, dict] = {"": {}, "optimizer": {}}
+    nested |= {f"population.{k}": t for k, t in setting_types(PopulationConfig, kinds).items() if k not in own}
+    values: dict[str, dict] = {"": {}, "optimizer": {}, "population": {}}
     for item in settings:
         name, sep, text = item.partition("=")
         kind = top.get(name) or nested.get(name)
@@ -319,7 +325,8 @@ def _tracker_config(settings: list[str]):
             raise ValueError(f"{name}: expected a value of type {kind.__name__}, got '{text}'") from None
         outer, _, inner = name.rpartition(".")
         values[outer][inner] = value
-    return TrackerConfig(optimizer=OptimizerConfig(**values["optimizer"]), **values[""])
+    PopulationConfig(**values["population"])  # out-of-range physics fails here, with the field named
+    return TrackerConfig(optimizer=OptimizerConfig(**values["optimizer"]), **values[""]), values["population"]
 
 
 def _accuracy(args: argparse.Namespace) -> int:
@@ -357,7 +364,7 @@ def _accuracy(args: argparse.Namespace) -> int:
         print(f"--repeats: expected >= 1, got {args.repeats}", file=sys.stderr)
         return 2
     try:
-        config = _tracker_config(args.set)
+        config, population = _settings(args.set)
     except ValueError as exc:
         print(f"--set: {exc}", file=sys.stderr)
         return 2
@@ -377,6 +384,7 @@ def _accuracy(args: argparse.Namespace) -> int:
             substeps=args.substeps,
             repeats=args.repeats,
             config=config,
+            population=population,
         )
     report = write_report(results, out, command=command)
     if args.json:

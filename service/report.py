@@ -41,6 +41,7 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         f"ground truth {results['seconds']['ground_truth']:.0f} s, tracking {results['seconds']['tracking']:.0f} s",
         f"- truth physics off from the tracker's: {suite['gap']}; sensor noise: {suite['sensors']}",
         f"- tracker settings other than the defaults: {results['tracker']}" if results.get("tracker") else None,
+        f"- tracker physics other than the defaults: {results['population']}" if results.get("population") else None,
         "",
         "## ADD per method and initial noise (the paper's Fig. 2)",
         "",

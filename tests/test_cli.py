@@ -33,10 +33,20 @@ def test_bad_tracker_settings_are_refused_with_the_name_and_value():
         ("jitter_t=-1", "tracker jitter_t: expected >= 0, got -1.0"),
         ("optimizer.pbo_keep=2", "optimizer pbo_keep: expected 0 < fraction <= 1, got 2.0"),
         ("optimizer.keep_best=flase", "optimizer.keep_best: expected a value of type bool, got 'flase'"),
+        ("population.tolerance=2", "population tolerance: expected 0 < tolerance < 1, got 2.0"),
+        ("population.substeps=4", "got 'population.substeps=4'"),  # --substeps sets it
     ]:
         out = _run("bench", "accuracy", "--suite", "smoke", "--set", setting)
         assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
     assert "jitter_bandwidth" in _run("bench", "accuracy", "--set", "jitter_bandwith=0").stderr
+
+
+def test_settings_split_into_the_tracker_and_its_physics():
+    from service.cli import _settings
+
+    config, physics = _settings(["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"])
+    assert config.optimizer.pbo_keep == 0.5 and physics == {"impratio": 30.0, "contact_gap": 0.004}
+    assert _settings([])[1] == {}
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():
