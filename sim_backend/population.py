@@ -89,7 +89,16 @@ class PopulationConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("groups", "worlds", "substeps", "iterations", "ls_iterations"):
+        counts = (
+            "groups",
+            "worlds",
+            "substeps",
+            "iterations",
+            "ls_iterations",
+            "contacts_per_world",
+            "constraints_per_world",
+        )
+        for name in counts:
             value = getattr(self, name)
             if value is None and name.endswith("iterations"):
                 continue
@@ -105,6 +114,13 @@ class PopulationConfig:
             raise ValueError(f"population tolerance: expected 0 < tolerance < 1, got {self.tolerance}")
         if not (0.0 < self.frame_rate <= 1000.0):
             raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
+        # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
+        # MuJoCo's friction singular or flag every world lost, far from where it was set.
+        for name in ("impratio", "slip_speed", "spin_speed", "lost_distance", "lost_speed"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"population {name}: expected > 0, got {getattr(self, name)}")
+        if not self.contact_gap >= 0.0:
+            raise ValueError(f"population contact_gap: expected >= 0 m, got {self.contact_gap}")
 
     @property
     def world_count(self) -> int:

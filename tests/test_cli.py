@@ -35,6 +35,7 @@ def test_bad_tracker_settings_are_refused_with_the_name_and_value():
         ("optimizer.keep_best=flase", "optimizer.keep_best: expected a value of type bool, got 'flase'"),
         ("population.tolerance=2", "population tolerance: expected 0 < tolerance < 1, got 2.0"),
         ("population.substeps=4", "got 'population.substeps=4'"),  # --substeps sets it
+        ("population.impratio=0", "population impratio: expected > 0, got 0.0"),
     ]:
         out = _run("bench", "accuracy", "--suite", "smoke", "--set", setting)
         assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
