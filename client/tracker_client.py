@@ -19,7 +19,7 @@ from protocol import (
     RobotFrame,
     ServiceInfo,
     SessionInfo,
-    Status,
+    SessionStatus,
     decode,
     encode,
 )
@@ -136,34 +136,20 @@ class TrackerClient:
         return info
 
     def send_frame(
-        self,
-        controls,
-        q,
-        *,
-        force=None,
-        slip=None,
-        slip_dir=None,
-        spin=None,
-        spin_sense=None,
-        stamp: float | None = None,
-        seq: int | None = None,
+        self, controls, q, *, stamp: float | None = None, seq: int | None = None, **touch: np.ndarray | None
     ) -> int:
-        """Send one frame (joint targets and positions, optional touch); returns its seq."""
+        """Send one frame: joint targets ``controls`` and positions ``q`` (D,), and the optional
+        touch fields of ``protocol.SENSING`` by name (force=(L, 3), slip=(L,), ...); returns its seq."""
         if self.info is None:
             raise RuntimeError("no session: call open_session first")
         seq = self._seq if seq is None else seq
-        arr = lambda a: None if a is None else np.asarray(a, np.float32)  # noqa: E731
         frame = RobotFrame(
             session=self.info.session,
             seq=seq,
             stamp=float(seq / 30.0 if stamp is None else stamp),
-            controls=arr(controls),
-            q=arr(q),
-            force=arr(force),
-            slip=arr(slip),
-            slip_dir=arr(slip_dir),
-            spin=arr(spin),
-            spin_sense=arr(spin_sense),
+            controls=controls,
+            q=q,
+            **{name: value for name, value in touch.items() if value is not None},
         )
         self._publisher.put(encode(frame))
         self._seq = max(self._seq, seq + 1)
@@ -200,10 +186,10 @@ class TrackerClient:
             raise RuntimeError("no session: call open_session first")
         return self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
 
-    def status(self, timeout: float = 5.0) -> Status:
+    def status(self, timeout: float = 5.0) -> SessionStatus:
         if self.info is None:
             raise RuntimeError("no session: call open_session first")
-        return self._get(self.keys.status(self.info.session), None, Status, timeout)
+        return self._get(self.keys.status(self.info.session), None, SessionStatus, timeout)
 
     def close_session(self) -> None:
         if self.info is None:

@@ -30,8 +30,7 @@ def main() -> None:
         info = client.open_session(traj.robot, traj.object, start, q0=traj.truth.initial_q if traj.truth else None)
         print(f"session {info.session}", flush=True)
         for i in range(frames):
-            client.send_frame(traj.controls[i], traj.q[i], force=traj.force[i] if traj.force is not None else None,
-                              slip=traj.slip[i] if traj.slip is not None else None)  # fmt: skip
+            client.send(traj.frame(i, info.session))  # controls, joints and whatever touch the file has
             estimate = client.latest_pose(timeout=60, after_seq=i)
             if traj.truth is not None and (i % 10 == 0 or i == frames - 1):
                 error = np.linalg.norm(traj.truth.pose[i, :3] - estimate.pose[:3]) * 1e3

@@ -16,16 +16,20 @@ from .messages import (
     RobotFrame,
     ServiceInfo,
     SessionInfo,
-    Status,
+    SessionStatus,
+    TrackState,
     check_version,
 )
+from .sensing import PRESENCE, SENSING, SensingField, check_sensing, sensing_field
 from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 
 __all__ = [
     "MAX_ARRAY_BYTES",
     "MAX_PAYLOAD_BYTES",
     "PREFIX",
+    "PRESENCE",
     "PROTOCOL_VERSION",
+    "SENSING",
     "TRAJECTORY_FORMAT",
     "TRAJECTORY_VERSION",
     "CloseSession",
@@ -37,12 +41,16 @@ __all__ = [
     "Keys",
     "OpenSession",
     "RobotFrame",
+    "SensingField",
     "ServiceInfo",
     "SessionInfo",
-    "Status",
+    "SessionStatus",
+    "TrackState",
     "Trajectory",
     "check_name",
+    "check_sensing",
     "check_version",
     "decode",
     "encode",
+    "sensing_field",
 ]

@@ -7,11 +7,13 @@ against the session it opened.
 
 from __future__ import annotations
 
-from enum import StrEnum
+from enum import IntEnum, StrEnum
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, create_model
+
+from .sensing import SENSING
 
 __all__ = [
     "PROTOCOL_VERSION",
@@ -23,7 +25,8 @@ __all__ = [
     "RobotFrame",
     "ServiceInfo",
     "SessionInfo",
-    "Status",
+    "SessionStatus",
+    "TrackState",
     "check_version",
 ]
 
@@ -132,55 +135,95 @@ class SessionInfo(_Message):
     method: str
 
 
-class RobotFrame(_Message):
-    """What the robot sends every control frame."""
-
+class _FrameHeader(_Message):
     session: str
+    """The session this frame belongs to (also in its key)."""
     seq: int = Field(ge=0)
+    """Frame counter, consecutive from 0; the service applies frames in seq order."""
     stamp: float
-    """Robot clock [s]."""
-    controls: Vector
-    """Joint position targets, (D,) [rad or m]."""
-    q: Vector
-    """Measured joint positions, (D,) [rad or m]."""
-    force: Vec3s | None = None
-    """Fingertip forces in the sensor frames, (L, 3) [N]."""
-    slip: Vector | None = None
-    """Translational slip flags, (L,)."""
-    slip_dir: Vec2s | None = None
-    """Slip directions in the sensors' tangent planes, (L, 2)."""
-    spin: Vector | None = None
-    """Rotational slip flags, (L,)."""
-    spin_sense: Vector | None = None
-    """Rotational slip senses, (L,): 1 counter-clockwise about the pad normal, else 0."""
+    """Robot clock when the frame was sensed [s]."""
+
+
+def _sensing_fields() -> dict:
+    fields = {}
+    for f in SENSING:
+        kind = _array(1 + len(f.trailing), f.trailing[-1] if f.trailing else None)
+        text = f"{f.doc} Shape {('D' if f.per == 'joint' else 'L', *f.trailing)} [{f.unit}]."
+        fields[f.name] = (kind | None, Field(None, description=text)) if f.optional else (kind, Field(description=text))
+    return fields
+
+
+RobotFrame = create_model(
+    "RobotFrame",
+    __base__=_FrameHeader,
+    __doc__="What the robot sends every control frame: the header and the fields of protocol.SENSING.",
+    **_sensing_fields(),
+)
+
+
+class TrackState(IntEnum):
+    """How far an estimate is to be trusted; :attr:`Estimate.status` carries its lower-case name."""
+
+    TRACKING = 0
+    """The worlds agree with the robot and with each other."""
+    UNCERTAIN = 1
+    """The cost-weighted position spread of the worlds exceeds the tracker's ``uncertain_spread``."""
+    DIVERGED = 2
+    """The worlds lost the object, or the best world and the real hand disagree about contact: the
+    hypotheses were re-seeded this frame around the last trusted estimate."""
+    RECOVERING = 3
+    """Re-seeded recently; not trusted until ``recover_frames`` have passed."""
 
 
 class Estimate(_Message):
-    """The tracker's answer to one frame."""
+    """The tracker's answer to one frame. Poses are in the robot's world frame (the frame of the
+    robot config's base), position [m] and unit quaternion (x, y, z, w)."""
 
     session: str
     seq: int
+    """The seq of the frame this estimate answers."""
     stamp: float
+    """That frame's robot clock [s]."""
     pose: Pose
+    """The best (lowest window cost) world's object pose, (7,): the estimate."""
     mean_pose: Pose
+    """The cost-weighted mean object pose over the session's worlds, (7,)."""
     covariance: Matrix6
-    """Covariance of (position [m], rotation vector [rad]) about the mean pose, (6, 6)."""
+    """Cost-weighted covariance of (position [m^2], rotation vector [rad^2], world frame) about
+    ``mean_pose``, (6, 6)."""
     cost: float
+    """The best world's mean cost since the last optimizer update (eq. 3, dimensionless)."""
     mass: float
+    """The best world's object mass [kg]."""
     friction: float
+    """The best world's object friction coefficient (dimensionless)."""
     status: str
+    """A :class:`TrackState` name in lower case: tracking, uncertain, diverged or recovering."""
     latency_ms: float
+    """From the frame's arrival at the service to this estimate [ms]."""
 
 
-class Status(_Message):
+class SessionStatus(_Message):
+    """A session's counters since it opened."""
+
     session: str
     frames: int
+    """Frames tracked."""
     gaps: int
+    """Frames skipped over: seq numbers that never arrived before a later one."""
     duplicates: int
+    """Frames dropped because their seq was the last one applied."""
     late: int
+    """Frames dropped because their seq was older than the last one applied."""
     errors: int
+    """Frames refused (malformed, wrong shape, non-finite)."""
     latency_p50_ms: float
+    """Median of the last 1000 frames' latencies, arrival to estimate [ms]."""
     latency_p99_ms: float
+    """99th percentile of the same [ms]."""
     cost: float
+    """The latest estimate's cost (dimensionless)."""
     spread_m: float
+    """RMS position spread of the worlds about the mean pose, sqrt(trace of the position covariance) [m]."""
     last_error: str | None = None
+    """The last refused frame's error, naming the field and the numbers."""

@@ -5,9 +5,8 @@ A file is one msgpack map (arrays as in the codec: {dtype, shape, bytes}, never 
     format       "inhand-tracker/trajectory"
     version      TRAJECTORY_VERSION (a reader refuses other versions, naming both)
     name, robot, object, frame_rate [Hz], meta {str: str | float | int}
-    frames       {stamp (F,) [s], controls (F, D), q (F, D),
-                  force (F, L, 3) [N] | nil, slip (F, L) | nil, slip_dir (F, L, 2) | nil,
-                  spin (F, L) | nil, spin_sense (F, L) | nil}        exactly RobotFrame's fields
+    frames       {stamp (F,) [s], then every field of protocol.SENSING as (F, ...) or nil
+                  when the robot did not sense it}: exactly RobotFrame's fields
     truth        {initial_pose (7,), initial_q (D,), pose (F, 7), mass [kg], friction} | nil
 
 Poses are position [m] and quaternion (x, y, z, w). A robot-side client replays ``frames`` over
@@ -18,7 +17,7 @@ tracker must never read. Imports only numpy and msgpack, so the light client can
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import msgpack
@@ -26,13 +25,13 @@ import numpy as np
 
 from .codec import DecodeError, pack_value, unpack_array
 from .messages import RobotFrame
+from .sensing import SENSING, check_sensing, sensing_field
 
 __all__ = ["TRAJECTORY_FORMAT", "TRAJECTORY_VERSION", "GroundTruth", "Trajectory"]
 
 TRAJECTORY_FORMAT = "inhand-tracker/trajectory"
 TRAJECTORY_VERSION = 1
 _MAX_FILE_BYTES = 256 << 20
-_OPTIONAL = ("force", "slip", "slip_dir", "spin", "spin_sense")
 
 
 @dataclass
@@ -51,69 +50,72 @@ class GroundTruth:
     """Hidden friction coefficient."""
 
 
-@dataclass
 class Trajectory:
-    """One robot's recorded frames (what the protocol carries) and, for benchmarks, the truth."""
+    """One robot's recorded frames (what the protocol carries) and, for benchmarks, the truth.
 
-    name: str
-    robot: str
-    object: str
-    frame_rate: float
-    """Frames per second [Hz]."""
-    controls: np.ndarray
-    """Joint position targets, (F, D) [rad or m]."""
-    q: np.ndarray
-    """Measured joint positions, (F, D) [rad or m]."""
-    force: np.ndarray | None = None
-    """Fingertip forces in the sensor frames, (F, L, 3) [N]."""
-    slip: np.ndarray | None = None
-    """Translational slip flags, (F, L)."""
-    slip_dir: np.ndarray | None = None
-    """Slip directions in the sensors' tangent planes, (F, L, 2)."""
-    spin: np.ndarray | None = None
-    """Rotational slip flags, (F, L)."""
-    spin_sense: np.ndarray | None = None
-    """Rotational slip senses, (F, L): 1 counter-clockwise about the pad normal, else 0."""
-    stamp: np.ndarray | None = None
-    """Robot clock per frame, (F,) [s]; default frame / frame_rate."""
-    truth: GroundTruth | None = None
-    meta: dict[str, str | float | int] = field(default_factory=dict)
-    """How it was made (demo kind, variant, physics gap, sensor noise)."""
+    The frames are the fields of :data:`protocol.SENSING`, each (F, ...) or None when the robot
+    did not sense it, passed by name and read as attributes (``traj.controls``, ``traj.force``).
+    """
 
-    def __post_init__(self) -> None:
-        f, d = np.shape(self.controls)
-        if np.shape(self.q) != (f, d):
-            raise ValueError(f"trajectory '{self.name}' q: expected shape {(f, d)}, got {np.shape(self.q)}")
-        if self.stamp is None:
-            self.stamp = np.arange(f, dtype=np.float64) / self.frame_rate
-        if self.truth is not None and np.shape(self.truth.pose) != (f, 7):
-            raise ValueError(
-                f"trajectory '{self.name}' truth.pose: expected shape {(f, 7)}, got {np.shape(self.truth.pose)}"
-            )
+    def __init__(
+        self,
+        name: str,
+        robot: str,
+        object: str,
+        frame_rate: float,
+        *,
+        stamp: np.ndarray | None = None,
+        truth: GroundTruth | None = None,
+        meta: dict[str, str | float | int] | None = None,
+        **sensing: np.ndarray | None,
+    ):
+        self.name, self.robot, self.object = name, robot, object
+        self.frame_rate = float(frame_rate)
+        """Frames per second [Hz]."""
+        unknown = sorted(set(sensing) - {f.name for f in SENSING})
+        if unknown:
+            raise ValueError(f"trajectory '{name}': unknown fields {unknown} (known: {[f.name for f in SENSING]})")
+        self.sensing: dict[str, np.ndarray | None] = {f.name: sensing.get(f.name) for f in SENSING}
+        """Every field of protocol.SENSING, (F, ...) or None."""
+        f, d = np.shape(self.sensing["controls"])
+        l = next(
+            (np.shape(v)[1] for k, v in self.sensing.items() if v is not None and sensing_field(k).per == "sensor"), 0
+        )
+        try:
+            check_sensing(self.sensing, d, l, lead=(f,))
+        except ValueError as exc:
+            raise ValueError(f"trajectory '{name}' {exc}") from None
+        self.stamp = np.arange(f, dtype=np.float64) / self.frame_rate if stamp is None else stamp
+        """Robot clock per frame, (F,) [s]."""
+        self.truth = truth
+        self.meta = dict(meta or {})
+        """How it was made (demo kind, variant, physics gap, sensor noise)."""
+        if truth is not None and np.shape(truth.pose) != (f, 7):
+            raise ValueError(f"trajectory '{name}' truth.pose: expected shape {(f, 7)}, got {np.shape(truth.pose)}")
+
+    def __getattr__(self, name: str) -> np.ndarray | None:
+        sensing = self.__dict__.get("sensing", {})
+        if name in sensing:
+            return sensing[name]
+        raise AttributeError(f"'Trajectory' object has no attribute '{name}'")
 
     @property
     def frames(self) -> int:
-        return self.controls.shape[0]
+        return self.sensing["controls"].shape[0]
 
     def frame(self, i: int, session: str, seq: int | None = None) -> RobotFrame:
         """Row ``i`` as the message a robot sends."""
-        optional = {k: None if getattr(self, k) is None else getattr(self, k)[i] for k in _OPTIONAL}
         return RobotFrame(
             session=session,
             seq=i if seq is None else seq,
             stamp=float(self.stamp[i]),
-            controls=self.controls[i],
-            q=self.q[i],
-            **optional,
+            **{k: v[i] for k, v in self.sensing.items() if v is not None},
         )
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:
-        frames = {k: getattr(self, k) for k in ("stamp", "controls", "q", *_OPTIONAL)}
-        frames = {
-            k: None if v is None else np.ascontiguousarray(v, dtype=np.float64 if k == "stamp" else np.float32)
-            for k, v in frames.items()
-        }
+        frames = {"stamp": np.ascontiguousarray(self.stamp, dtype=np.float64)}
+        frames |= {k: None if v is None else np.ascontiguousarray(v, dtype=np.float32) for k, v in self.sensing.items()}
         truth = None
         if self.truth is not None:
             t = self.truth

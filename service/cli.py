@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 
 __all__ = ["forward_only_kernels", "main"]
+
+log = logging.getLogger("inhand_tracker")
 
 
 def _int_list(text: str) -> list[int]:
@@ -111,8 +114,7 @@ def _serve(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from service.config import load_config
-    from service.node import TrackerNode
+    from service.server import TrackerNode, load_config
 
     try:
         config = load_config(
@@ -125,13 +127,11 @@ def _serve(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     with TrackerNode(config) as node:
-        print(
-            f"inhand-tracker serving '{config.name}' on {', '.join(config.listen) or '-'} "
-            f"(connect: {', '.join(config.connect) or '-'}), device {node.device}",
-            flush=True,
-        )
-        stop.wait()
-        print("inhand-tracker: stopping", flush=True)
+        while not stop.wait(0.5) and not node.failed.is_set():
+            pass
+        log.info("stopping")
+    if node.failed.is_set():
+        return 1
     # Everything is closed; what is left is Python's final full collection, which walks every object
     # torch, warp and newton made: SIGTERM to exit took 6.8 s on a 2-core CPU, past the 5 s a
     # container gets, and 2.0 s with the heap frozen (frozen objects are not walked).
@@ -246,22 +246,18 @@ def _summary(traj, estimates) -> None:
 def _demo(args: argparse.Namespace) -> int:
     import socket
 
-    import warp as wp
-
     from client import TrackerClient
-    from service.accuracy import DATA_DIR
-    from service.config import ServiceConfig
-    from service.node import TrackerNode
+    from service.paths import DATA_DIR
+    from service.server import ServiceConfig, TrackerNode
 
-    wp.config.quiet = True
     with socket.socket() as sock:  # a free loopback port
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     endpoint = f"tcp/127.0.0.1:{port}"
     config = ServiceConfig(listen=(endpoint,), device=args.device, groups=1)  # one session: no idle groups to step
-    print(f"starting the service on {endpoint} (device {args.device}) ...", flush=True)
+    log.info("starting the service on %s (device %s)", endpoint, args.device)
     with TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
-        print(f"service up on {node.device}; replaying through a client", flush=True)
+        log.info("service up on %s; replaying through a client", node.device)
         args.noise, args.rate = "med", 0.0
         file = args.file or str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
         return _replay(args, client=client, file=file, live=True)
@@ -270,7 +266,7 @@ def _demo(args: argparse.Namespace) -> int:
 def _speed(args: argparse.Namespace) -> int:
     import contextlib
 
-    from service.speed import as_dicts, bench_speed, format_table
+    from service.bench.speed import as_dicts, bench_speed, format_table
 
     def show(r) -> None:
         print(
@@ -302,8 +298,7 @@ def _settings(settings: list[str]):
     """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
     tracker's number and flag fields, its optimizer's as optimizer.NAME, and the population's
     physics numbers (impratio, tolerance, ...) as population.NAME."""
-    from service.optimizers import OptimizerConfig
-    from service.tracker import TrackerConfig, setting_types
+    from service.tracker import OptimizerConfig, TrackerConfig, setting_types
     from sim_backend.population import PopulationConfig
 
     kinds = (int, float, bool)
@@ -333,9 +328,9 @@ def _accuracy(args: argparse.Namespace) -> int:
     import contextlib
     from pathlib import Path
 
-    from service.accuracy import CACHE_DIR, NOISE_LEVELS, SUITES, run_suite
-    from service.optimizers import METHODS
-    from service.report import write_report
+    from service.bench import NOISE_LEVELS, SUITES, run_suite, write_report
+    from service.paths import CACHE_DIR
+    from service.tracker import METHODS
 
     if args.suite not in SUITES:
         print(f"--suite: expected one of {sorted(SUITES)}, got '{args.suite}'", file=sys.stderr)
@@ -408,10 +403,17 @@ def forward_only_kernels() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    from service.logs import setup_logging
+
+    setup_logging()
     if args.command != "replay":  # the robot side's replay stays light: no warp
+        from service.logs import quiet_warp, watch_kernel_compiles
+
         forward_only_kernels()
+        quiet_warp()
+        watch_kernel_compiles()
     if args.command == "bench" and args.bench == "sim":
-        from sim_backend.bench import as_dicts, bench_sim, format_table
+        from service.bench.sim import as_dicts, bench_sim, format_table
 
         results = []
         for solver in args.solver.split(","):

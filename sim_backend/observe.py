@@ -11,16 +11,26 @@ the tangent plane is the sensor's x-y plane.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
 import warp as wp
 
 __all__ = [
     "HEALTH_LOST",
     "HEALTH_NAN",
     "HEALTH_OK",
+    "Buffers",
+    "Observation",
     "accumulate_contacts",
+    "add_sensor_noise",
+    "allocate_buffers",
     "finish_observation",
     "gather_joints",
+    "launch_finish",
     "object_health",
+    "observation_views",
     "sensor_poses",
 ]
 
@@ -222,3 +232,121 @@ def object_health(
     elif p[2] < floor_z or wp.length(p - centre) > lost_distance or wp.length(wp.spatial_top(qd)) > lost_speed:
         health = HEALTH_LOST
     health_out[w] = health
+
+
+# ---------------------------------------------------------------------- what the kernels write
+@dataclass
+class Observation:
+    """What every world's robot senses after a frame; torch views of device memory.
+
+    G groups, K worlds, D actuated joints, L touch sensors. Frames follow
+    :mod:`sim_backend.observe`: sensor z is the pad normal, the tangent plane its x-y plane.
+    """
+
+    q: torch.Tensor
+    """Joint positions, shape (G, K, D) [rad or m]."""
+    sensor_pos: torch.Tensor
+    """Sensor positions in the world frame, shape (G, K, L, 3) [m]."""
+    sensor_rot: torch.Tensor
+    """Sensor orientations in the world frame, shape (G, K, L, 4), quaternion (x, y, z, w)."""
+    force: torch.Tensor
+    """Contact force of the object on each sensor, in the sensor frame, shape (G, K, L, 3) [N]."""
+    slip: torch.Tensor
+    """Translational slip flag, shape (G, K, L), 1.0 slipping / 0.0 not."""
+    slip_dir: torch.Tensor
+    """Unit direction the pad slides over the object, in the sensor's tangent plane, shape (G, K, L, 2);
+    zero when not slipping."""
+    spin: torch.Tensor
+    """Rotational slip flag, shape (G, K, L), 1.0 / 0.0."""
+    spin_sense: torch.Tensor
+    """Rotational slip sense about the pad normal, shape (G, K, L): 1.0 counter-clockwise, else 0.0."""
+    object_pose: torch.Tensor
+    """Object pose in the world frame, shape (G, K, 7): position [m], quaternion (x, y, z, w)."""
+    health: torch.Tensor
+    """Per-world health, shape (G, K), int32: observe.HEALTH_OK, HEALTH_NAN or HEALTH_LOST."""
+
+
+@dataclass
+class Buffers:
+    """Warp arrays behind :class:`Observation` and the contact accumulators, leading axis W."""
+
+    q: wp.array
+    sensor_pos: wp.array
+    sensor_rot: wp.array
+    force: wp.array
+    slip: wp.array
+    slip_dir: wp.array
+    spin: wp.array
+    spin_sense: wp.array
+    object_pose: wp.array
+    health: wp.array
+    force_acc: wp.array
+    slip_acc: wp.array
+    spin_acc: wp.array
+    weight_acc: wp.array
+    wrench: wp.array
+    """Perturbation wrench on each world's object for the next frame, (W,) spatial_vector."""
+
+
+def allocate_buffers(w: int, d: int, l: int) -> Buffers:
+    """Zeroed buffers for ``w`` worlds of ``d`` joints and ``l`` sensors."""
+    z = wp.zeros
+    return Buffers(
+        q=z((w, d), dtype=float),
+        sensor_pos=z((w, l), dtype=wp.vec3),
+        sensor_rot=z((w, l), dtype=wp.quat),
+        force=z((w, l), dtype=wp.vec3),
+        slip=z((w, l), dtype=float),
+        slip_dir=z((w, l), dtype=wp.vec2),
+        spin=z((w, l), dtype=float),
+        spin_sense=z((w, l), dtype=float),
+        object_pose=z((w, 7), dtype=float),
+        health=z(w, dtype=wp.int32),
+        force_acc=z((w, l), dtype=wp.vec3),
+        slip_acc=z((w, l), dtype=wp.vec3),
+        spin_acc=z((w, l), dtype=wp.vec3),
+        weight_acc=z((w, l), dtype=float),
+        wrench=z(w, dtype=wp.spatial_vector),
+    )
+
+
+def observation_views(b: Buffers, g: int, k: int) -> Observation:
+    """Torch views (no copies) of the observation buffers, leading axes (G, K)."""
+    views = {}
+    for f in fields(Observation):
+        t = wp.to_torch(getattr(b, f.name))
+        views[f.name] = t.view(g, k, *t.shape[1:])
+    return Observation(**views)
+
+
+def launch_finish(b: Buffers, slip_speed: float, spin_speed: float) -> None:
+    """Launch :func:`finish_observation` over every world and sensor of ``b``."""
+    w, l = b.force.shape
+    wp.launch(
+        finish_observation,
+        dim=(w, l),
+        inputs=[b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, slip_speed, spin_speed],
+        outputs=[b.force, b.slip, b.slip_dir, b.spin, b.spin_sense],
+    )
+
+
+def add_sensor_noise(
+    sensing: dict[str, np.ndarray],
+    rng: np.random.Generator,
+    joint_sigma: float = 0.0,
+    force_sigma: float = 0.0,
+    force_bias: float = 0.0,
+    slip_miss: float = 0.0,
+) -> None:
+    """What real sensors add to a recording's sensing fields (F, G, ...), in place: Gaussian joint
+    noise [rad or m]; force noise per axis and a bias per sensor and axis fixed per track [N], read
+    only while in contact; and missed slip and spin events (a fraction ``slip_miss`` of the flags)."""
+    _, g, l = sensing["slip"].shape
+    q = sensing["q"]
+    sensing["q"] = q + rng.normal(0.0, joint_sigma, q.shape).astype(np.float32)
+    force = sensing["force"]
+    bias = rng.normal(0.0, force_bias, (1, g, l, 3))
+    touching = np.linalg.norm(force, axis=-1, keepdims=True) > 0  # a sensor reads noise only in contact
+    sensing["force"] = (force + touching * (bias + rng.normal(0.0, force_sigma, force.shape))).astype(np.float32)
+    for flags in (sensing["slip"], sensing["spin"]):
+        flags[rng.random(flags.shape) < slip_miss] = 0.0

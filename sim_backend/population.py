@@ -25,7 +25,7 @@ from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
 from .rotations import quat_exp, quat_multiply
 
-__all__ = ["Observation", "Population", "PopulationConfig", "SolverSettings", "resolve_device"]
+__all__ = ["Population", "PopulationConfig", "SolverSettings", "resolve_device"]
 
 
 @dataclass(frozen=True)
@@ -164,59 +164,6 @@ def resolve_device(name: str = "auto") -> wp.context.Device:
         raise ValueError(f"population device: unknown device '{name}'") from exc
 
 
-@dataclass
-class Observation:
-    """What every world's robot senses after a frame; torch views of device memory.
-
-    G groups, K worlds, D actuated joints, L touch sensors. Frames follow
-    :mod:`sim_backend.observe`: sensor z is the pad normal, the tangent plane its x-y plane.
-    """
-
-    q: torch.Tensor
-    """Joint positions, shape (G, K, D) [rad or m]."""
-    sensor_pos: torch.Tensor
-    """Sensor positions in the world frame, shape (G, K, L, 3) [m]."""
-    sensor_rot: torch.Tensor
-    """Sensor orientations in the world frame, shape (G, K, L, 4), quaternion (x, y, z, w)."""
-    force: torch.Tensor
-    """Contact force of the object on each sensor, in the sensor frame, shape (G, K, L, 3) [N]."""
-    slip: torch.Tensor
-    """Translational slip flag, shape (G, K, L), 1.0 slipping / 0.0 not."""
-    slip_dir: torch.Tensor
-    """Unit direction the pad slides over the object, in the sensor's tangent plane, shape (G, K, L, 2);
-    zero when not slipping."""
-    spin: torch.Tensor
-    """Rotational slip flag, shape (G, K, L), 1.0 / 0.0."""
-    spin_sense: torch.Tensor
-    """Rotational slip sense about the pad normal, shape (G, K, L): 1.0 counter-clockwise, else 0.0."""
-    object_pose: torch.Tensor
-    """Object pose in the world frame, shape (G, K, 7): position [m], quaternion (x, y, z, w)."""
-    health: torch.Tensor
-    """Per-world health, shape (G, K), int32: observe.HEALTH_OK, HEALTH_NAN or HEALTH_LOST."""
-
-
-@dataclass
-class _Buffers:
-    """Warp arrays behind :class:`Observation` and the contact accumulators, leading axis W."""
-
-    q: wp.array
-    sensor_pos: wp.array
-    sensor_rot: wp.array
-    force: wp.array
-    slip: wp.array
-    slip_dir: wp.array
-    spin: wp.array
-    spin_sense: wp.array
-    object_pose: wp.array
-    health: wp.array
-    force_acc: wp.array
-    slip_acc: wp.array
-    spin_acc: wp.array
-    weight_acc: wp.array
-    wrench: wp.array
-    """Perturbation wrench on each world's object for the next frame, (W,) spatial_vector."""
-
-
 def _capsule_xform(p0: np.ndarray, p1: np.ndarray) -> tuple[wp.transform, float]:
     """Transform putting a capsule's z axis from ``p0`` to ``p1``, and its half height."""
     axis = p1 - p0
@@ -316,11 +263,11 @@ class Population:
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
             self.control = self.model.control()
-            self._buf = self._allocate_buffers()
+            self._buf = observe.allocate_buffers(self.W, self.D, self.L)
             self._static = self._static_arrays()
 
         self._views()
-        self.obs = self._observation()
+        self.obs = observe.observation_views(self._buf, self.G, self.K)
         self.reset_state()
         self.set_params(
             mass=torch.full((self.G, self.K), obj.mass), friction=torch.full((self.G, self.K), obj.friction)
@@ -355,27 +302,6 @@ class Population:
             mesh = newton.Mesh(np.asarray(hull.vertices, np.float32), np.asarray(hull.faces, np.int32).ravel())
             world.add_shape_convex_hull(body, mesh=mesh, cfg=cfg, label=obj.name, custom_attributes=attrs)
         return body
-
-    def _allocate_buffers(self) -> _Buffers:
-        W, D, L = self.W, self.D, self.L
-        z = wp.zeros
-        return _Buffers(
-            q=z((W, D), dtype=float),
-            sensor_pos=z((W, L), dtype=wp.vec3),
-            sensor_rot=z((W, L), dtype=wp.quat),
-            force=z((W, L), dtype=wp.vec3),
-            slip=z((W, L), dtype=float),
-            slip_dir=z((W, L), dtype=wp.vec2),
-            spin=z((W, L), dtype=float),
-            spin_sense=z((W, L), dtype=float),
-            object_pose=z((W, 7), dtype=float),
-            health=z(W, dtype=wp.int32),
-            force_acc=z((W, L), dtype=wp.vec3),
-            slip_acc=z((W, L), dtype=wp.vec3),
-            spin_acc=z((W, L), dtype=wp.vec3),
-            weight_acc=z((W, L), dtype=float),
-            wrench=z(W, dtype=wp.spatial_vector),
-        )
 
     def _static_arrays(self) -> dict[str, wp.array]:
         lay, W, nb = self.layout, self.W, self._bodies
@@ -459,22 +385,6 @@ class Population:
         }
         self._mj0 = {name: view.clone() for name, view in self._mj.items()}
 
-    def _observation(self) -> Observation:
-        G, K = self.G, self.K
-        b, t = self._buf, wp.to_torch
-        return Observation(
-            q=t(b.q).view(G, K, self.D),
-            sensor_pos=t(b.sensor_pos).view(G, K, self.L, 3),
-            sensor_rot=t(b.sensor_rot).view(G, K, self.L, 4),
-            force=t(b.force).view(G, K, self.L, 3),
-            slip=t(b.slip).view(G, K, self.L),
-            slip_dir=t(b.slip_dir).view(G, K, self.L, 2),
-            spin=t(b.spin).view(G, K, self.L),
-            spin_sense=t(b.spin_sense).view(G, K, self.L),
-            object_pose=t(b.object_pose).view(G, K, 7),
-            health=t(b.health).view(G, K),
-        )
-
     # ------------------------------------------------------------------ frame
     def _simulate(self) -> None:
         """One control frame: wrench, substeps, observation. Captured once, replayed per frame."""
@@ -521,12 +431,7 @@ class Population:
             ],
             outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
         )
-        wp.launch(
-            observe.finish_observation,
-            dim=(self.W, self.L),
-            inputs=[b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, cfg.slip_speed, cfg.spin_speed],
-            outputs=[b.force, b.slip, b.slip_dir, b.spin, b.spin_sense],
-        )
+        observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
         wp.launch(
             observe.object_health,
             dim=self.W,
@@ -598,25 +503,21 @@ class Population:
     # ------------------------------------------------------------------ inputs
     def set_targets(self, targets: np.ndarray | torch.Tensor) -> None:
         """Joint position targets per group, shape (G, D) [rad or m], clipped to the joint limits."""
-        if isinstance(targets, torch.Tensor) and targets.device != torch.device("cpu"):
-            src = targets  # already on the device: the caller validated it
-        else:
-            arr = np.asarray(targets.cpu() if isinstance(targets, torch.Tensor) else targets, dtype=np.float32)
-            if arr.shape != (self.G, self.D):
-                raise ValueError(f"targets: expected shape ({self.G}, {self.D}), got {arr.shape}")
-            bad = ~np.isfinite(arr)
-            if bad.any():
-                g, d = np.argwhere(bad)[0]
-                raise ValueError(
-                    f"targets: {int(bad.sum())} non-finite values, first at group {g} joint "
-                    f"'{self.layout.joint_names[d]}' = {arr[g, d]}"
-                )
-            src = torch.from_numpy(arr)
-        self.write_targets(src)
+        arr = np.asarray(targets.cpu() if isinstance(targets, torch.Tensor) else targets, dtype=np.float32)
+        if arr.shape != (self.G, self.D):
+            raise ValueError(f"targets: expected shape ({self.G}, {self.D}), got {arr.shape}")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            g, d = np.argwhere(bad)[0]
+            raise ValueError(
+                f"targets: {int(bad.sum())} non-finite values, first at group {g} joint "
+                f"'{self.layout.joint_names[d]}' = {arr[g, d]}"
+            )
+        self._write_targets(torch.from_numpy(arr))
 
-    def write_targets(self, targets: torch.Tensor) -> None:
+    def _write_targets(self, targets: torch.Tensor) -> None:
         """:meth:`set_targets` for targets already checked, (G, D): no host work, so it can run
-        inside a captured graph."""
+        inside a captured graph (the tracker's frame)."""
         with self.on_stream():
             self._target_stage.copy_(targets, non_blocking=True)
             torch.clamp(self._target_stage, self._lower, self._upper, out=self._target_stage)
@@ -732,16 +633,20 @@ class Population:
         """Object friction coefficient per world, shape (G, K) (a view: change it with :meth:`set_params`)."""
         return self._friction
 
-    def set_params(
-        self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None, *, check: bool = True
-    ) -> None:
-        """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K).
+    def set_params(self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None) -> None:
+        """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K); a
+        ValueError names the parameter and the values outside its range, on every device."""
+        if mass is not None:
+            mass = self._check_param("mass", mass, self.object.mass_range)
+        if friction is not None:
+            friction = self._check_param("friction", friction, self.object.friction_range)
+        self._write_params(mass, friction)
 
-        ``check=False``: the caller guarantees the ranges (the tracker's update, where a range check
-        would read values back to the host)."""
+    def _write_params(self, mass: torch.Tensor | None, friction: torch.Tensor | None) -> None:
+        """:meth:`set_params` for values already in range, (G, K) on the device: no host work, so
+        it can run inside a captured graph (the tracker's update)."""
         with self.on_stream():
             if mass is not None:
-                mass = self._check_param("mass", mass, self.object.mass_range, check)
                 scale = (mass / self._nominal_mass)[..., None, None]
                 self._mass.copy_(mass)
                 self._inv_mass.copy_(1.0 / mass)
@@ -749,7 +654,6 @@ class Population:
                 self._inv_inertia.copy_(self._nominal_inv_inertia / scale)
                 self._write_solver_inertia()
             if friction is not None:
-                friction = self._check_param("friction", friction, self.object.friction_range, check)
                 self._shape_mu.copy_(friction[..., None].expand_as(self._shape_mu))
         if mass is not None or friction is not None:
             self._notify_shapes()
@@ -765,19 +669,18 @@ class Population:
         mj["invweight"].copy_(mj0["invweight"] / scale[..., None])
         mj["dof_invweight"].copy_(mj0["dof_invweight"] / scale[..., None])
 
-    def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float], check: bool) -> torch.Tensor:
-        value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
+    def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
+        """``value`` as a (G, K) float32 tensor on the device, after checking it on the host."""
+        value = torch.as_tensor(value, dtype=torch.float32)
         if tuple(value.shape) != (self.G, self.K):
             raise ValueError(f"{name}: expected shape ({self.G}, {self.K}), got {tuple(value.shape)}")
-        if check and value.device.type == "cpu":  # CUDA tensors come from the tracker, already in range
-            lo, hi = bounds
-            lo32, hi32 = (torch.tensor(b, dtype=torch.float32).item() for b in bounds)  # float32 clipping rounds past
-            bad = ~((value >= lo32) & (value <= hi32))
-            if bool(bad.any()):
-                raise ValueError(
-                    f"{name}: {int(bad.sum())} values outside [{lo}, {hi}], e.g. {value[bad][0].item():.4g}"
-                )
-        return value
+        host = value.cpu()
+        lo, hi = bounds
+        lo32, hi32 = (torch.tensor(b, dtype=torch.float32).item() for b in bounds)  # float32 clipping rounds past
+        bad = ~((host >= lo32) & (host <= hi32))  # NaN is outside too
+        if bool(bad.any()):
+            raise ValueError(f"{name}: {int(bad.sum())} values outside [{lo}, {hi}], e.g. {host[bad][0].item():.4g}")
+        return value.to(self.torch_device)
 
     def _notify_shapes(self) -> None:
         """Push friction to the solver. It also drops the solver's cached contact parameters, which
@@ -787,23 +690,27 @@ class Population:
             self.solver.notify_model_changed(newton.ModelFlags.SHAPE_PROPERTIES)
 
     # ------------------------------------------------------------------ resampling
-    def resample(self, index: torch.Tensor, *, check: bool = True) -> None:
+    def resample(self, index: torch.Tensor) -> None:
         """World k of group g becomes a copy of world ``index[g, k]`` of the same group.
 
         Copies all state (positions, velocities, body poses, the solver's warm start) and the
         physics parameters in place, so a copy evolves bit for bit like its source.
-        index: shape (G, K), integer, values in [0, K); ``check=False`` trusts the range (the
-        tracker's update, whose indices never leave the device).
+        index: shape (G, K), integer, values in [0, K); a ValueError names what is wrong.
         """
         if tuple(index.shape) != (self.G, self.K):
             raise ValueError(f"index: expected shape ({self.G}, {self.K}), got {tuple(index.shape)}")
         if index.dtype not in (torch.int32, torch.int64):
             raise ValueError(f"index: expected an integer tensor, got {index.dtype}")
-        index = index.to(self.torch_device, torch.int64)
-        if check and index.device.type == "cpu" and bool(((index < 0) | (index >= self.K)).any()):
+        host = index.cpu()
+        if bool(((host < 0) | (host >= self.K)).any()):
             raise ValueError(
-                f"index: values must lie in [0, {self.K}), got min {int(index.min())} max {int(index.max())}"
+                f"index: values must lie in [0, {self.K}), got min {int(host.min())} max {int(host.max())}"
             )
+        self._resample(index.to(self.torch_device, torch.int64))
+
+    def _resample(self, index: torch.Tensor) -> None:
+        """:meth:`resample` for an int64 index on the device already in range: no host work, so
+        it can run inside a captured graph (the tracker's update, whose indices never leave the device)."""
         with self.on_stream():
             tensors = [view(self.state_0) for view in self._state_views.values()]
             tensors += [self._warmstart, self._mass[..., None], self._inv_mass[..., None], self._shape_mu]

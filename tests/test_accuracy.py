@@ -12,8 +12,9 @@ import sys
 import numpy as np
 import pytest
 
-from service.accuracy import DATA_DIR, SUITES, ground_truth, run_suite
-from service.report import write_report
+from service.bench import SUITES, ground_truth, run_suite
+from service.bench.report import write_report
+from service.paths import DATA_DIR
 from service.tracker import TrackerConfig
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.config import ServiceConfig, load_config
+from service.server.config import ServiceConfig, load_config
 
 
 def test_the_shipped_config_is_the_defaults():

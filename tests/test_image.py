@@ -16,7 +16,7 @@ import pytest
 
 from client import TrackerClient, TrackerError
 from protocol import Trajectory
-from service.accuracy import DATA_DIR
+from service.paths import DATA_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 TAG = "localhost/inhand-tracker:test"

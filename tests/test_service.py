@@ -20,7 +20,7 @@ import pytest
 
 from client import TrackerClient, TrackerError
 from protocol import PROTOCOL_VERSION, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
-from service.accuracy import DATA_DIR
+from service.paths import DATA_DIR
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,8 +83,8 @@ def test_client_imports_no_torch_warp_or_newton():
 
 def test_tracks_with_the_same_estimates_as_the_in_process_manager(service):
     from protocol import OpenSession as Open
-    from service.config import ServiceConfig
-    from service.sessions import SessionManager
+    from service.server.config import ServiceConfig
+    from service.server.sessions import SessionManager
     from sim_backend import load_catalog, load_robot
 
     traj, frames = Trajectory.load(TRAJECTORY), 40
@@ -257,3 +257,69 @@ def test_examples_run_as_processes(service):
     assert "frame 11: tracking, position error" in robot.stdout and "done: 12 frames" in robot.stdout
     out, _ = watcher.communicate(timeout=60)
     assert watcher.returncode == 0 and len([line for line in out.splitlines() if " seq " in line]) == 5
+
+
+def test_touch_presence_is_per_session_in_a_shared_population():
+    """A robot without touch sensing, sharing a population with one that has it, is scored by
+    joints and sensor poses alone: its contact terms stay zero while the other's count."""
+    from protocol import OpenSession as Open
+    from service.server import ServiceConfig, SessionManager
+    from sim_backend import load_catalog, load_robot
+
+    traj = Trajectory.load(TRAJECTORY)
+    robot = load_robot(ROOT / "configs/robots/allegro.toml")
+    manager = SessionManager(ServiceConfig(groups=2, device="cpu"), {robot.name: robot}, load_catalog())
+    open_one = lambda: manager.open(Open(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose,  # noqa: E731
+                                         q0=traj.truth.initial_q)).session  # fmt: skip
+    touch, blind = open_one(), open_one()
+    pool = manager.sessions[touch].pool
+    assert manager.sessions[blind].pool is pool
+    g_touch, g_blind = manager.sessions[touch].group, manager.sessions[blind].group
+    contact_terms = slice(3, 6)  # contact disagreement, force magnitude and direction
+    felt = 0.0
+    for i in range(60):  # the fingers close on the brick from frame 41
+        manager.submit(traj.frame(i, touch))
+        manager.submit(traj.frame(i, blind).model_copy(update={"force": None, "slip": None, "slip_dir": None,
+                                                                "spin": None, "spin_sense": None}))  # fmt: skip
+        manager.step(pool)
+        terms = pool.tracker.cost.last_terms
+        assert float(terms[g_blind, :, contact_terms].abs().sum()) == 0.0, f"frame {i}"
+        felt += float(terms[g_touch, :, contact_terms].abs().sum())
+    assert felt > 0
+
+
+def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
+    """An exception in the GPU loop is logged with its traceback, the sessions of that population
+    say why in their status, and the loop goes on serving the others."""
+    import logging
+
+    from service.server import ServiceConfig, TrackerNode
+
+    traj = Trajectory.load(TRAJECTORY)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1)
+    with caplog.at_level(logging.ERROR), TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
+        broken = _open(client, traj)
+        step = node.manager.step
+
+        def fault(pool):  # a fault injected into one population's step
+            if broken.session in [s.id for s in pool.active]:
+                raise RuntimeError("device lost")
+            return step(pool)
+
+        node.manager.step = fault
+        client.send(traj.frame(0, broken.session))
+        deadline = time.monotonic() + 30
+        while (status := client.status(timeout=10)).last_error is None:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert "RuntimeError: device lost" in status.last_error and status.errors == 1  # its frame
+        assert any("device lost" in r.getMessage() or (r.exc_info and "device lost" in str(r.exc_info[1]))
+                   for r in caplog.records)  # fmt: skip
+        assert not node.failed.is_set()
+        client.close_session()
+        healthy = _open(client, traj, worlds=2)
+        for i in range(3):
+            client.send(traj.frame(i, healthy.session))
+            assert client.latest_pose(timeout=60, after_seq=i).seq == i
+        client.close_session()

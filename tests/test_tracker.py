@@ -8,13 +8,15 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from service.cost import CostConfig
+from protocol import TrackState as Status
+from service.bench.demos import make_demo, record
 from service.evaluation import add_error
-from service.optimizers import OptimizerConfig
-from service.sampling import sample_poses
-from service.tracker import Frame, Status, Tracker, TrackerConfig, _lowest_point
+from service.tracker import Frame, Tracker, TrackerConfig
+from service.tracker.cost import CostConfig
+from service.tracker.optimizers import OptimizerConfig
+from service.tracker.sampling import sample_poses
+from service.tracker.tracker import _lowest_point
 from sim_backend import Population, PopulationConfig, catalog_object
-from sim_backend.demos import make_demo, record
 
 OBJECT = "foam_brick"
 
@@ -30,8 +32,7 @@ def recording(hand):
 
 
 def _frame(rec, f: int) -> Frame:
-    return Frame(controls=rec.controls[f], q=rec.q[f], force=rec.force[f], slip=rec.slip[f],
-                 slip_dir=rec.slip_dir[f], spin=rec.spin[f], spin_sense=rec.spin_sense[f])  # fmt: skip
+    return Frame(**{name: v[f] for name, v in rec.sensing.items()})
 
 
 def _noisy_start(rec, seed: int = 1) -> np.ndarray:

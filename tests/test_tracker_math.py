@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from service.cost import Cost, CostConfig, RealObservation, cost_terms
-from service.optimizers import OptimizerConfig, reps_eta, reps_pmf, update, wrs_pmf
-from service.sampling import roughening_sigma, sample_poses, silverman_bandwidth
+from service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
+from service.tracker.optimizers import OptimizerConfig, reps_eta, reps_pmf, update, wrs_pmf
+from service.tracker.sampling import roughening_sigma, sample_poses, silverman_bandwidth
 from sim_backend import Observation
 from sim_backend.rotations import quat_exp, quat_log, quat_multiply
 

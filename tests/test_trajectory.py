@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from protocol import TRAJECTORY_VERSION, GroundTruth, RobotFrame, Trajectory
-from service.accuracy import DATA_DIR
-from service.optimizers import OptimizerConfig, update
-from service.plots import bar_chart, line_chart
+from service.bench.plots import bar_chart, line_chart
+from service.paths import DATA_DIR
+from service.tracker.optimizers import OptimizerConfig, update
 
 
 def _trajectory(frames: int = 5, force: bool = True) -> Trajectory:

@@ -11,11 +11,11 @@ import numpy as np
 import torch
 import warp as wp
 
-from .grasp import plan_pinch
-from .kinematics import Kinematics
-from .objects import catalog_object
-from .population import Population, PopulationConfig, resolve_device
-from .robots import HandSpec
+from sim_backend.grasp import plan_pinch
+from sim_backend.kinematics import Kinematics
+from sim_backend.objects import catalog_object
+from sim_backend.population import Population, PopulationConfig, resolve_device
+from sim_backend.robots import HandSpec
 
 __all__ = ["SimBenchResult", "bench_sim", "release_memory", "used_bytes"]
 

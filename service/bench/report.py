@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .accuracy import NOISE_LEVELS
-from .optimizers import METHODS
+from service.tracker import METHODS
+
 from .plots import bar_chart, line_chart
+from .suites import NOISE_LEVELS
 
 __all__ = ["write_report"]
 

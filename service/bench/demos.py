@@ -23,12 +23,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from protocol.trajectory import GroundTruth, Trajectory
+from protocol import SENSING, GroundTruth, Trajectory
+from sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
+from sim_backend.kinematics import Kinematics
+from sim_backend.objects import ObjectSpec
+from sim_backend.population import Population
 
-from .grasp import SQUEEZE_JOINTS, plan_pinch
-from .kinematics import Kinematics
-from .objects import ObjectSpec
-from .population import Population
+SENSING_NAMES = tuple(f.name for f in SENSING)
 
 __all__ = ["DEMO_KINDS", "FRAME_RATE", "Demo", "Recording", "make_demo", "record", "sensitivity"]
 
@@ -229,11 +230,6 @@ def make_demo(
     )
 
 
-def _axis(field: str) -> int:
-    """Where a recording's field has its group axis: first for what is per track, else after frames."""
-    return 0 if field in ("initial_pose", "initial_q", "mass", "friction", "lengths") else 1
-
-
 @dataclass
 class Recording:
     """What the robots sent and where the objects really were: G tracks side by side, (F, G, ...).
@@ -242,20 +238,8 @@ class Recording:
     really ends.
     """
 
-    controls: np.ndarray
-    """Joint targets, (F, G, D)."""
-    q: np.ndarray
-    """Measured joint positions, (F, G, D)."""
-    force: np.ndarray
-    """Fingertip contact forces in the sensor frames, (F, G, L, 3) [N]."""
-    slip: np.ndarray
-    """(F, G, L) translational slip flags."""
-    slip_dir: np.ndarray
-    """(F, G, L, 2) slip directions."""
-    spin: np.ndarray
-    """(F, G, L) rotational slip flags."""
-    spin_sense: np.ndarray
-    """(F, G, L) rotational slip senses."""
+    sensing: dict[str, np.ndarray]
+    """Every field of protocol.SENSING, (F, G, ...): what the robots sent."""
     object_pose: np.ndarray
     """True object pose after each frame, (F, G, 7)."""
     initial_pose: np.ndarray
@@ -271,9 +255,15 @@ class Recording:
     names: tuple[str, ...]
     """Each track's name, (G,)."""
 
+    def __getattr__(self, name: str) -> np.ndarray:
+        sensing = self.__dict__.get("sensing", {})
+        if name in sensing:
+            return sensing[name]
+        raise AttributeError(f"'Recording' object has no attribute '{name}'")
+
     @property
     def frames(self) -> int:
-        return self.controls.shape[0]
+        return self.object_pose.shape[0]
 
     def trajectory(self, g: int, robot: str, obj: str, meta: dict | None = None) -> Trajectory:
         """Track ``g`` as a trajectory file's content."""
@@ -286,32 +276,23 @@ class Recording:
             mass=float(self.mass[g]),
             friction=float(self.friction[g]),
         )
-        return Trajectory(
-            name=self.names[g],
-            robot=robot,
-            object=obj,
-            frame_rate=FRAME_RATE,
-            controls=cut(self.controls),
-            q=cut(self.q),
-            force=cut(self.force),
-            slip=cut(self.slip),
-            slip_dir=cut(self.slip_dir),
-            spin=cut(self.spin),
-            spin_sense=cut(self.spin_sense),
-            truth=truth,
-            meta=dict(meta or {}),
-        )
+        sensing = {name: cut(v) for name, v in self.sensing.items()}
+        return Trajectory(self.names[g], robot, obj, FRAME_RATE, truth=truth, meta=dict(meta or {}), **sensing)
 
     @classmethod
     def gather(cls, tracks: Sequence[tuple[Recording, int]]) -> Recording:
         """Track ``g`` of recording ``r`` for each ``(r, g)``, in order. The recordings must have
         the same number of frames (the same demos)."""
-        arrays = {
-            name: np.stack([np.take(getattr(r, name), g, axis=_axis(name)) for r, g in tracks], axis=_axis(name))
-            for name, value in vars(tracks[0][0]).items()
-            if isinstance(value, np.ndarray)
-        }
-        return cls(**arrays, names=tuple(r.names[g] for r, g in tracks))
+        per_frame = lambda name: np.stack([getattr(r, name)[:, g] for r, g in tracks], axis=1)  # noqa: E731
+        per_track = lambda name: np.stack([getattr(r, name)[g] for r, g in tracks])  # noqa: E731
+        return cls(
+            sensing={
+                name: np.stack([r.sensing[name][:, g] for r, g in tracks], axis=1) for name in tracks[0][0].sensing
+            },
+            object_pose=per_frame("object_pose"),
+            **{name: per_track(name) for name in ("initial_pose", "initial_q", "mass", "friction", "lengths")},
+            names=tuple(r.names[g] for r, g in tracks),
+        )
 
     def held(self, demos: Sequence[Demo], margin: float = 0.02) -> np.ndarray:
         """Whether each track kept its object in the hand from the lift to the set-down, (G,): the
@@ -325,7 +306,8 @@ class Recording:
 
     @classmethod
     def stack(cls, trajectories: Sequence[Trajectory]) -> Recording:
-        """G trajectories (with truth) side by side, padded to the longest."""
+        """G trajectories (with truth) side by side, padded to the longest; touch a trajectory
+        lacks is zero."""
         if any(t.truth is None for t in trajectories):
             raise ValueError("recording: every trajectory needs its ground truth")
         lengths = np.array([t.frames for t in trajectories])
@@ -335,18 +317,14 @@ class Recording:
             a = np.zeros((n, *like), np.float32) if a is None else np.asarray(a, np.float32)
             return np.concatenate([a, np.repeat(a[-1:], f - n, axis=0)]) if n < f else a
 
-        def field(name: str, like: tuple[int, ...]) -> np.ndarray:
-            return np.stack([pad(getattr(t, name), t.frames, like) for t in trajectories], axis=1)
-
+        d = trajectories[0].controls.shape[1]
         l_count = next((t.force.shape[1] for t in trajectories if t.force is not None), 0)
+        sensing = {
+            s.name: np.stack([pad(t.sensing[s.name], t.frames, s.shape(d, l_count)) for t in trajectories], axis=1)
+            for s in SENSING
+        }
         return cls(
-            controls=field("controls", ()),
-            q=field("q", ()),
-            force=field("force", (l_count, 3)),
-            slip=field("slip", (l_count,)),
-            slip_dir=field("slip_dir", (l_count, 2)),
-            spin=field("spin", (l_count,)),
-            spin_sense=field("spin_sense", (l_count,)),
+            sensing=sensing,
             object_pose=np.stack([pad(t.truth.pose, t.frames, (7,)) for t in trajectories], axis=1),
             initial_pose=np.stack([t.truth.initial_pose for t in trajectories]),
             initial_q=np.stack([t.truth.initial_q for t in trajectories]),
@@ -376,23 +354,25 @@ def record(truth: Population, demos: Demo | Sequence[Demo], mass: np.ndarray, fr
         mass=torch.as_tensor(mass, dtype=torch.float32)[:, None],
         friction=torch.as_tensor(friction, dtype=torch.float32)[:, None],
     )
-    fields = ("q", "force", "slip", "slip_dir", "spin", "spin_sense", "object_pose")
+    # What a robot senses is what a world observes, field for field; the controls are the demo's.
+    fields = [f.name for f in SENSING if f.name != "controls"] + ["object_pose"]
     rows: dict[str, list[torch.Tensor]] = {f: [] for f in fields}
-    targets = torch.as_tensor(controls, device=truth.torch_device)
-    for u in targets:
+    for u in controls:
         truth.set_targets(u)
         truth.step()
         for name in fields:
             rows[name].append(getattr(truth.obs, name)[:, 0].clone())
+    recorded = {name: torch.stack(v).cpu().numpy() for name, v in rows.items()}
+    object_pose = recorded.pop("object_pose")
     return Recording(
-        controls=controls,
+        sensing={"controls": controls, **recorded},
+        object_pose=object_pose,
         initial_pose=np.stack([d.object_pose for d in demos]),
         initial_q=np.stack([d.q for d in demos]),
         mass=np.asarray(mass, dtype=np.float32),
         friction=np.asarray(friction, dtype=np.float32),
         lengths=lengths,
         names=tuple(d.name for d in demos),
-        **{name: torch.stack(v).cpu().numpy() for name, v in rows.items()},
     )
 
 

@@ -10,7 +10,7 @@ The tracker sees only what the robot sends plus a noisy initial pose; ADD scores
 from __future__ import annotations
 
 import functools
-import sys
+import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -19,212 +19,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from client.replay import NOISE_LEVELS
-from protocol.trajectory import Trajectory
-from sim_backend import HandSpec, Kinematics, Population, PopulationConfig, catalog_object, resolve_device
-from sim_backend.demos import DEMO_KINDS, Recording, make_demo, record
+from protocol import Trajectory
+from service.evaluation import add_error
+from service.paths import CACHE_DIR
+from service.tracker import METHODS, Frame, Tracker, TrackerConfig
+from service.tracker.sampling import sample_poses
+from sim_backend import HandSpec, Population, PopulationConfig, catalog_object
 
-from .evaluation import add_error
-from .optimizers import METHODS
-from .sampling import sample_poses
-from .tracker import Frame, Tracker, TrackerConfig
+from .demos import Recording
+from .progress import progress_bar
+from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, Suite
+from .truth import ground_truth
 
-__all__ = [
-    "CACHE_DIR",
-    "DATA_DIR",
-    "EXPLORATION",
-    "K_ABLATION",
-    "NOISE_LEVELS",
-    "SUITES",
-    "PhysicsGap",
-    "SensorNoise",
-    "Suite",
-    "TrackResult",
-    "ground_truth",
-    "run_suite",
-]
+__all__ = ["TrackResult", "TrackSetting", "run_suite", "run_tracks", "settings"]
 
-EXPLORATION: dict[str, float] = {"low": 0.25, "med": 1.0, "high": 4.0}
-"""Exploration levels of the ablation: multipliers on the parameter and wrench noise."""
-K_ABLATION = (10, 40, 160, 640, 2560)
+log = logging.getLogger(__name__)
+
 _CONTACT_TERMS = (3, 4, 5)  # contact disagreement, force magnitude, force direction
 _SLIP_TERMS = (6, 7, 8, 9)
-
-
-@dataclass(frozen=True)
-class PhysicsGap:
-    """How the ground truth's physics differs from the tracker's."""
-
-    substeps: int = 8
-    """Truth substeps per frame (the tracker uses 8)."""
-    object_scale: float = 1.0
-    """Truth object size relative to the tracker's model."""
-    finger_damping: float = 1.0
-    """Truth finger joint damping relative to the tracker's model."""
-    impratio: float = 10.0
-    """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding."""
-
-    @property
-    def is_none(self) -> bool:
-        return self == PhysicsGap()
-
-
-@dataclass(frozen=True)
-class SensorNoise:
-    """What real sensors add to the robot's frames."""
-
-    joint_sigma: float = 0.0
-    """Joint encoder noise, standard deviation [rad] (and [m] for the wrist slides)."""
-    force_sigma: float = 0.0
-    """Fingertip force noise, standard deviation per axis [N]."""
-    force_bias: float = 0.0
-    """Fingertip force bias, standard deviation per sensor and axis, fixed per track [N]."""
-    slip_miss: float = 0.0
-    """Fraction of slip events the slip detector misses."""
-
-
-@dataclass(frozen=True)
-class Suite:
-    name: str
-    objects: tuple[str, ...]
-    kinds: tuple[str, ...]
-    variants: int
-    """Demos per object and kind."""
-    seconds: float
-    """About how long each demo lasts [s]."""
-    pace: float = 1.0
-    gap: PhysicsGap = PhysicsGap()
-    sensors: SensorNoise = SensorNoise()
-    seed: int = 0
-
-
-SUITES: dict[str, Suite] = {
-    "smoke": Suite("smoke", ("foam_brick",), ("pick_place",), 2, seconds=10.0, pace=0.7),
-    "paper": Suite("paper", ("spam_can", "foam_brick", "toy_banana"), DEMO_KINDS, 2, seconds=60.0),
-    "reality-gap": Suite(
-        "reality-gap",
-        ("spam_can", "foam_brick", "toy_banana"),
-        DEMO_KINDS,
-        1,
-        seconds=30.0,
-        gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
-        sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
-    ),
-}
-
-
-# ---------------------------------------------------------------------- ground truth
-DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "trajectories"
-"""The short trajectories shipped with the project (smoke suite, demo)."""
-CACHE_DIR = Path.home() / ".cache" / "inhand-tracker" / "trajectories"
-"""Where longer trajectories are written once generated."""
-
-
-def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR, log=None) -> list[Trajectory]:
-    """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
-    written to ``cache``) with one truth population per object, one group per physics draw of a demo, hidden mass
-    and friction drawn from the tracker's prior (among those with which the hand can lift it)."""
-    spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
-    kin = Kinematics(HandSpec())  # the robot's own model plans the demos
-    out: list[Trajectory] = []
-    for o, name in enumerate(suite.objects):
-        obj = catalog_object(name)
-        demos = [
-            make_demo(kin, obj, kind, v, suite.seconds, suite.pace)
-            for kind in suite.kinds
-            for v in range(suite.variants)
-        ]
-        names = [f"{suite.name}-{d.name}.traj" for d in demos]
-        for folder in (DATA_DIR, cache):
-            if folder is not None and all((folder / n).exists() for n in names):
-                break
-        else:
-            folder = None
-        if folder is not None:
-            out += [Trajectory.load(folder / n) for n in names]
-            continue
-        if log:
-            log(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
-        t0 = time.perf_counter()
-        rng = np.random.default_rng([suite.seed, o])
-        # A GPU's frame costs little more for more worlds (a held pinch: 4.9 ms at 40, 7.1 ms at
-        # 1024, issue 7), so it tries a demo's draws side by side rather than one round after
-        # another (a redrawn round costs a whole demo's time): on an H100 a round of 64 draws took
-        # about what 16 did (the brick's truth 14 s against 12 s).
-        candidates = _CANDIDATES if resolve_device(device).is_cpu else 4 * _CANDIDATES
-        config = PopulationConfig(
-            groups=len(demos) * candidates,
-            worlds=1,
-            device=device,
-            substeps=suite.gap.substeps,
-            impratio=suite.gap.impratio,
-        )
-        truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
-        held, rounds = _held_recording(truth, demos, rng)
-        rec = _add_sensor_noise(held, suite.sensors, rng)
-        if log:
-            seconds = time.perf_counter() - t0
-            log(f"recorded {name}: {rounds} round(s) of {len(demos) * candidates} physics draws in {seconds:.0f} s")
-        meta = {"suite": suite.name, "gap": str(asdict(suite.gap)), "sensors": str(asdict(suite.sensors))}
-        for g, d in enumerate(demos):
-            traj = rec.trajectory(g, HandSpec().name, name, meta | {"demo": d.name})
-            if cache is not None:
-                traj.save(cache / names[g])
-            out.append(traj)
-    return out
-
-
-def _draw_prior(nominal: float, bounds: tuple[float, float], rng: np.random.Generator, n: int) -> np.ndarray:
-    """The tracker's prior over a physics parameter (its nominal value, a quarter of the range as
-    standard deviation, clipped to the range): the truth is one draw from what the tracker believes."""
-    lo, hi = bounds
-    return np.clip(rng.normal(nominal, TrackerConfig().mass_sigma0 * (hi - lo), n), lo, hi)
-
-
-_CANDIDATES = 4
-"""Hidden physics drawn per demo and recorded side by side on a CPU (4x that on a GPU); the first
-that holds is kept."""
-_DRAWS = 32
-"""Hidden physics tried per demo at most before the recording gives up."""
-
-
-def _held_recording(truth: Population, demos: list, rng: np.random.Generator) -> tuple[Recording, int]:
-    """Each demo recorded with hidden mass and friction drawn from the prior, among those with
-    which the object stays in the hand from the lift to the set-down.
-
-    A teleoperator whose object slipped out of the grasp would redo the demo: tracking an object
-    that fell and tumbled on the table, unseen and untouched, is not what the paper measures. The
-    draws are tried G / len(demos) at a time per demo, as groups of ``truth``, up to ``_DRAWS``.
-    Returns the recording and how many rounds of draws it took.
-    """
-    obj, n, c = truth.object, len(demos), truth.G // len(demos)
-    rounds = -(-_DRAWS // c)
-    kept: list[tuple[Recording, int] | None] = [None] * n
-    candidates = [d for d in demos for _ in range(c)]
-    for r in range(rounds):
-        mass = _draw_prior(obj.mass, obj.mass_range, rng, n * c)
-        friction = _draw_prior(obj.friction, obj.friction_range, rng, n * c)
-        rec = record(truth, candidates, mass, friction)
-        held = rec.held(candidates).reshape(n, c)
-        for i in np.flatnonzero(held.any(axis=1)):
-            kept[i] = kept[i] or (rec, int(i * c + held[i].argmax()))
-        if all(kept):
-            return Recording.gather(kept), r + 1
-    lost = [d.name for d, k in zip(demos, kept, strict=True) if k is None]
-    raise RuntimeError(f"{obj.name}: the object fell out of the hand with all {rounds * c} physics drawn for {lost}")
-
-
-def _add_sensor_noise(rec: Recording, noise: SensorNoise, rng: np.random.Generator) -> Recording:
-    if noise == SensorNoise():
-        return rec
-    _, g, l = rec.slip.shape
-    rec.q = rec.q + rng.normal(0.0, noise.joint_sigma, rec.q.shape).astype(np.float32)
-    bias = rng.normal(0.0, noise.force_bias, (1, g, l, 3))
-    touching = np.linalg.norm(rec.force, axis=-1, keepdims=True) > 0  # a sensor reads noise only in contact
-    rec.force = (rec.force + touching * (bias + rng.normal(0.0, noise.force_sigma, rec.force.shape))).astype(np.float32)
-    for flags in (rec.slip, rec.spin):
-        flags[rng.random(flags.shape) < noise.slip_miss] = 0.0
-    return rec
 
 
 # ---------------------------------------------------------------------- tracks
@@ -353,17 +165,7 @@ def run_tracks(
         means = np.empty_like(poses)
         diverged = np.zeros(len(group), np.int64)
         for f in range(rec.frames):
-            est = tracker.step(
-                Frame(
-                    controls=rec.controls[f, rows],
-                    q=rec.q[f, rows],
-                    force=rec.force[f, rows],
-                    slip=rec.slip[f, rows],
-                    slip_dir=rec.slip_dir[f, rows],
-                    spin=rec.spin[f, rows],
-                    spin_sense=rec.spin_sense[f, rows],
-                )
-            )
+            est = tracker.step(Frame(**{name: v[f, rows] for name, v in rec.sensing.items()}))
             poses[f] = est.pose
             means[f] = est.mean_pose
             diverged += est.status == 2
@@ -416,9 +218,8 @@ def run_suite(
             raise ValueError(f"noise: expected some of {tuple(NOISE_LEVELS)}, got {n!r}")
     if repeats < 1:
         raise ValueError(f"repeats: expected >= 1, got {repeats}")
-    log = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
-    trajectories = ground_truth(suite, device, cache, log)
+    trajectories = ground_truth(suite, device, cache)
     t_truth = time.perf_counter() - t0
     by_object: dict[str, list[Trajectory]] = {}
     for t in trajectories:
@@ -428,7 +229,7 @@ def run_suite(
         o: settings(len(ts), methods, noises, ablations, worlds, k_ablation, repeats) for o, ts in by_object.items()
     }
     total = sum(max(t.frames for t in by_object[o]) * sum(s.worlds for s in p) for o, p in plan.items())
-    bar = _Progress(total, "tracking", quiet)
+    bar = progress_bar(total, "tracking", unit="world-frames", disable=quiet)
     results: list[TrackResult] = []
     for o, ts in by_object.items():
         by_k: dict[int, list[TrackSetting]] = {}
@@ -436,10 +237,10 @@ def run_suite(
             by_k.setdefault(s.worlds, []).append(s)
         for k, k_tracks in by_k.items():  # the frames of one population advance all its groups at once
             t1 = time.perf_counter()
-            results += run_tracks(ts, k_tracks, device, suite.seed, bar.advance, substeps, config, population)
+            results += run_tracks(ts, k_tracks, device, suite.seed, bar.update, substeps, config, population)
             frames = max(t.frames for t in ts)
             seconds = time.perf_counter() - t1
-            bar.note(
+            log.info(
                 f"tracked {o}: {len(k_tracks)} tracks x {k} worlds, {frames} frames in {seconds:.0f} s"
                 f" ({1e3 * seconds / frames:.1f} ms per frame)"
             )
@@ -461,37 +262,6 @@ def run_suite(
     bar.close()
     t_track = time.perf_counter() - t0 - t_truth
     return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config, population)
-
-
-class _Progress:
-    """A one-line progress bar on stderr, counted in world-frames."""
-
-    def __init__(self, total: int, label: str, quiet: bool):
-        self.total, self.label, self.quiet, self.done = max(total, 1), label, quiet, 0
-        self.t0, self._last = time.perf_counter(), 0.0
-
-    def advance(self, n: int) -> None:
-        self.done += n
-        now = time.perf_counter()
-        if not self.quiet and (now - self._last > 0.5 or self.done >= self.total):
-            self._last = now
-            frac = min(self.done / self.total, 1.0)
-            eta = (now - self.t0) * (1 - frac) / max(frac, 1e-9)
-            bar = "#" * int(30 * frac)
-            print(
-                f"\r{self.label} [{bar:<30}] {100 * frac:5.1f}%  eta {eta:5.0f} s", end="", file=sys.stderr, flush=True
-            )
-
-    def note(self, msg: str) -> None:
-        """``msg`` on a line of its own, the bar redrawn below it."""
-        if not self.quiet:
-            print(f"\r{msg:<60}", file=sys.stderr, flush=True)
-            self._last = 0.0
-            self.advance(0)
-
-    def close(self) -> None:
-        if not self.quiet:
-            print(file=sys.stderr, flush=True)
 
 
 def _stats(results: Sequence[TrackResult], of: str = "add") -> dict:

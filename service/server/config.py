@@ -8,9 +8,11 @@ import tomllib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
+from service.paths import CONFIG_DIR
+
 __all__ = ["DEFAULT_CONFIG", "ServiceConfig", "load_config"]
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "service.toml"
+DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 
 
 @dataclass(frozen=True)

@@ -13,11 +13,11 @@ import numpy as np
 import warp as wp
 
 from protocol import Trajectory
+from service.paths import DATA_DIR
+from service.tracker import Frame, Tracker, TrackerConfig
 from sim_backend import HandSpec, Population, PopulationConfig, catalog_object, resolve_device
-from sim_backend.bench import release_memory, used_bytes
 
-from .accuracy import DATA_DIR
-from .tracker import Frame, Tracker, TrackerConfig
+from .sim import release_memory, used_bytes
 
 __all__ = ["REAL_TIME_MS", "SpeedResult", "as_dicts", "bench_speed", "format_table"]
 
@@ -58,7 +58,7 @@ class SpeedResult:
 
 def _frames(traj: Trajectory, groups: int) -> list[Frame]:
     tile = lambda a: np.repeat(a[:, None], groups, axis=1)  # noqa: E731 - every group replays the same robot
-    fields = {n: tile(getattr(traj, n)) for n in ("controls", "q", "force", "slip", "slip_dir", "spin", "spin_sense")}
+    fields = {n: tile(v) for n, v in traj.sensing.items() if v is not None}
     return [Frame(**{n: v[f] for n, v in fields.items()}) for f in range(traj.frames)]
 
 

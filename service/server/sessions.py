@@ -16,21 +16,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol import Error, ErrorCode, OpenSession, RobotFrame, SessionInfo, check_version
-from protocol import Estimate as EstimateMessage
-from protocol import Status as StatusMessage
+from protocol import (
+    PRESENCE,
+    SENSING,
+    Error,
+    ErrorCode,
+    Estimate,
+    OpenSession,
+    RobotFrame,
+    SessionInfo,
+    SessionStatus,
+    TrackState,
+    check_version,
+    sensing_field,
+)
+from service.tracker import METHODS, Frame, OptimizerConfig, Tracker, TrackerConfig, setting_types
 from sim_backend import ObjectSpec, Population, PopulationConfig, RobotSpec
 from sim_backend.kinematics import Kinematics
 
 from .config import ServiceConfig
-from .optimizers import METHODS, OptimizerConfig
-from .tracker import Frame, Status, Tracker, TrackerConfig, setting_types
 
 __all__ = ["ServiceError", "SessionManager"]
 
 _TUNABLE = setting_types(TrackerConfig)
 """Tracker hyperparameters a session may override, with their types."""
-_OPTIONAL = ("force", "slip", "slip_dir", "spin", "spin_sense")
 
 
 class ServiceError(Exception):
@@ -62,7 +71,9 @@ class _Session:
     errors: int = 0
     last_error: str | None = None
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
-    latest: EstimateMessage | None = None
+    latest: Estimate | None = None
+    failed: str | None = None
+    """Why the session's population failed; it takes no more frames then."""
 
 
 @dataclass
@@ -72,11 +83,15 @@ class _Pool:
     key: tuple
     tracker: Tracker
     sessions: list[_Session | None]
-    controls: np.ndarray
-    """The controls every group holds, (G, D): the last frame's, or the start pose."""
-    q: np.ndarray
-    """The joints every group reports, (G, D)."""
-    touch: dict[str, np.ndarray]
+    sensing: dict[str, np.ndarray]
+    """What every group's robot last sent, each field of protocol.SENSING as (G, ...): a group
+    without a frame this tick holds its last controls and joints (the start pose at first), and
+    touch it did not send is zero."""
+    present: dict[str, np.ndarray]
+    """Which presence groups each group's robot sent in its last frame, {"force": (G,) bool, ...}."""
+
+    failed: bool = False
+    """Its step raised: it steps no more and takes no new sessions."""
 
     @property
     def active(self) -> list[_Session]:
@@ -133,10 +148,11 @@ class SessionManager:
         p0 = np.tile(np.array([0, 0, 0, 0, 0, 0, 1], np.float32), (tracker.G, 1))  # other groups: untouched
         p0[group] = request.p0
         p0[group, 3:] /= np.linalg.norm(request.p0[3:])
-        pool.controls[group] = pool.q[group] = q0
-        for v in pool.touch.values():
-            v[group] = 0.0
-        tracker.start(p0, pool.q, sigma_t=request.sigma_t, sigma_r=request.sigma_r, groups=mask)
+        for name, v in pool.sensing.items():
+            v[group] = q0 if sensing_field(name).per == "joint" else 0.0
+        for v in pool.present.values():
+            v[group] = False
+        tracker.start(p0, pool.sensing["q"], sigma_t=request.sigma_t, sigma_r=request.sigma_r, groups=mask)
         return SessionInfo(
             session=session.id,
             robot=request.robot,
@@ -151,7 +167,7 @@ class SessionManager:
         """A population with a free group for this request, built on first use."""
         key = (request.robot, request.object, request.worlds, tuple(sorted(request.overrides.items())))
         for k, pool in self.pools.items():
-            if k[:4] == key and None in pool.sessions:
+            if k[:4] == key and None in pool.sessions and not pool.failed:
                 return pool
         cfg = self.config
         if sum(p.tracker.G * p.tracker.K for p in self.pools.values()) + cfg.groups * request.worlds > cfg.max_worlds:
@@ -170,19 +186,16 @@ class SessionManager:
         except ValueError as exc:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
         tracker = Tracker(pop, tconf, methods=[request.method] * cfg.groups)
-        g, d, l_count = pop.G, pop.D, pop.L
-        q = np.broadcast_to(self._kinematics[request.robot].layout.default_q, (g, d)).astype(np.float32)
-        touch = {
-            "force": np.zeros((g, l_count, 3), np.float32),
-            "slip": np.zeros((g, l_count), np.float32),
-            "slip_dir": np.zeros((g, l_count, 2), np.float32),
-            "spin": np.zeros((g, l_count), np.float32),
-            "spin_sense": np.zeros((g, l_count), np.float32),
-        }
+        g = pop.G
+        sensing = {f.name: np.zeros((g, *f.shape(pop.D, pop.L)), np.float32) for f in SENSING}
+        for f in SENSING:
+            if f.per == "joint":
+                sensing[f.name][:] = self._kinematics[request.robot].layout.default_q
+        present = {p: np.zeros(g, bool) for p in PRESENCE}
         # Idle groups: the object rests on the table out of the hand's reach, where nothing happens.
         rest = -float(self.objects[request.object].mesh.bounds[0, 2])
-        tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), q)
-        pool = _Pool((*key, len(self.pools)), tracker, [None] * g, q.copy(), q, touch)
+        tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), sensing["q"])
+        pool = _Pool((*key, len(self.pools)), tracker, [None] * g, sensing, present)
         self.pools[pool.key] = pool
         return pool
 
@@ -202,21 +215,15 @@ class SessionManager:
         """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
         a frame of the wrong size is refused with the field and the numbers (and counted)."""
         session = self._get(frame.session)
+        if session.failed is not None:
+            session.errors += 1
+            raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
         tracker = session.pool.tracker
-        expected = {
-            "controls": (tracker.D,),
-            "q": (tracker.D,),
-            "force": (tracker.L, 3),
-            "slip": (tracker.L,),
-            "slip_dir": (tracker.L, 2),
-            "spin": (tracker.L,),
-            "spin_sense": (tracker.L,),
-        }
-        for name, shape in expected.items():
-            value = getattr(frame, name)
+        for f in SENSING:
+            value, shape = getattr(frame, f.name), f.shape(tracker.D, tracker.L)
             if value is not None and value.shape != shape:
                 session.errors += 1
-                session.last_error = f"RobotFrame.{name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"
+                session.last_error = f"RobotFrame.{f.name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"
                 raise ServiceError(ErrorCode.BAD_REQUEST, session.last_error)
         last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
         if frame.seq <= last:
@@ -233,13 +240,15 @@ class SessionManager:
         now = time.perf_counter()
         out = []
         for pool in self.pools.values():
+            if pool.failed:
+                continue
             active = pool.active
             waiting = [s.pending[0][1] for s in active if s.pending]
             if waiting and (len(waiting) == len(active) or now - min(waiting) >= max_wait):
                 out.append(pool)
         return out
 
-    def step(self, pool: _Pool) -> list[EstimateMessage]:
+    def step(self, pool: _Pool) -> list[Estimate]:
         """One tick of ``pool``: each session's next frame (others hold their last controls), one
         tracker step for all groups, an estimate for each session that sent a frame."""
         stepped: list[tuple[_Session, RobotFrame, float]] = []
@@ -248,24 +257,14 @@ class SessionManager:
                 continue
             frame, received = s.pending.popleft()
             g = s.group
-            pool.controls[g], pool.q[g] = frame.controls, frame.q
-            for name in _OPTIONAL:
+            for name, v in pool.sensing.items():
                 value = getattr(frame, name)
-                pool.touch[name][g] = 0.0 if value is None else value
+                v[g] = 0.0 if value is None else value
+            for name, v in pool.present.items():
+                v[g] = getattr(frame, name) is not None
             s.next_seq = frame.seq + 1
             stepped.append((s, frame, received))
-        has = {n: any(getattr(f, n) is not None for _, f, _ in stepped) for n in ("force", "slip", "spin")}
-        est = pool.tracker.step(
-            Frame(
-                controls=pool.controls,
-                q=pool.q,
-                force=pool.touch["force"] if has["force"] else None,
-                slip=pool.touch["slip"] if has["slip"] else None,
-                slip_dir=pool.touch["slip_dir"],
-                spin=pool.touch["spin"] if has["spin"] else None,
-                spin_sense=pool.touch["spin_sense"],
-            )
-        )
+        est = pool.tracker.step(Frame(present=pool.present, **pool.sensing))
         done = time.perf_counter()
         out = []
         for s, frame, received in stepped:
@@ -273,7 +272,7 @@ class SessionManager:
             s.frames += 1
             latency = (done - received) * 1e3
             s.latencies.append(latency)
-            s.latest = EstimateMessage(
+            s.latest = Estimate(
                 session=s.id,
                 seq=frame.seq,
                 stamp=frame.stamp,
@@ -283,17 +282,31 @@ class SessionManager:
                 cost=float(est.cost[g]),
                 mass=float(est.mass[g]),
                 friction=float(est.friction[g]),
-                status=Status(int(est.status[g])).name.lower(),
+                status=TrackState(int(est.status[g])).name.lower(),
                 latency_ms=latency,
             )
             out.append(s.latest)
         return out
 
-    def status(self, session_id: str) -> StatusMessage:
+    def fail(self, pool: _Pool, reason: str) -> list[str]:
+        """Fail every session of ``pool`` with ``reason`` after its step raised: their queued frames
+        are dropped and counted as errors, their status says why, and the population steps no more
+        (it may hold half a frame). Returns the sessions' ids."""
+        failed = []
+        for s in pool.active:
+            s.failed = reason
+            s.errors += len(s.pending)
+            s.pending.clear()
+            s.last_error = f"internal: the session's population failed: {reason}"
+            failed.append(s.id)
+        pool.failed = True
+        return failed
+
+    def status(self, session_id: str) -> SessionStatus:
         s = self._get(session_id)
         lat = np.asarray(s.latencies) if s.latencies else np.zeros(1)
         cov = s.latest.covariance if s.latest is not None else np.zeros((6, 6))
-        return StatusMessage(
+        return SessionStatus(
             session=s.id,
             frames=s.frames,
             gaps=s.gaps,

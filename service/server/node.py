@@ -9,6 +9,7 @@ timeout.
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -30,15 +31,17 @@ from protocol import (
     decode,
     encode,
 )
+from service.tracker import METHODS
 from sim_backend import load_catalog, load_robot, resolve_device
 
 from .config import DEFAULT_CONFIG, ServiceConfig
-from .optimizers import METHODS
 from .sessions import ServiceError, SessionManager
 
 __all__ = ["TrackerNode"]
 
-_ROOT = DEFAULT_CONFIG.parents[1]
+log = logging.getLogger(__name__)
+
+_ROOT = DEFAULT_CONFIG.parents[1]  # robot paths in the config are from the project root
 _ENCODING = zenoh.Encoding("application/msgpack")
 
 
@@ -59,7 +62,9 @@ class TrackerNode:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._robot_gone: dict[str, float] = {}
         self._stop = threading.Event()
-        self._loop = threading.Thread(target=self._run, name="inhand-gpu-loop", daemon=True)
+        self.failed = threading.Event()
+        """Set when the loop thread died: the service withdrew its liveliness token and must exit."""
+        self._loop = threading.Thread(target=self._guarded_run, name="inhand-gpu-loop", daemon=True)
         self.session: zenoh.Session | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -77,6 +82,7 @@ class TrackerNode:
         ]
         self._loop.start()
         self._token = s.liveliness().declare_token(keys.alive)  # ready: only now do clients see us
+        log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
         return self
 
     def close(self) -> None:
@@ -176,6 +182,18 @@ class TrackerNode:
         self._inbox.put(("robot", (session, gone, time.monotonic()), None))
 
     # ------------------------------------------------------------------ the loop
+    def _guarded_run(self) -> None:
+        """The loop; should anything escape it, the service stops announcing itself (a live token
+        on a dead loop would look healthy to robots and to the health check) and says so."""
+        try:
+            self._run()
+        except BaseException:
+            log.critical("the GPU loop died; withdrawing the service's liveliness token", exc_info=True)
+            token = getattr(self, "_token", None)
+            if token is not None:
+                token.undeclare()
+            self.failed.set()
+
     def _run(self) -> None:
         m, cfg = self.manager, self.config
         while not self._stop.is_set():
@@ -191,7 +209,15 @@ class TrackerNode:
                 except queue.Empty:
                     item = None
             for pool in m.ready(cfg.max_wait_s):
-                for estimate in m.step(pool):
+                try:
+                    estimates = m.step(pool)
+                except Exception as exc:
+                    # One population's failure (its physics or its tracker) is its sessions' error,
+                    # not the service's: they are failed with the reason, the others go on.
+                    sessions = m.fail(pool, f"{type(exc).__name__}: {exc}")
+                    log.exception("tracking step failed for sessions %s; they are closed to frames", sessions)
+                    continue
+                for estimate in estimates:
                     payload = encode(estimate)
                     self._latest[estimate.session] = payload
                     pub = self._publishers.get(estimate.session)
@@ -236,6 +262,7 @@ class TrackerNode:
             if done is not None:
                 done.set_result(exc.to_message())
         except Exception as exc:  # the loop never dies of a request; the caller gets the reason
+            log.exception("request '%s' failed", kind)
             if done is not None:
                 done.set_result(Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
 

@@ -1,0 +1,84 @@
+"""What a robot senses in one control frame, declared once.
+
+Every form a frame takes is derived from :data:`SENSING`: the wire message
+(:class:`protocol.RobotFrame`), the ``.traj`` file's ``frames`` table, the tracker's frame and
+the packed row the GPU reads. A field is per joint (D of them) or per touch sensor (L of them),
+with a trailing shape per joint or sensor. Optional fields come in presence groups: a frame
+either carries a group (forces; translational slip; rotational slip) or not, and the tracker's
+cost drops the terms of a group the frame lacks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+__all__ = ["PRESENCE", "SENSING", "SensingField", "check_sensing", "sensing_field"]
+
+
+@dataclass(frozen=True)
+class SensingField:
+    """One field of the robot's sensing record."""
+
+    name: str
+    per: Literal["joint", "sensor"]
+    """What the leading axis counts: D actuated joints or L touch sensors."""
+    trailing: tuple[int, ...]
+    """Shape per joint or sensor: () for a scalar, (3,) for a vector."""
+    unit: str
+    doc: str
+    group: str | None = None
+    """Presence group of an optional field; None for a field every frame carries."""
+
+    def shape(self, d: int, l: int) -> tuple[int, ...]:
+        """The field's shape in one frame of a robot with ``d`` joints and ``l`` sensors."""
+        return ((d if self.per == "joint" else l), *self.trailing)
+
+    @property
+    def optional(self) -> bool:
+        return self.group is not None
+
+
+SENSING: tuple[SensingField, ...] = (
+    SensingField("controls", "joint", (), "rad or m", "Joint position targets."),
+    SensingField("q", "joint", (), "rad or m", "Measured joint positions."),
+    SensingField("force", "sensor", (3,), "N", "Contact force on each fingertip pad, in the sensor frame.", "force"),
+    SensingField("slip", "sensor", (), "1", "Translational slip flags, 1 slipping, else 0.", "slip"),
+    SensingField(
+        "slip_dir", "sensor", (2,), "1", "Unit slip directions in the sensors' tangent planes (x, y).", "slip"
+    ),
+    SensingField("spin", "sensor", (), "1", "Rotational slip flags, 1 spinning, else 0.", "spin"),
+    SensingField(
+        "spin_sense", "sensor", (), "1", "Rotational slip senses: 1 counter-clockwise about the pad normal.", "spin"
+    ),
+)
+"""The robot's sensing record, in wire and packing order. Sensor frames: z is the pad normal,
+pointing at the object; x-y is the pad's tangent plane."""
+
+PRESENCE: tuple[str, ...] = tuple(dict.fromkeys(f.group for f in SENSING if f.group))
+"""The presence groups, in order: ("force", "slip", "spin")."""
+
+_BY_NAME = {f.name: f for f in SENSING}
+
+
+def sensing_field(name: str) -> SensingField:
+    """The field called ``name``; a ValueError lists the known names."""
+    try:
+        return _BY_NAME[name]
+    except KeyError:
+        raise ValueError(f"sensing field: '{name}' is not one of {list(_BY_NAME)}") from None
+
+
+def check_sensing(values: dict[str, np.ndarray | None], d: int, l: int, lead: tuple[int, ...] = ()) -> None:
+    """Check a record's shapes against a robot of ``d`` joints and ``l`` sensors, with leading axes
+    ``lead`` (frames, groups, ...); a ValueError names the field and both shapes."""
+    for name, value in values.items():
+        if value is None:
+            if not sensing_field(name).optional:
+                raise ValueError(f"{name}: required, got None")
+            continue
+        expected = (*lead, *sensing_field(name).shape(d, l))
+        if np.shape(value) != expected:
+            raise ValueError(f"{name}: expected shape {expected}, got {np.shape(value)}")

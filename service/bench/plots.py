@@ -1,0 +1,75 @@
+"""The benchmarks' charts, drawn with matplotlib (headless: the Agg backend, PNG files)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # no display on a GPU box or in CI
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+__all__ = ["bar_chart", "line_chart"]
+
+
+def _save(fig: plt.Figure, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def bar_chart(
+    path: str | Path,
+    title: str,
+    groups: Sequence[str],
+    series: Sequence[str],
+    mean: np.ndarray,
+    std: np.ndarray | None = None,
+    ylabel: str = "ADD [mm]",
+) -> Path:
+    """Grouped bars: ``mean`` (len(groups), len(series)) with error bars ``std``; NaN bars are left out."""
+    mean = np.asarray(mean, float)
+    std = np.zeros_like(mean) if std is None else np.asarray(std, float)
+    fig, ax = plt.subplots(
+        figsize=(max(5.2, 0.9 * len(groups) * max(1, len(series)) / 3 + 2.2), 3.6), layout="constrained"
+    )
+    width = 0.8 / max(len(series), 1)
+    x = np.arange(len(groups))
+    for j, name in enumerate(series):
+        shown = np.isfinite(mean[:, j])
+        ax.bar(x[shown] + (j - (len(series) - 1) / 2) * width, mean[shown, j], width, yerr=std[shown, j],
+               capsize=3, label=name)  # fmt: skip
+    ax.set_xticks(x, groups)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
+    ax.grid(axis="y", alpha=0.3)
+    return _save(fig, path)
+
+
+def line_chart(
+    path: str | Path,
+    title: str,
+    series: dict[str, np.ndarray],
+    x_step: float = 1.0,
+    xlabel: str = "time [s]",
+    ylabel: str = "ADD [mm]",
+) -> Path:
+    """One line per series over x = index * ``x_step``."""
+    fig, ax = plt.subplots(figsize=(7.2, 3.6), layout="constrained")
+    for name, values in series.items():
+        values = np.asarray(values, float)
+        ax.plot(np.arange(values.size) * x_step, values, label=name, linewidth=1.2)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
+    ax.grid(alpha=0.3)
+    return _save(fig, path)

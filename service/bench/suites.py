@@ -1,0 +1,74 @@
+"""The accuracy benchmark's suites: which demos, how the truth's physics and sensors differ from
+the tracker's, and the levels the paper varies."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from client.replay import NOISE_LEVELS
+
+from .demos import DEMO_KINDS
+
+__all__ = ["EXPLORATION", "K_ABLATION", "NOISE_LEVELS", "SUITES", "PhysicsGap", "SensorNoise", "Suite"]
+
+EXPLORATION: dict[str, float] = {"low": 0.25, "med": 1.0, "high": 4.0}
+"""Exploration levels of the ablation: multipliers on the parameter and wrench noise."""
+K_ABLATION = (10, 40, 160, 640, 2560)
+
+
+@dataclass(frozen=True)
+class PhysicsGap:
+    """How the ground truth's physics differs from the tracker's."""
+
+    substeps: int = 8
+    """Truth substeps per frame (the tracker uses 8)."""
+    object_scale: float = 1.0
+    """Truth object size relative to the tracker's model."""
+    finger_damping: float = 1.0
+    """Truth finger joint damping relative to the tracker's model."""
+    impratio: float = 10.0
+    """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding."""
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """What real sensors add to the robot's frames."""
+
+    joint_sigma: float = 0.0
+    """Joint encoder noise, standard deviation [rad] (and [m] for the wrist slides)."""
+    force_sigma: float = 0.0
+    """Fingertip force noise, standard deviation per axis [N]."""
+    force_bias: float = 0.0
+    """Fingertip force bias, standard deviation per sensor and axis, fixed per track [N]."""
+    slip_miss: float = 0.0
+    """Fraction of slip events the slip detector misses."""
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    objects: tuple[str, ...]
+    kinds: tuple[str, ...]
+    variants: int
+    """Demos per object and kind."""
+    seconds: float
+    """About how long each demo lasts [s]."""
+    pace: float = 1.0
+    gap: PhysicsGap = PhysicsGap()
+    sensors: SensorNoise = SensorNoise()
+    seed: int = 0
+
+
+SUITES: dict[str, Suite] = {
+    "smoke": Suite("smoke", ("foam_brick",), ("pick_place",), 2, seconds=10.0, pace=0.7),
+    "paper": Suite("paper", ("spam_can", "foam_brick", "toy_banana"), DEMO_KINDS, 2, seconds=60.0),
+    "reality-gap": Suite(
+        "reality-gap",
+        ("spam_can", "foam_brick", "toy_banana"),
+        DEMO_KINDS,
+        1,
+        seconds=30.0,
+        gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
+        sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
+    ),
+}

@@ -1,0 +1,67 @@
+"""Logging for the service and the command line: the standard logging module with timestamps,
+Warp's per-module load lines silenced, and a progress line while kernels compile on a first run."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+
+__all__ = ["quiet_warp", "setup_logging", "watch_kernel_compiles"]
+
+log = logging.getLogger("inhand_tracker")
+
+
+def setup_logging(level: str | int = "INFO") -> None:
+    """Log to stderr with timestamps; ``level`` also from INHAND_LOG_LEVEL."""
+    level = os.environ.get("INHAND_LOG_LEVEL", level)
+    logging.basicConfig(
+        level=level.upper() if isinstance(level, str) else level,
+        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        datefmt="%Y-%m-%d %H:%M:%S",
+    )
+
+
+def quiet_warp() -> None:
+    """Silence Warp's banner and its "Module ... load on device" line per module (about 60 on a
+    first start, before anything of ours)."""
+    import warp as wp
+
+    wp.config.quiet = True
+
+
+def watch_kernel_compiles(every_s: float = 5.0) -> None:
+    """Log a progress line every ``every_s`` while new kernel modules appear in Warp's cache.
+
+    Warp has no compile callback, and with its own lines silenced a cold first start would sit
+    silent for a minute or more; the cache folder gains one entry per compiled module, so its
+    count is the progress. A daemon thread: it costs a directory listing every few seconds.
+    """
+    import warp as wp
+
+    wp.init()
+    cache = Path(wp.config.kernel_cache_dir)
+
+    def count() -> int:
+        try:
+            return sum(1 for _ in cache.iterdir())
+        except OSError:
+            return 0
+
+    def watch() -> None:
+        start, seen = time.monotonic(), count()
+        first = seen
+        announced = False
+        while True:
+            time.sleep(every_s)
+            now = count()
+            if now > seen:
+                if not announced:
+                    log.info("compiling kernels on a first run; they are cached in %s for later starts", cache)
+                    announced = True
+                log.info("compiling kernels: %d modules built, %.0f s", now - first, time.monotonic() - start)
+                seen = now
+
+    threading.Thread(target=watch, name="inhand-compile-watch", daemon=True).start()

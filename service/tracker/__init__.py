@@ -1,0 +1,27 @@
+"""The tracker: Algorithm 1 of the paper over every group of a population at once, as torch ops
+on the population's device memory (cost, optimizers, sampling), captured as graphs."""
+
+from .config import TrackerConfig, setting_types
+from .cost import TERM_NAMES, WEIGHTS, Cost, CostConfig, RealObservation
+from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
+from .optimizers import METHODS, OptimizerConfig
+from .recovery import Recovery
+from .tracker import Tracker
+
+__all__ = [
+    "ESTIMATE",
+    "METHODS",
+    "TERM_NAMES",
+    "WEIGHTS",
+    "Cost",
+    "CostConfig",
+    "Frame",
+    "GroupEstimates",
+    "InputLayout",
+    "OptimizerConfig",
+    "RealObservation",
+    "Recovery",
+    "Tracker",
+    "TrackerConfig",
+    "setting_types",
+]

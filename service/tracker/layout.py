@@ -1,0 +1,187 @@
+"""The tracker's host-side records and the packed rows that cross between host and device.
+
+A frame crosses to the device as one float32 row per group, laid out from
+:data:`protocol.SENSING` (every field flattened, then one presence flag per group of optional
+fields); the estimate crosses back as one row per group laid out by :data:`ESTIMATE`. Packer
+and reader use the same layout, so a column can never be read at another's offset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from protocol import PRESENCE, SENSING
+
+__all__ = ["ESTIMATE", "Columns", "Frame", "GroupEstimates", "InputLayout"]
+
+
+class Frame:
+    """One frame from the robots of all G groups (host arrays).
+
+    The fields of :data:`protocol.SENSING` by name, each (G, ...): ``controls`` and ``q`` always,
+    the touch fields when any group sensed them. ``present`` says per group which presence
+    groups it sensed, {"force": (G,) bool, ...}; by default a presence group is present in every
+    group when its field of the same name is given, else absent.
+    """
+
+    def __init__(self, present: dict[str, np.ndarray] | None = None, **sensing: np.ndarray | None):
+        unknown = sorted(set(sensing) - {f.name for f in SENSING})
+        if unknown:
+            raise ValueError(f"frame: unknown fields {unknown} (known: {[f.name for f in SENSING]})")
+        self.sensing = {f.name: sensing.get(f.name) for f in SENSING}
+        self.present = present
+
+    def __getattr__(self, name: str) -> np.ndarray | None:
+        sensing = self.__dict__.get("sensing", {})
+        if name in sensing:
+            return sensing[name]
+        raise AttributeError(f"'Frame' object has no attribute '{name}'")
+
+    def presence(self, groups: int) -> dict[str, np.ndarray]:
+        """Each presence group's (G,) bool mask."""
+        out = {}
+        for name in PRESENCE:
+            given = self.present.get(name) if self.present is not None else None
+            if given is None:
+                given = np.full(groups, self.sensing[name] is not None)
+            out[name] = np.broadcast_to(np.asarray(given, bool), (groups,))
+        return out
+
+
+@dataclass(frozen=True)
+class Columns:
+    """Named column ranges of a packed row: name -> (start, shape)."""
+
+    spans: dict[str, tuple[int, tuple[int, ...]]]
+    width: int
+
+    @classmethod
+    def of(cls, shapes: dict[str, tuple[int, ...]]) -> Columns:
+        spans, at = {}, 0
+        for name, shape in shapes.items():
+            spans[name] = (at, shape)
+            at += int(np.prod(shape, dtype=np.int64))
+        return cls(spans, at)
+
+    def view(self, rows, name: str):
+        """Field ``name`` of ``rows`` (N, width), shaped (N, *shape); a view, never a copy."""
+        start, shape = self.spans[name]
+        size = int(np.prod(shape, dtype=np.int64))
+        part = rows[:, start : start + size]
+        return part.reshape(rows.shape[0], *shape)
+
+    def pack(self, parts: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The row (N, width) of ``parts``, each (N, *shape), in layout order."""
+        return torch.cat([parts[name].reshape(parts[name].shape[0], -1) for name in self.spans], dim=-1)
+
+
+ESTIMATE = Columns.of(
+    {
+        "pose": (7,),
+        "mean_position": (3,),
+        "mean_quat": (4,),
+        "covariance": (6, 6),
+        "cost": (),
+        "mass": (),
+        "friction": (),
+        "lost": (),
+        "contact_disagreement": (),
+        "hand": (3,),
+    }
+)
+"""The packed estimate: what one device-to-host copy per frame carries for every group."""
+
+
+class InputLayout:
+    """The packed input row of a robot with ``d`` joints and ``l`` sensors: every sensing field,
+    then one 0/1 flag per presence group (``has_force``, ``has_slip``, ``has_spin``)."""
+
+    def __init__(self, d: int, l: int):
+        self.d, self.l = d, l
+        shapes = {f.name: f.shape(d, l) for f in SENSING} | {f"has_{p}": () for p in PRESENCE}
+        self.columns = Columns.of(shapes)
+
+    @property
+    def width(self) -> int:
+        return self.columns.width
+
+    def views(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every field and flag of ``rows`` (G, width) as views, by name."""
+        return {name: self.columns.view(rows, name) for name in self.columns.spans}
+
+    def stage(self, frame: Frame, out: np.ndarray, joint_names: tuple[str, ...] | list[str]) -> None:
+        """Check ``frame`` and write it into ``out`` (G, width); a ValueError names the field, the
+        group and the numbers, and nothing is written then."""
+        groups = out.shape[0]
+        rows: dict[str, np.ndarray] = {}
+        for f in SENSING:
+            value = frame.sensing[f.name]
+            if value is None:
+                if not f.optional:
+                    raise ValueError(f"frame {f.name}: required, got None")
+                continue
+            arr = np.asarray(value, dtype=np.float32)
+            expected = (groups, *f.shape(self.d, self.l))
+            if arr.shape != expected:
+                raise ValueError(f"frame {f.name}: expected shape {expected}, got {arr.shape}")
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                at = np.argwhere(bad)[0]
+                where = f"joint '{joint_names[at[1]]}'" if f.per == "joint" else f"index {tuple(at[1:])}"
+                raise ValueError(
+                    f"frame {f.name}: {int(bad.sum())} non-finite, first at group {at[0]} {where}: {arr[tuple(at)]}"
+                )
+            rows[f.name] = arr
+        presence = frame.presence(groups)
+        for f in SENSING:
+            if f.optional and presence[f.group].any() and f.name not in rows:
+                raise ValueError(f"frame {f.name}: required where '{f.group}' is present, got None")
+        for name, arr in rows.items():
+            self.columns.view(out, name)[...] = arr
+        for name, mask in presence.items():
+            self.columns.view(out, f"has_{name}")[...] = mask
+
+
+@dataclass
+class GroupEstimates:
+    """What the tracker reports for every group after a frame (host arrays)."""
+
+    frame: int
+    pose: np.ndarray
+    """Best world's object pose, (G, 7): position [m], quaternion (x, y, z, w)."""
+    cost: np.ndarray
+    """Best world's window cost, (G,)."""
+    mean_pose: np.ndarray
+    """Cost-weighted mean object pose of the group, (G, 7)."""
+    covariance: np.ndarray
+    """Cost-weighted covariance of (position [m], rotation vector [rad]) about the mean, (G, 6, 6)."""
+    mass: np.ndarray
+    """Best world's object mass, (G,) [kg]."""
+    friction: np.ndarray
+    """Best world's object friction, (G,)."""
+    lost: np.ndarray
+    """Fraction of each group's worlds that lost the object, (G,)."""
+    contact_disagreement: np.ndarray
+    """Sensors on which the best world and the real robot disagree about contact, (G,)."""
+    status: np.ndarray
+    """Track state per group, (G,) int (:class:`protocol.TrackState`)."""
+
+    @classmethod
+    def unpack(cls, rows: np.ndarray, frame: int, status: np.ndarray) -> GroupEstimates:
+        """The estimates in the packed ``rows`` (G, ESTIMATE.width)."""
+        v = lambda name: ESTIMATE.view(rows, name)  # noqa: E731
+        return cls(
+            frame=frame,
+            pose=v("pose"),
+            mean_pose=np.concatenate([v("mean_position"), v("mean_quat")], axis=-1),
+            covariance=v("covariance"),
+            cost=v("cost"),
+            mass=v("mass"),
+            friction=v("friction"),
+            lost=v("lost"),
+            contact_disagreement=v("contact_disagreement"),
+            status=status,
+        )

@@ -1,0 +1,117 @@
+"""The recovery policy: each group's track state from its estimate, and when and where to re-seed.
+
+A group whose worlds nearly all lost the object, or whose best world disagrees with the real robot
+about contact for several frames, is re-seeded around its last trusted estimate (the last one
+whose best world felt the contacts the real hand felt; moved with the real hand since, if the
+hand held the object then) with wider noise. When the real fingers touch nothing at that moment
+the object fell, and the hypotheses are laid on the table below that estimate instead.
+
+Host-side numpy over (G,) arrays: it reads the estimate the frame already copied back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol import TrackState
+
+from .config import TrackerConfig
+from .layout import GroupEstimates
+
+__all__ = ["Recovery", "Reseed"]
+
+
+@dataclass
+class Reseed:
+    """Groups to sample afresh: around ``anchor`` (G, 7) with the given noise, or on the table."""
+
+    groups: np.ndarray
+    """(G,) bool."""
+    anchor: np.ndarray
+    """(G, 7) pose per group [m, quaternion (x, y, z, w)]."""
+    sigma_t: float
+    """[m]"""
+    sigma_r: float
+    """[rad]"""
+    on_table: bool = False
+
+
+class Recovery:
+    """Track state and the divergence rules of ``config`` for G groups of L sensors."""
+
+    def __init__(self, config: TrackerConfig, groups: int, sensors: int):
+        self.config, self.G, self.L = config, groups, sensors
+        self.status = np.zeros(groups, dtype=np.int64)
+        """Track state per group, (G,) (:class:`protocol.TrackState`)."""
+        self._recovering = np.zeros(groups, dtype=np.int64)
+        self._contact_loss = np.zeros(groups, dtype=np.int64)
+        self.trusted: np.ndarray | None = None
+        """Best pose at the last trusted frame (tracking, or with a best world that agrees with the
+        real hand on every sensor), (G, 7): where a diverged group is re-seeded."""
+        self._trusted_hand = np.zeros((groups, 3), np.float32)
+        """The real hand's position (the mean of its sensor positions) at the last trusted frame, (G, 3) [m]."""
+        self._trusted_held = np.zeros(groups, bool)
+        """Whether the real hand touched the object at the last trusted frame, (G,)."""
+
+    def start(self, p0: np.ndarray, mask: np.ndarray) -> None:
+        """Groups ``mask`` (G,) start tracking from ``p0`` (G, 7)."""
+        if self.trusted is None:
+            self.trusted = p0.copy()
+        self.trusted[mask] = p0[mask]
+        self._trusted_held[mask] = False
+        self.status[mask] = TrackState.TRACKING
+        self._recovering[mask] = 0
+        self._contact_loss[mask] = 0
+
+    def watch(self, est: GroupEstimates, force: np.ndarray | None, felt: np.ndarray, hand: np.ndarray) -> list[Reseed]:
+        """Update the state from the estimate just copied back and say which groups to re-seed.
+        ``force``: the real fingertip forces this frame, (G, L, 3) [N], or None; ``felt``: which
+        groups' robots sense force, (G,) bool; ``hand``: the real hand's position, (G, 3) [m]."""
+        cfg = self.config
+        self._recovering = np.maximum(self._recovering - 1, 0)
+        recovering = self._recovering > 0
+        lost_contact = ~recovering & (est.contact_disagreement >= 0.5 * self.L)
+        self._contact_loss = np.where(lost_contact, self._contact_loss + 1, 0)
+        diverged = (est.lost > cfg.lost_fraction) | (self._contact_loss >= cfg.contact_loss_frames)
+        spread = np.sqrt(np.trace(est.covariance[:, :3, :3], axis1=1, axis2=2))
+        status = np.where(spread > cfg.uncertain_spread, TrackState.UNCERTAIN, TrackState.TRACKING)
+        status = np.where(recovering, TrackState.RECOVERING, status)
+        status = np.where(diverged, TrackState.DIVERGED, status)
+        touching = np.zeros(self.G, bool)
+        if force is not None:
+            touching = felt & (np.linalg.norm(force, axis=-1) > cfg.cost.contact_threshold).any(-1)
+        # The re-seed anchor is the best pose of the last frame on which the best world felt what
+        # the real hand felt. A tracking frame whose best world already misses the real contacts
+        # does not count: the contact-loss rule takes a few frames to call the divergence, and
+        # those frames' pose (the object knocked out of every simulated hand) made the anchor. An
+        # uncertain frame whose best world agrees on every sensor does count: a grasp that only
+        # a few worlds made is uncertain until the lift, and anchoring before it put the
+        # hypotheses back on the table under the lifted object.
+        tracking = (status == TrackState.TRACKING) & ~lost_contact
+        trusted = tracking | (~diverged & (est.contact_disagreement == 0))
+        self.trusted[trusted] = est.pose[trusted]
+        self._trusted_hand[trusted] = hand[trusted]
+        self._trusted_held[trusted] = touching[trusted]
+        # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
+        # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
+        # would catch it again, so those hypotheses go onto the table below it.
+        dropped = diverged & felt & ~touching
+        held = diverged & ~dropped
+        sigma_r = cfg.sigma_r * cfg.reseed_scale
+        out = []
+        if held.any():
+            # An object held when last trusted went where the hand went since. Re-seeding at the
+            # old place in the world put the hypotheses inside the lifted fingers, where they burst
+            # out, were lost and re-seeded there again, frame after frame.
+            anchor = self.trusted.copy()
+            anchor[:, :3] += self._trusted_held[:, None] * (hand - self._trusted_hand)
+            out.append(Reseed(held, anchor, cfg.sigma_t * cfg.reseed_scale, sigma_r))
+        if dropped.any():
+            out.append(Reseed(dropped, self.trusted, cfg.drop_sigma_t, sigma_r, on_table=True))
+        if diverged.any():
+            self._recovering[diverged] = cfg.recover_frames
+            self._contact_loss[diverged] = 0
+        self.status[:] = status
+        return out

@@ -1,0 +1,300 @@
+"""Algorithm 1 of the paper for every group of a population at once.
+
+Per frame: write the robot's controls, replay the frame graph, score every world against the real
+robot (eq. 3), keep the window mean since the last update (eq. 1), take the best world (eq. 2).
+Every T frames the optimizer resamples and perturbs the group. Beyond the paper each estimate
+carries the group's cost-weighted mean pose and covariance, the best world's mass and friction,
+and a track state; :mod:`.recovery` decides when a group has diverged and re-seeds it.
+
+The tracker reads only what a robot sends (controls, joints, touch) plus p0 and Sigma_p.
+
+A frame is one host-to-device copy of the robot's packed inputs, one graph replay (controls,
+physics, forward kinematics, cost, window, estimate: :mod:`.capture`), and one asynchronous
+device-to-host copy of the packed estimate, the frame's only wait. The update every T frames is a
+second graph, enqueued behind that copy: its indices never leave the device.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from sim_backend import HEALTH_NAN, HEALTH_OK, Population, SensorFK
+from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
+
+from .capture import CapturedOps
+from .config import TrackerConfig
+from .cost import Cost, RealObservation
+from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
+from .optimizers import METHODS, duplicates, method_rows, update, wrs_pmf
+from .recovery import Recovery
+from .sampling import clipped_normal, roughening_sigma, sample_poses, sample_wrenches, silverman_bandwidth
+
+__all__ = ["Tracker"]
+
+
+def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
+    shape = (*quat.shape[:-1], len(vertices))
+    return quat_rotate(quat[..., None, :].expand(*shape, 4), vertices.expand(*shape, 3))[..., 2].amin(-1)
+
+
+class Tracker:
+    """Algorithm 1 over every group of ``population`` at once.
+
+    Groups share the config but may differ where a benchmark compares them side by side in one
+    population: ``methods`` (G,) optimizer per group, ``exploration`` (G,) multiplier on the
+    parameter and wrench noise, ``terms`` (G, 10) cost terms switched on.
+    """
+
+    def __init__(
+        self,
+        population: Population,
+        config: TrackerConfig | None = None,
+        methods: Sequence[str] | None = None,
+        exploration: Sequence[float] | None = None,
+        terms: np.ndarray | None = None,
+    ):
+        self.pop = pop = population
+        self.config = cfg = config or TrackerConfig()
+        self.G, self.K, self.D, self.L = pop.G, pop.K, pop.D, pop.L
+        dev = self.device = pop.torch_device
+        self.gen = torch.Generator(device=dev)
+        self.gen.manual_seed(cfg.seed)
+        self.methods = tuple(methods) if methods is not None else (cfg.optimizer.method,) * self.G
+        if len(self.methods) != self.G or not set(self.methods) <= set(METHODS):
+            raise ValueError(f"tracker methods: expected {self.G} of {METHODS}, got {self.methods}")
+        self._olp = torch.tensor([m == "OLP" for m in self.methods], device=dev)
+        scale = np.ones(self.G) if exploration is None else np.asarray(exploration, dtype=np.float64)
+        if scale.shape != (self.G,) or (scale < 0).any():
+            raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
+        self._exploration = torch.as_tensor(scale, dtype=torch.float32, device=dev)
+        if terms is not None and np.shape(terms) != (self.G, 10):
+            raise ValueError(f"tracker terms: expected shape ({self.G}, 10), got {np.shape(terms)}")
+        enabled = None if terms is None else torch.as_tensor(np.asarray(terms, dtype=bool), device=dev)
+        self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
+        self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
+        self._allocate_io()
+        self.window = torch.zeros(self.G, self.K, device=dev)
+        """Sum of each world's cost since the last update, (G, K)."""
+        self._window_frames = torch.zeros((), device=dev)
+        """Frames in the window, on the device (the captured frame counts them)."""
+        self.window_frames = 0
+        """The same count on the host, which schedules the update."""
+        self.frame = 0
+        self._rows = method_rows(self.methods, dev)
+        # Made here, not in the captured update: a tensor from host numbers is a copy a graph cannot hold.
+        self._jitter_floor = torch.tensor([cfg.jitter_t] * 3 + [cfg.jitter_r] * 3, device=dev).view(1, 1, 6)
+        ceiling = [max(cfg.sigma_t, cfg.jitter_t), max(cfg.sigma_r, cfg.jitter_r)]
+        self._jitter_ceiling = torch.tensor(ceiling, device=dev)
+        self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
+        """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
+        self._bandwidth = cfg.jitter_bandwidth * silverman_bandwidth(self.K)
+        self._frame_graph = CapturedOps(self._frame_ops, pop.device)
+        self._update_graph = CapturedOps(self._update_ops, pop.device, generator=self.gen, pool=self._frame_graph)
+        obj = pop.object
+        self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
+        self.recovery = Recovery(cfg, self.G, self.L)
+        self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
+        """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
+
+    # ------------------------------------------------------------------ start
+    def start(
+        self, p0: np.ndarray, q0: np.ndarray, sigma_t=None, sigma_r=None, groups: np.ndarray | None = None
+    ) -> None:
+        """Seed groups around their initial pose estimates ``p0`` (G, 7) with the robots at ``q0`` (G, D).
+
+        sigma_t [m], sigma_r [rad]: Sigma_p, scalars or (G,); default from the config. ``groups``
+        (G,) bool restarts only those (a service opening one session); default all, which also
+        restarts the frame count and the update window.
+        """
+        cfg = self.config
+        p0 = np.asarray(p0, dtype=np.float32).reshape(self.G, 7)
+        mask = np.ones(self.G, bool) if groups is None else np.asarray(groups, bool)
+        self.recovery.start(p0, mask)
+        if groups is None:
+            self.frame = self.window_frames = 0
+            self._window_frames.zero_()
+        self.cost.reset(torch.as_tensor(mask, device=self.device))
+        self._seed(mask, p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
+                   cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
+
+    def set_method(self, group: int, method: str) -> None:
+        """Change one group's optimizer (a service reusing a group for another session)."""
+        if method not in METHODS:
+            raise ValueError(f"tracker method: expected one of {METHODS}, got {method!r}")
+        methods = list(self.methods)
+        methods[group] = method
+        if set(methods) != set(self.methods):
+            self._update_graph.invalidate()  # the update runs other optimizers now
+        self.methods = tuple(methods)
+        self._olp[group] = method == "OLP"
+        for name, rows in method_rows(self.methods, self.device).items():
+            self._rows[name].copy_(rows)
+
+    def _seed(
+        self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r, on_table: bool = False
+    ) -> None:
+        """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them.
+
+        ``on_table``: the object fell out of the hand; each hypothesis keeps its sampled x, y and
+        rotation and is put at rest on the table (its lowest point 2 mm above it)."""
+        cfg, dev = self.config, self.device
+        mean_t = torch.as_tensor(mean, dtype=torch.float32, device=dev)
+        poses = sample_poses(mean_t, sigma_t, sigma_r, self.K, self.gen)
+        (m_lo, m_hi), (f_lo, f_hi) = self._mass_range, self._friction_range
+        obj = self.pop.object
+        nominal_mass = torch.full((self.G, self.K), obj.mass, device=dev)
+        nominal_friction = torch.full((self.G, self.K), obj.friction, device=dev)
+        mass = clipped_normal(nominal_mass, cfg.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
+        friction = clipped_normal(nominal_friction, cfg.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
+        # OLP (and any single world) simulates the estimate itself with the nominal physics.
+        open_loop = (self._olp | (self.K == 1))[:, None]
+        poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
+        if on_table:
+            poses[..., 2] = 0.002 - _lowest_point(poses[..., 3:], self._hull)
+        mass = torch.where(open_loop, nominal_mass, mass)
+        friction = torch.where(open_loop, nominal_friction, friction)
+        sel = torch.as_tensor(groups, device=dev)[:, None]
+        mass = torch.where(sel, mass, self.pop.mass)
+        friction = torch.where(sel, friction, self.pop.friction)
+        self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
+        self.pop._write_params(mass, friction)  # drawn inside the object's ranges
+        self.window.masked_fill_(sel, 0.0)
+
+    # ------------------------------------------------------------------ frame
+    def _allocate_io(self) -> None:
+        """The packed input and estimate rows (:mod:`.layout`), and the real observation as views
+        of the input row on the device."""
+        G, dev = self.G, self.device
+        self.inputs = InputLayout(self.D, self.L)
+        pinned = dev.type == "cuda"
+        self._host_in = torch.zeros(G, self.inputs.width, pin_memory=pinned)
+        self._inputs = self._host_in.to(dev) if pinned else self._host_in
+        self._staged = self._host_in.numpy()
+        views = self.inputs.views(self._inputs)
+        self._controls = views.pop("controls")
+        self.real = RealObservation(sensor_pos=self.fk.pos, sensor_rot=self.fk.rot, **views)
+        self._packed = torch.zeros(G, ESTIMATE.width, device=dev)
+        self._host_out = torch.zeros(G, ESTIMATE.width, pin_memory=pinned)
+        self._fetched = torch.cuda.Event() if pinned else None
+
+    def step(self, frame: Frame) -> GroupEstimates:
+        """Advance every group by one robot frame and return the estimates."""
+        if self.recovery.trusted is None:
+            raise ValueError("tracker: call start(p0, q0) before the first frame")
+        # Everything that can refuse the frame runs before the population moves.
+        self.inputs.stage(frame, self._staged, self.pop.layout.joint_names)
+        with self.pop.on_stream():
+            if self._inputs is not self._host_in:
+                self._inputs.copy_(self._host_in, non_blocking=True)
+            self._frame_graph()
+            self._host_out.copy_(self._packed, non_blocking=True)
+            if self._fetched is not None:
+                self._fetched.record()
+        self.frame += 1
+        self.window_frames += 1
+        if self.window_frames >= self.config.update_every:
+            self._update_graph()  # queued behind the copy: the host does not wait for it
+            self.window_frames = 0
+        if self._fetched is not None:
+            self._fetched.synchronize()  # the one wait of the frame: the estimate itself
+        packed = self._host_out.numpy().copy()
+        estimate = GroupEstimates.unpack(packed, self.frame, self.recovery.status.copy())
+        felt = self.inputs.columns.view(self._staged, "has_force") > 0
+        reseeds = self.recovery.watch(estimate, frame.force, felt, hand=ESTIMATE.view(packed, "hand"))
+        for r in reseeds:
+            self._seed(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
+        estimate.status = self.recovery.status.copy()
+        return estimate
+
+    def _frame_ops(self) -> None:
+        """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
+        window and the packed estimate out."""
+        pop = self.pop
+        pop._write_targets(self._controls)
+        pop.step()
+        self.fk.update(self.real.q)
+        cost = self.cost(pop.obs, self.real)
+        # A world that lost its object is worst, and one that went NaN worse still: when every
+        # world has lost the object (the hand let go and rose), the argmin must not pick a NaN pose.
+        cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(pop.obs.health != HEALTH_OK, 1e9)
+        cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
+        self.window += cost
+        self._window_frames += 1
+        self._packed.copy_(self._summary(self.window / self._window_frames))
+
+    def _summary(self, window: torch.Tensor) -> torch.Tensor:
+        """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host copy."""
+        obs, pop = self.pop.obs, self.pop
+        best = window.argmin(-1)
+        take = lambda t: torch.gather(t, 1, best[:, None, None].expand(-1, 1, t.shape[-1]))[:, 0]  # noqa: E731
+        # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
+        poses = torch.where(torch.isfinite(obs.object_pose).all(-1, keepdim=True), obs.object_pose, self._origin)
+        pose = take(poses)
+        weights = wrs_pmf(window, self.config.estimate_lambda)  # (G, K)
+        position = poses[..., :3]
+        quat = poses[..., 3:]
+        # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
+        quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
+        mean_p = (weights[..., None] * position).sum(1)
+        mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
+        delta = torch.cat(
+            [
+                position - mean_p[:, None],
+                quat_log(quat_multiply(quat_conjugate(mean_q)[:, None].expand_as(quat), quat)),
+            ],
+            dim=-1,
+        )
+        at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
+        return ESTIMATE.pack(
+            {
+                "pose": pose,
+                "mean_position": mean_p,
+                "mean_quat": mean_q,
+                "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
+                "cost": at_best(window),
+                "mass": at_best(pop.mass),
+                "friction": at_best(pop.friction),
+                "lost": (obs.health != HEALTH_OK).float().mean(-1),
+                "contact_disagreement": at_best(self.cost.last_terms[..., 3]),  # sensors in disagreement
+                "hand": self.real.sensor_pos.mean(1),
+            }
+        )
+
+    def _update_ops(self) -> None:
+        """The captured update: the optimizer's resample and perturbation; the window starts again."""
+        cfg = self.config
+        window = self.window / self._window_frames
+        upd = update(window, cfg.optimizer, self.gen, self.methods, self._rows)
+        self.pop._resample(upd.index)
+        if not set(self.methods) <= {"OLP", "EYE"}:
+            explore, scale = upd.explore, self._exploration[:, None]
+            mass = self._explore(self.pop.mass, cfg.mass_sigma * scale, self._mass_range, explore)
+            friction = self._explore(self.pop.friction, cfg.friction_sigma * scale, self._friction_range, explore)
+            self.pop._write_params(mass, friction)
+            wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
+            self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
+            if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
+                unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
+                shift = unit * self._jitter_sigma(upd.index)
+                # Only extra copies move: each surviving world keeps one copy where it was, so the
+                # estimate does not jitter with the spread it buys.
+                moved = explore & duplicates(upd.index)
+                self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
+        self.window.zero_()
+        self._window_frames.zero_()
+
+    def _jitter_sigma(self, index: torch.Tensor) -> torch.Tensor:
+        """Standard deviations of the roughening after a resample ``index`` (G, K), (G, 1, 6)."""
+        if self._bandwidth <= 0:
+            return self._jitter_floor.expand(self.G, 1, 6)
+        pose = self.pop.obs.object_pose.gather(1, index[..., None].expand(-1, -1, 7))  # the resampled worlds
+        return roughening_sigma(pose, self._bandwidth, self._jitter_floor, self._jitter_ceiling)
+
+    def _explore(self, value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor):
+        """theta ~ N(theta, Sigma_theta) clipped to its range, where ``mask``; ``sigma`` is a fraction of the range."""
+        lo, hi = bounds
+        return torch.where(mask, clipped_normal(value.clone(), sigma * (hi - lo), lo, hi, self.gen), value)

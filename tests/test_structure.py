@@ -1,0 +1,58 @@
+"""The code's shape, enforced: the benchmarks stay out of the product, and the robot's sensing
+record is declared once."""
+
+from __future__ import annotations
+
+import ast
+import io
+import tokenize
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = [p for d in ("client", "protocol", "service", "sim_backend", "examples") for p in (ROOT / d).rglob("*.py")]
+
+
+def _imports(path: Path) -> set[str]:
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # relative: resolve against the module's package
+                package = path.relative_to(ROOT).parent.parts[
+                    : len(path.relative_to(ROOT).parent.parts) - node.level + 1
+                ]
+                out.add(".".join([*package, node.module or ""]).rstrip("."))
+            else:
+                out.add(node.module or "")
+    return out
+
+
+def test_nothing_outside_the_benchmarks_imports_them():
+    bench = ROOT / "service" / "bench"
+    # The command line is the one door into every part, the benchmarks' included.
+    allowed = {bench, ROOT / "service" / "cli.py"}
+    offenders = {
+        str(p.relative_to(ROOT)): sorted(m for m in _imports(p) if m.startswith("service.bench"))
+        for p in SOURCES
+        if not any(p == a or a in p.parents for a in allowed)
+    }
+    assert not {k: v for k, v in offenders.items() if v}
+
+
+def _names_sensing(path: Path) -> bool:
+    """Whether ``path``'s code (not its prose) names a field only sensing has: an identifier
+    slip, slip_dir, spin or spin_sense, or the string of one ("slip" alone is also an ablation's
+    name, so strings count only for the unambiguous two)."""
+    for token in tokenize.generate_tokens(io.StringIO(path.read_text()).readline):
+        if token.type == tokenize.NAME and token.string in ("slip", "slip_dir", "spin", "spin_sense"):
+            return True
+        if token.type == tokenize.STRING and token.string.strip("\"'") in ("slip_dir", "spin_sense"):
+            return True
+    return False
+
+
+def test_the_sensing_record_is_named_in_at_most_three_source_files():
+    naming = sorted(str(p.relative_to(ROOT)) for p in SOURCES if _names_sensing(p))
+    # Where it is declared, where the simulator senses it, and where the cost compares it.
+    assert naming == ["protocol/sensing.py", "service/tracker/cost.py", "sim_backend/observe.py"], naming
