@@ -50,6 +50,9 @@ class GroundTruth:
     """Hidden friction coefficient."""
 
 
+_SENSING_NAMES = frozenset(f.name for f in SENSING)
+
+
 class Trajectory:
     """One robot's recorded frames (what the protocol carries) and, for benchmarks, the truth.
 
@@ -98,6 +101,12 @@ class Trajectory:
         if name in sensing:
             return sensing[name]
         raise AttributeError(f"'Trajectory' object has no attribute '{name}'")
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in _SENSING_NAMES:  # a field is replaced where every reader looks for it
+            self.sensing[name] = value
+        else:
+            super().__setattr__(name, value)
 
     @property
     def frames(self) -> int:

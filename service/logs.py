@@ -22,14 +22,15 @@ def setup_logging(level: str | int = "INFO") -> None:
         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
         datefmt="%Y-%m-%d %H:%M:%S",
     )
+    logging.getLogger("matplotlib").setLevel(logging.WARNING)
 
 
 def quiet_warp() -> None:
-    """Silence Warp's banner and its "Module ... load on device" line per module (about 60 on a
-    first start, before anything of ours)."""
+    """Silence Warp's banner (printed to stdout, where a command's JSON goes) and its "Module ...
+    load on device" line per module (about 60 on a first start, before anything of ours)."""
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
 
 
 def watch_kernel_compiles(every_s: float = 5.0) -> None:

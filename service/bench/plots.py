@@ -9,8 +9,8 @@ import matplotlib
 
 matplotlib.use("Agg")  # no display on a GPU box or in CI
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 __all__ = ["bar_chart", "line_chart"]
 

@@ -17,6 +17,8 @@ from protocol import PRESENCE, SENSING
 
 __all__ = ["ESTIMATE", "Columns", "Frame", "GroupEstimates", "InputLayout"]
 
+_SENSING_NAMES = frozenset(f.name for f in SENSING)
+
 
 class Frame:
     """One frame from the robots of all G groups (host arrays).
@@ -39,6 +41,12 @@ class Frame:
         if name in sensing:
             return sensing[name]
         raise AttributeError(f"'Frame' object has no attribute '{name}'")
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in _SENSING_NAMES:  # a field is replaced where every reader looks for it
+            self.sensing[name] = value
+        else:
+            super().__setattr__(name, value)
 
     def presence(self, groups: int) -> dict[str, np.ndarray]:
         """Each presence group's (G,) bool mask."""
@@ -69,9 +77,11 @@ class Columns:
     def view(self, rows, name: str):
         """Field ``name`` of ``rows`` (N, width), shaped (N, *shape); a view, never a copy."""
         start, shape = self.spans[name]
-        size = int(np.prod(shape, dtype=np.int64))
-        part = rows[:, start : start + size]
-        return part.reshape(rows.shape[0], *shape)
+        return rows[:, start : start + self._sizes[name]].reshape(rows.shape[0], *shape)
+
+    def __post_init__(self) -> None:
+        # Per-frame readers slice by these: no size arithmetic on the hot path.
+        object.__setattr__(self, "_sizes", {n: int(np.prod(s, dtype=np.int64)) for n, (_, s) in self.spans.items()})
 
     def pack(self, parts: dict[str, torch.Tensor]) -> torch.Tensor:
         """The row (N, width) of ``parts``, each (N, *shape), in layout order."""
@@ -81,8 +91,7 @@ class Columns:
 ESTIMATE = Columns.of(
     {
         "pose": (7,),
-        "mean_position": (3,),
-        "mean_quat": (4,),
+        "mean_pose": (7,),
         "covariance": (6, 6),
         "cost": (),
         "mass": (),
@@ -176,7 +185,7 @@ class GroupEstimates:
         return cls(
             frame=frame,
             pose=v("pose"),
-            mean_pose=np.concatenate([v("mean_position"), v("mean_quat")], axis=-1),
+            mean_pose=v("mean_pose"),
             covariance=v("covariance"),
             cost=v("cost"),
             mass=v("mass"),

@@ -252,8 +252,7 @@ class Tracker:
         return ESTIMATE.pack(
             {
                 "pose": pose,
-                "mean_position": mean_p,
-                "mean_quat": mean_q,
+                "mean_pose": torch.cat([mean_p, mean_q], dim=-1),
                 "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
                 "cost": at_best(window),
                 "mass": at_best(pop.mass),
