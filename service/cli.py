@@ -79,6 +79,10 @@ def _parser() -> argparse.ArgumentParser:
     acc.add_argument("--cache", default=None, help="where generated trajectories are kept")
     acc.add_argument("--json", action="store_true", help="print the summary as JSON")
 
+    pub = bsub.add_parser("publish", help="docs/benchmarks.md and its charts from the results in docs/results/")
+    pub.add_argument("--results", default="docs/results", help="folder of result JSON files")
+    pub.add_argument("--out", default="docs/benchmarks.md", help="the page to write")
+
     serve = sub.add_parser("serve", help="run the tracking service")
     serve.add_argument("--config", default=None, help="service TOML (default configs/service.toml)")
     serve.add_argument("--listen", default=None, help="Zenoh endpoints to listen on, comma-separated")
@@ -422,6 +426,13 @@ def main(argv: list[str] | None = None) -> int:
                     args.worlds, substeps=n, frames=args.frames, obj=args.object, device=args.device, solver=solver
                 )
         print(json.dumps(as_dicts(results), indent=2) if args.json else format_table(results))
+        return 0
+    if args.command == "bench" and args.bench == "publish":
+        from pathlib import Path
+
+        from service.bench.publish import render
+
+        print(render(Path(args.results), Path(args.out)))
         return 0
     if args.command == "bench" and args.bench == "speed":
         return _speed(args)

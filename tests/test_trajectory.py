@@ -4,6 +4,8 @@ relies on, and the PNG charts of the report."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import msgpack
 import numpy as np
 import pytest
@@ -83,3 +85,16 @@ def test_charts_are_png_files(tmp_path):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
         width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
         assert width >= 500 and height == 360
+
+
+def test_the_benchmarks_page_is_generated_from_the_committed_results(tmp_path):
+    from service.bench.publish import render
+
+    root = Path(__file__).resolve().parents[1]
+    results = tmp_path / "results"
+    results.mkdir()
+    for f in (root / "docs" / "results").glob("*.json"):
+        (results / f.name).write_text(f.read_text())
+    page = render(results, tmp_path / "benchmarks.md")
+    assert page.read_text() == (root / "docs" / "benchmarks.md").read_text(), "run `inhand-tracker bench publish`"
+    assert (results / "01-accuracy-paper.png").stat().st_size > 1000

@@ -38,8 +38,7 @@ class ServiceConfig:
     max_wait_s: float = 0.05
     """A population steps when every session sent a frame, or when a frame waited this long."""
     substeps: int = 8
-    """Physics substeps per frame (even). 4 halves the GPU time per frame and costs accuracy
-    (docs/benchmarks.md)."""
+    """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
 
     def __post_init__(self) -> None:
         if self.substeps < 2 or self.substeps % 2:

