@@ -9,6 +9,8 @@ import numpy as np
 import zenoh
 
 from protocol import (
+    DEFAULT_METHOD,
+    DEFAULT_WORLDS,
     CloseSession,
     DecodeError,
     Error,
@@ -103,8 +105,8 @@ class TrackerClient:
         sigma_t: float = 0.005,
         sigma_r: float = 0.1,
         q0=None,
-        method: str = "PBO",
-        worlds: int = 40,
+        method: str = DEFAULT_METHOD,
+        worlds: int = DEFAULT_WORLDS,
         overrides: dict[str, float] | None = None,
     ) -> SessionInfo:
         """Ask the service to track ``object`` in ``robot``'s hand from the pose estimate ``p0`` (7,)."""

@@ -7,6 +7,8 @@ Imports only numpy, msgpack and pydantic, so the robot-side client stays light.
 from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, DecodeError, decode, encode
 from .keys import PREFIX, Keys, check_name
 from .messages import (
+    DEFAULT_METHOD,
+    DEFAULT_WORLDS,
     PROTOCOL_VERSION,
     CloseSession,
     Error,
@@ -24,6 +26,8 @@ from .sensing import PRESENCE, SENSING, SensingField, check_sensing, sensing_fie
 from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 
 __all__ = [
+    "DEFAULT_METHOD",
+    "DEFAULT_WORLDS",
     "MAX_ARRAY_BYTES",
     "MAX_PAYLOAD_BYTES",
     "PREFIX",

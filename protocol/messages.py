@@ -16,6 +16,8 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSeriali
 from .sensing import SENSING
 
 __all__ = [
+    "DEFAULT_METHOD",
+    "DEFAULT_WORLDS",
     "PROTOCOL_VERSION",
     "CloseSession",
     "Error",
@@ -32,6 +34,10 @@ __all__ = [
 
 PROTOCOL_VERSION = 1
 """Bumped with the key prefix's ``v1`` when a message changes incompatibly."""
+DEFAULT_WORLDS = 40
+"""K, a session's worlds when it does not say: the paper's."""
+DEFAULT_METHOD = "PBO"
+"""A session's optimizer when it does not say."""
 
 
 def _array(rank: int, last: int | None = None):
@@ -112,8 +118,8 @@ class OpenSession(_Message):
     """Rotation noise of p0 [rad] (Sigma_p)."""
     q0: Vector | None = None
     """Joint positions at the start, (D,); default the robot's start pose."""
-    method: str = "PBO"
-    worlds: int = Field(40, ge=1, le=65536)
+    method: str = DEFAULT_METHOD
+    worlds: int = Field(DEFAULT_WORLDS, ge=1, le=65536)
     overrides: dict[str, float] = Field(default_factory=dict)
     """Tracker hyperparameters by name (e.g. update_every, wrench_force)."""
 

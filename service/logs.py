@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -12,16 +13,33 @@ from pathlib import Path
 __all__ = ["quiet_warp", "setup_logging", "watch_kernel_compiles"]
 
 log = logging.getLogger("inhand_tracker")
+_watching = False
+
+
+class _Stderr(logging.StreamHandler):
+    """A handler that writes to whatever ``sys.stderr`` is when it writes: a command run in-process
+    (the tests, through typer's runner) swaps the stream per call."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value) -> None:
+        pass
 
 
 def setup_logging(level: str | int = "INFO") -> None:
-    """Log to stderr with timestamps; ``level`` also from INHAND_LOG_LEVEL."""
+    """Log to stderr with timestamps; ``level`` also from INHAND_LOG_LEVEL. Idempotent."""
     level = os.environ.get("INHAND_LOG_LEVEL", level)
-    logging.basicConfig(
-        level=level.upper() if isinstance(level, str) else level,
-        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
-        datefmt="%Y-%m-%d %H:%M:%S",
-    )
+    root = logging.getLogger()
+    if not any(isinstance(h, _Stderr) for h in root.handlers):
+        handler = _Stderr()
+        handler.setFormatter(
+            logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s", "%Y-%m-%d %H:%M:%S")
+        )
+        root.addHandler(handler)
+    root.setLevel(level.upper() if isinstance(level, str) else level)
     logging.getLogger("matplotlib").setLevel(logging.WARNING)
 
 
@@ -40,6 +58,10 @@ def watch_kernel_compiles(every_s: float = 5.0) -> None:
     silent for a minute or more; the cache folder gains one entry per compiled module, so its
     count is the progress. A daemon thread: it costs a directory listing every few seconds.
     """
+    global _watching
+    if _watching:
+        return
+    _watching = True
     import warp as wp
 
     wp.init()

@@ -20,6 +20,8 @@ import numpy as np
 import torch
 import warp as wp
 
+from protocol import DEFAULT_WORLDS
+
 from . import observe
 from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
@@ -34,7 +36,7 @@ class PopulationConfig:
 
     groups: int = 1
     """G: independent tracks stepped together."""
-    worlds: int = 40
+    worlds: int = DEFAULT_WORLDS
     """K: worlds per group."""
     substeps: int = 8
     """Physics substeps per control frame; even, so the state buffers come back to the captured ones."""

@@ -10,7 +10,9 @@ forward_only_kernels()
 def _quiet_warp():
     import warp as wp
 
-    wp.config.quiet = True
+    from service.logs import quiet_warp
+
+    quiet_warp()
     wp.init()
 
 

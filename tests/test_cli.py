@@ -1,19 +1,22 @@
-"""The `inhand-tracker` command as a user runs it: a real process."""
+"""The `inhand-tracker` command line, run in-process through typer's runner (the service's own
+process tests start it as a real process)."""
 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
+
+from typer.testing import CliRunner
+
+from service.cli import app
 
 
-def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=600)
+def _run(*args: str):
+    return CliRunner().invoke(app, list(args))
 
 
 def test_bench_sim_prints_timings_and_memory_per_world():
     out = _run("bench", "sim", "--worlds", "2,4", "--frames", "3", "--device", "cpu", "--json")
-    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.exit_code == 0, out.stderr[-2000:]
     rows = json.loads(out.stdout[out.stdout.index("[") :])
     assert [r["worlds"] for r in rows] == [2, 4]
     for r in rows:
@@ -23,23 +26,36 @@ def test_bench_sim_prints_timings_and_memory_per_world():
 
 def test_bad_arguments_are_refused_with_the_value():
     out = _run("bench", "sim", "--worlds", "40,abc")
-    assert out.returncode == 2 and "expected comma-separated integers, got '40,abc'" in out.stderr
+    assert out.exit_code == 2 and "expected comma-separated integers, got '40,abc'" in out.stderr
 
 
 def test_bad_tracker_settings_are_refused_with_the_name_and_value():
     for setting, message in [
         ("jitter_bandwith=0", "got 'jitter_bandwith=0'"),  # a typo: the names allowed follow
         ("update_every=x", "update_every: expected a value of type int, got 'x'"),
-        ("jitter_t=-1", "tracker jitter_t: expected >= 0, got -1.0"),
+        ("jitter_t=-1", "tracker jitter_t: expected >= 0, got -1"),
         ("optimizer.pbo_keep=2", "optimizer pbo_keep: expected 0 < fraction <= 1, got 2.0"),
         ("optimizer.keep_best=flase", "optimizer.keep_best: expected a value of type bool, got 'flase'"),
         ("population.tolerance=2", "population tolerance: expected 0 < tolerance < 1, got 2.0"),
         ("population.substeps=4", "got 'population.substeps=4'"),  # --substeps sets it
         ("population.impratio=0", "population impratio: expected > 0, got 0.0"),
+        ("estimate_lambda=nan", "tracker estimate_lambda: expected a finite number, got nan"),
     ]:
         out = _run("bench", "accuracy", "--suite", "smoke", "--set", setting)
-        assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
+        assert out.exit_code == 2 and message in out.stderr, (setting, out.stderr[-2000:])
     assert "jitter_bandwidth" in _run("bench", "accuracy", "--set", "jitter_bandwith=0").stderr
+
+
+def test_bad_suite_options_are_refused_before_anything_runs():
+    for args, message in [
+        (("--suite", "huge"), "--suite: expected one of ['paper', 'reality-gap', 'smoke'], got 'huge'"),
+        (("--methods", "PBO,XYZ"), "methods: expected some of"),
+        (("--ablations", "wrist"), "ablations: unknown ['wrist']"),
+        (("--substeps", "3"), "substeps: expected a positive even number, got 3"),
+        (("--repeats", "0"), "repeats: expected >= 1, got 0"),
+    ]:
+        out = _run("bench", "accuracy", "--device", "cpu", *args)
+        assert out.exit_code == 2 and message in out.stderr, (args, out.stderr[-2000:])
 
 
 def test_settings_split_into_the_tracker_and_its_physics():
@@ -47,12 +63,13 @@ def test_settings_split_into_the_tracker_and_its_physics():
 
     config, physics = _settings(["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"])
     assert config.optimizer.pbo_keep == 0.5 and physics == {"impratio": 30.0, "contact_gap": 0.004}
+    assert _settings(["optimizer.keep_best=no"])[0].optimizer.keep_best is False
     assert _settings([])[1] == {}
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():
     out = _run("bench", "speed", "--worlds", "4", "--groups", "1,2", "--frames", "5", "--device", "cpu", "--json")
-    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.exit_code == 0, out.stderr[-2000:]
     rows = json.loads(out.stdout)
     assert [(r["worlds"], r["groups"]) for r in rows] == [(4, 1), (4, 2)]
     for r in rows:
@@ -61,4 +78,4 @@ def test_bench_speed_times_the_tracker_against_the_physics():
         assert r["ratio"] == r["tracker_median_ms"] / r["physics_median_ms"]
         assert r["captured"] is False  # torch has no CPU graphs: plain calls around the physics graph
     bad = _run("bench", "speed", "--worlds", "5", "--groups", "2", "--device", "cpu")
-    assert bad.returncode == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr
+    assert bad.exit_code == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr

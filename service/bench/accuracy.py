@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from protocol import Trajectory
+from protocol import DEFAULT_WORLDS, Trajectory
 from service.evaluation import add_error
 from service.paths import CACHE_DIR
 from service.tracker import METHODS, Frame, Tracker, TrackerConfig
@@ -47,7 +47,7 @@ class TrackSetting:
     trajectory: int
     noise: str
     method: str
-    worlds: int = 40
+    worlds: int = DEFAULT_WORLDS
     exploration: str = "med"
     contact_terms: bool = True
     slip_terms: bool = True
@@ -121,7 +121,7 @@ def run_tracks(
     device: str = "auto",
     seed: int = 0,
     progress: Callable[[int], None] | None = None,
-    substeps: int = 8,
+    substeps: int = PopulationConfig.substeps,
     config: TrackerConfig | None = None,
     population: dict[str, int | float | bool] | None = None,
 ) -> list[TrackResult]:
@@ -190,14 +190,14 @@ def run_suite(
     suite: Suite,
     methods: Sequence[str] = METHODS,
     noises: Sequence[str] = ("low", "med", "high"),
-    worlds: int = 40,
+    worlds: int = DEFAULT_WORLDS,
     ablations: Sequence[str] = (),
     device: str = "auto",
     cache: Path | None = CACHE_DIR,
     quiet: bool = False,
     k_ablation: Sequence[int] | None = None,
     checkpoint: Callable[[dict], None] | None = None,
-    substeps: int = 8,
+    substeps: int = PopulationConfig.substeps,
     repeats: int = 1,
     config: TrackerConfig | None = None,
     population: dict[str, int | float | bool] | None = None,
@@ -218,6 +218,11 @@ def run_suite(
             raise ValueError(f"noise: expected some of {tuple(NOISE_LEVELS)}, got {n!r}")
     if repeats < 1:
         raise ValueError(f"repeats: expected >= 1, got {repeats}")
+    unknown = sorted(set(ablations) - {"exploration", "worlds", "contact", "slip"})
+    if unknown:
+        raise ValueError(f"ablations: unknown {unknown}; expected exploration, worlds, contact, slip or all")
+    if substeps < 2 or substeps % 2:
+        raise ValueError(f"substeps: expected a positive even number, got {substeps}")
     t0 = time.perf_counter()
     trajectories = ground_truth(suite, device, cache)
     t_truth = time.perf_counter() - t0
@@ -284,7 +289,7 @@ def _collect(
     t_truth: float,
     t_track: float,
     device: str,
-    substeps: int = 8,
+    substeps: int = PopulationConfig.substeps,
     config: TrackerConfig | None = None,
     population: dict[str, int | float | bool] | None = None,
 ) -> dict:

@@ -43,9 +43,15 @@ def used_bytes(device: wp.context.Device) -> int:
 
 
 def bench_sim(
-    worlds: list[int], *, substeps: int = 8, frames: int = 60, warmup: int = 10, obj: str = "foam_brick",
-    device: str = "auto", solver: str = "auto",
-) -> list[SimBenchResult]:  # fmt: skip
+    worlds: list[int],
+    *,
+    substeps: int = PopulationConfig.substeps,
+    frames: int = 60,
+    warmup: int = 10,
+    obj: str = "foam_brick",
+    device: str = "auto",
+    solver: str = "auto",
+) -> list[SimBenchResult]:
     """Time graph replays of a held grasp (every world squeezing the object) for each K in ``worlds``."""
     dev = resolve_device(device)
     spec = HandSpec()

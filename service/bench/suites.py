@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from client.replay import NOISE_LEVELS
+from sim_backend import PopulationConfig
 
 from .demos import DEMO_KINDS
 
@@ -20,8 +21,8 @@ K_ABLATION = (10, 40, 160, 640, 2560)
 class PhysicsGap:
     """How the ground truth's physics differs from the tracker's."""
 
-    substeps: int = 8
-    """Truth substeps per frame (the tracker uses 8)."""
+    substeps: int = PopulationConfig.substeps
+    """Truth substeps per frame (by default the tracker's)."""
     object_scale: float = 1.0
     """Truth object size relative to the tracker's model."""
     finger_damping: float = 1.0

@@ -1,87 +1,92 @@
-"""The service's configuration: a TOML file (configs/service.toml), overridable from the command
-line and from environment variables INHAND_<KEY> (what a container sets)."""
+"""The service's configuration (pydantic-settings): defaults here, then a TOML file
+(configs/service.toml), then INHAND_<KEY> environment variables (what a container sets), then
+the command line. A bad value is refused with the key and the value."""
 
 from __future__ import annotations
 
 import os
-import tomllib
-from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import Field, ValidationError, field_validator
+from pydantic_settings import (
+    BaseSettings,
+    NoDecode,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
 
 from service.paths import CONFIG_DIR
+from sim_backend import PopulationConfig
 
 __all__ = ["DEFAULT_CONFIG", "ServiceConfig", "load_config"]
 
 DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 
+# Lists come from the environment comma-separated (INHAND_LISTEN=tcp/a:1,tcp/b:2), not as JSON.
+Endpoints = Annotated[tuple[str, ...], NoDecode]
 
-@dataclass(frozen=True)
-class ServiceConfig:
+
+class ServiceConfig(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="INHAND_", extra="forbid", frozen=True, toml_file=DEFAULT_CONFIG)
+
     name: str = "default"
     """The service's name: its keys live under inhand/v1/{name}."""
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, cuda or cuda:N."""
-    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    listen: Endpoints = ("tcp/127.0.0.1:7447",)
     """Zenoh endpoints to listen on."""
-    connect: tuple[str, ...] = ()
+    connect: Endpoints = ()
     """Zenoh endpoints (a router, or peers) to connect to."""
     scouting: bool = False
     """Zenoh multicast scouting; off, so a service is found only where it is told to be."""
-    groups: int = 8
+    groups: int = Field(8, ge=1)
     """Sessions per population: sessions with the same robot, object and K share one graph replay."""
-    max_worlds: int = 65536
+    max_worlds: int = Field(65536, ge=1)
     """Worlds the service may hold in all."""
-    robots: tuple[str, ...] = ("configs/robots/allegro.toml",)
+    robots: Endpoints = ("configs/robots/allegro.toml",)
     """Robot configs (TOML; relative paths are from the project root)."""
-    robot_timeout_s: float = 3.0
-    """A session whose robot's liveliness token is gone this long is closed and its worlds freed."""
-    max_wait_s: float = 0.05
-    """A population steps when every session sent a frame, or when a frame waited this long."""
-    substeps: int = 8
+    robot_timeout_s: float = Field(3.0, gt=0)
+    """A session whose robot's liveliness token is gone this long is closed and its worlds freed [s]."""
+    max_wait_s: float = Field(0.05, ge=0)
+    """A population steps when every session sent a frame, or when a frame waited this long [s]."""
+    substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)
     """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
 
-    def __post_init__(self) -> None:
-        if self.substeps < 2 or self.substeps % 2:
-            raise ValueError(f"service substeps: expected a positive even number, got {self.substeps}")
-        if self.groups < 1 or self.max_worlds < 1:
-            raise ValueError(f"service groups and max_worlds: expected >= 1, got {self.groups}, {self.max_worlds}")
-        if self.robot_timeout_s <= 0 or self.max_wait_s < 0:
-            raise ValueError(
-                f"service robot_timeout_s > 0 and max_wait_s >= 0, got {self.robot_timeout_s}, {self.max_wait_s}"
-            )
+    @field_validator("listen", "connect", "robots", mode="before")
+    @classmethod
+    def _split(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return tuple(v for v in value.split(",") if v)
+        return value
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # The command line (given as keyword arguments) over the environment over the file.
+        return init_settings, env_settings, TomlConfigSettingsSource(settings_cls)
 
 
 def load_config(path: str | os.PathLike | None = None, **overrides) -> ServiceConfig:
     """The config in ``path`` (default configs/service.toml, if present), then INHAND_* variables,
     then ``overrides`` (None values ignored). A ValueError names the key and the value."""
-    table: dict = {}
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    if path.exists():
-        try:
-            table = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"service config '{path}': {exc}") from exc
-    elif path != DEFAULT_CONFIG:
+    if not path.exists() and path != DEFAULT_CONFIG:
         raise ValueError(f"service config: no such file '{path}'")
-    known = {f.name: f for f in fields(ServiceConfig)}
-    unknown = sorted(set(table) - set(known))
-    if unknown:
-        raise ValueError(f"service config '{path}': unknown keys {unknown} (known: {sorted(known)})")
-    for key in known:
-        env = os.environ.get(f"INHAND_{key.upper()}")
-        if env is not None:
-            table[key] = env.split(",") if key in ("listen", "connect", "robots") else env
-    table |= {k: v for k, v in overrides.items() if v is not None}
-    values = {}
-    for key, value in table.items():
-        kind = type(getattr(ServiceConfig(), key))
-        try:
-            if kind is tuple:
-                values[key] = tuple(str(v) for v in ([value] if isinstance(value, str) else value) if v)
-            elif kind is bool:
-                values[key] = value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes")
-            else:
-                values[key] = kind(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"service config {key}: expected {kind.__name__}, got {value!r}") from None
-    return replace(ServiceConfig(), **values)
+    settings = ServiceConfig
+    if path != DEFAULT_CONFIG:  # the same settings, read from another file
+        config = {**ServiceConfig.model_config, "toml_file": path}
+        settings = type("ServiceConfig", (ServiceConfig,), {"model_config": config})
+    try:
+        return settings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        key = ".".join(str(p) for p in first["loc"])
+        raise ValueError(f"service config {key}: {first['msg']}, got {first['input']!r}") from None
