@@ -1,10 +1,13 @@
 """Simulation backend: K worlds of hand + object per group on Newton, stepped as one graph."""
 
+from .build import BuiltModel, Physics, build_model, make_physics
+from .config import PopulationConfig, SolverSettings, resolve_device
 from .grasp import Grasp, plan_pinch
 from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
 from .observe import HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise
-from .population import Population, PopulationConfig, SolverSettings, resolve_device
+from .params import ObjectParams
+from .population import Population
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot
 
 __all__ = [
@@ -12,12 +15,15 @@ __all__ = [
     "HEALTH_LOST",
     "HEALTH_NAN",
     "HEALTH_OK",
+    "BuiltModel",
     "FileRobotSpec",
     "Grasp",
     "HandSpec",
     "Kinematics",
+    "ObjectParams",
     "ObjectSpec",
     "Observation",
+    "Physics",
     "Population",
     "PopulationConfig",
     "RobotLayout",
@@ -26,11 +32,13 @@ __all__ = [
     "SolverSettings",
     "add_robot",
     "add_sensor_noise",
+    "build_model",
     "catalog_object",
     "load_catalog",
     "load_mesh_object",
     "load_robot",
     "make_banana",
+    "make_physics",
     "plan_pinch",
     "resolve_device",
 ]

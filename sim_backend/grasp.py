@@ -37,8 +37,6 @@ class Grasp:
     """Joint positions with the pads just touching the object, shape (D,)."""
     q_squeeze: np.ndarray
     """Joint targets that press every pad straight into the object, shape (D,)."""
-    half_width: float
-    """Half the object's width along the squeeze [m]."""
 
 
 def _yaw_quat(yaw: float) -> np.ndarray:
@@ -69,7 +67,6 @@ def plan_pinch(
     # before the other arrives. (Sub-nanometre offsets are sampling rounding on symmetric shapes.)
     offset = 0.5 * float(mid[:, 0].min() + mid[:, 0].max())
     offset = offset if abs(offset) > 1e-9 else 0.0
-    half_width = float(np.abs(mid[:, 0] - offset).max())
     centre_z = float(0.5 * (mid[:, 2].min() + mid[:, 2].max()))
     centre = q[:3] + PINCH_OFFSET
     origin = centre - np.array([offset, 0.0, centre_z])  # the object's origin in the world
@@ -96,4 +93,4 @@ def plan_pinch(
     inward = np.array([[-depth, 0.0, 0.0]] * len(_FINGER_Y) + [[depth, 0.0, 0.0]])
     q_squeeze = kin.solve_tips(q_touch, kin.sensor_poses(q_touch)[0] + inward, active=active)
     pose = np.concatenate([origin, _yaw_quat(yaw)])
-    return Grasp(object_pose=pose, q_touch=q_touch, q_squeeze=q_squeeze, half_width=half_width)
+    return Grasp(object_pose=pose, q_touch=q_touch, q_squeeze=q_squeeze)

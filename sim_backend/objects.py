@@ -74,11 +74,6 @@ class ObjectSpec:
         capsules = tuple(tuple(v * factor for v in c) for c in self.capsules)
         return replace(self, mesh=mesh, box_half_extents=box, capsules=capsules)
 
-    @property
-    def radius(self) -> float:
-        """Distance from the centre of mass to the farthest surface point [m]."""
-        return float(np.linalg.norm(self.mesh.vertices, axis=1).max())
-
 
 def make_banana(
     arc_radius: float = 0.15,

@@ -11,170 +11,21 @@ once as a graph and replayed by :meth:`Population.step`, on CUDA and on Warp's C
 from __future__ import annotations
 
 import contextlib
-import math
-from dataclasses import dataclass
-from typing import NamedTuple
 
 import newton
 import numpy as np
 import torch
 import warp as wp
 
-from protocol import DEFAULT_WORLDS
-
 from . import observe
+from .build import build_model, make_physics
+from .config import PopulationConfig, resolve_device
 from .objects import ObjectSpec
-from .robots import RobotLayout, RobotSpec, add_robot
+from .params import ObjectParams
+from .robots import RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 
-__all__ = ["Population", "PopulationConfig", "SolverSettings", "resolve_device"]
-
-
-@dataclass(frozen=True)
-class PopulationConfig:
-    """Size, stepping and sensing settings of a population."""
-
-    groups: int = 1
-    """G: independent tracks stepped together."""
-    worlds: int = DEFAULT_WORLDS
-    """K: worlds per group."""
-    substeps: int = 8
-    """Physics substeps per control frame; even, so the state buffers come back to the captured ones."""
-    frame_rate: float = 30.0
-    """Control frames per second [Hz]."""
-    device: str = "auto"
-    """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
-    use_graph: bool = True
-    """Replay a captured graph per frame (False steps eagerly, for debugging)."""
-    solver: str = "auto"
-    """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in 1-8
-    iterations where CG needs 10-40 (a quarter of CG's steps stop at 40 unconverged); each
-    Newton iteration assembles and factors a Hessian, which the sparse Jacobian keeps cheap on
-    the CPU (K=40 on 2 cores, the hand in motion: 49 ms of physics per frame against CG's 94;
-    docs/benchmarks.md)."""
-    integrator: str = "implicitfast"
-    """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
-    cone: str = "elliptic"
-    """Friction cone: "elliptic" (accurate sticking) or "pyramidal"."""
-    impratio: float = 10.0
-    """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer."""
-    iterations: int | None = None
-    """Solver iterations; None: 20 for Newton, 40 for CG."""
-    ls_iterations: int | None = None
-    """Line-search iterations; None: 10 for Newton, 6 for CG."""
-    jacobian: str = "sparse"
-    """Constraint Jacobian layout: "dense" or "sparse". A contact row touches the wrist, one finger
-    and the object, about half of the DOFs, so the sparse Hessian products do half the work: on an
-    H100 at K=4096, 4 substeps, 10.2 ms a frame against dense's 13.5; on the 2-core CPU at K=40,
-    8 substeps, 49 against 85 (docs/benchmarks.md)."""
-    tolerance: float = 1e-6
-    """Solver convergence tolerance on the scaled cost improvement and gradient."""
-    contacts_per_world: int = 32
-    """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
-    broad_phase: str = "explicit"
-    """Collision broad phase: "explicit" tests the model's precomputed shape pairs (the hand never
-    collides with itself, so that list is short), "sap" or "nxn" search all shapes."""
-    contact_gap: float = 0.005
-    """Shapes closer than this make (speculative) contacts [m]."""
-    constraints_per_world: int = 160
-    """MuJoCo constraint rows per world (njmax)."""
-    slip_speed: float = 0.01
-    """Tangential speed of a pad against the object above which it slips [m/s]."""
-    spin_speed: float = 0.3
-    """Spin of a pad against the object about the pad normal above which it slips [rad/s]."""
-    lost_distance: float = 0.35
-    """An object farther than this from the centre of the sensors is lost [m]."""
-    lost_speed: float = 5.0
-    """An object faster than this has exploded [m/s]."""
-    floor_z: float = -0.05
-    """An object below this height has fallen through the table [m]."""
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        counts = (
-            "groups",
-            "worlds",
-            "substeps",
-            "iterations",
-            "ls_iterations",
-            "contacts_per_world",
-            "constraints_per_world",
-        )
-        for name in counts:
-            value = getattr(self, name)
-            if value is None and name.endswith("iterations"):
-                continue
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"population {name}: expected a positive integer, got {value!r}")
-        if self.substeps % 2:
-            raise ValueError(f"population substeps: expected an even number, got {self.substeps}")
-        if self.solver not in ("auto", "newton", "cg"):
-            raise ValueError(f"population solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
-        if self.jacobian not in ("dense", "sparse"):
-            raise ValueError(f"population jacobian: expected 'dense' or 'sparse', got {self.jacobian!r}")
-        if not (0.0 < self.tolerance < 1.0):
-            raise ValueError(f"population tolerance: expected 0 < tolerance < 1, got {self.tolerance}")
-        if not (0.0 < self.frame_rate <= 1000.0):
-            raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
-        # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
-        # MuJoCo's friction singular or flag every world lost, far from where it was set.
-        for name in ("impratio", "slip_speed", "spin_speed", "lost_distance", "lost_speed"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"population {name}: expected > 0, got {getattr(self, name)}")
-        if not self.contact_gap >= 0.0:
-            raise ValueError(f"population contact_gap: expected >= 0 m, got {self.contact_gap}")
-
-    @property
-    def world_count(self) -> int:
-        return self.groups * self.worlds
-
-    @property
-    def frame_dt(self) -> float:
-        return 1.0 / self.frame_rate
-
-    @property
-    def solver_settings(self) -> SolverSettings:
-        """The solver as it runs: "auto" resolved and the default iteration counts filled in."""
-        solver = self.solver if self.solver != "auto" else "newton"
-        iterations, ls_iterations = (20, 10) if solver == "newton" else (40, 6)
-        return SolverSettings(solver, self.jacobian, self.iterations or iterations, self.ls_iterations or ls_iterations)
-
-
-class SolverSettings(NamedTuple):
-    """A population's constraint solver as it runs."""
-
-    solver: str
-    jacobian: str
-    iterations: int
-    ls_iterations: int
-
-    @property
-    def name(self) -> str:
-        """E.g. "newton/sparse", as the benchmark tables show it."""
-        return f"{self.solver}/{self.jacobian}"
-
-
-def resolve_device(name: str = "auto") -> wp.context.Device:
-    """The Warp device for ``name``; "auto" picks CUDA when present, else the CPU."""
-    if name == "auto":
-        return wp.get_device("cuda:0" if wp.is_cuda_available() else "cpu")
-    if name.startswith("cuda") and not wp.is_cuda_available():
-        raise ValueError(f"population device: '{name}' requested but no CUDA device is available")
-    try:
-        return wp.get_device(name)
-    except Exception as exc:
-        raise ValueError(f"population device: unknown device '{name}'") from exc
-
-
-def _capsule_xform(p0: np.ndarray, p1: np.ndarray) -> tuple[wp.transform, float]:
-    """Transform putting a capsule's z axis from ``p0`` to ``p1``, and its half height."""
-    axis = p1 - p0
-    length = float(np.linalg.norm(axis))
-    z = np.array([0.0, 0.0, 1.0])
-    cross = np.cross(z, axis / length)
-    angle = math.atan2(float(np.linalg.norm(cross)), float(axis[2] / length))
-    rot = wp.quat_from_axis_angle(wp.vec3(*(cross / max(np.linalg.norm(cross), 1e-12))), angle)
-    return wp.transform(wp.vec3(*(0.5 * (p0 + p1))), rot), 0.5 * length
+__all__ = ["Population"]
 
 
 @wp.kernel(enable_backward=False)
@@ -209,65 +60,25 @@ class Population:
         self.torch_device = torch.device(torch_device)
         self._torch_stream = wp.stream_to_torch(self.device.stream) if self.device.is_cuda else None
 
-        world = newton.ModelBuilder()
-        newton.solvers.SolverMuJoCo.register_custom_attributes(world)
-        # Newton's default detection gap (0.1 m) turns every shape pair within 10 cm into contacts;
-        # a few millimetres is plenty at 240 Hz substeps and keeps the buffers small.
-        world.rigid_gap = cfg.contact_gap
-        self.layout: RobotLayout = add_robot(world, robot)
-        self._object_body = self._add_object(world, obj)
+        self.built = built = build_model(robot, obj, cfg, self.device)
+        """The replicated model and what one world of it holds (static)."""
+        self.model = built.model
+        self.layout: RobotLayout = built.layout
+        self._object_body, self._bodies, self._coords, self._dofs = (
+            built.object_body, built.bodies, built.coords, built.dofs
+        )  # fmt: skip
         self.D, self.L = self.layout.dof_count, self.layout.sensor_count
-
-        builder = newton.ModelBuilder()
-        newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
-        builder.rigid_gap = cfg.contact_gap
-        builder.add_ground_plane()
-        builder.replicate(world, self.W)
+        physics = make_physics(self.model, cfg, self.device)
+        self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
+        self._observables = physics.observables
         with wp.ScopedDevice(self.device):
-            self.model = builder.finalize(device=self.device)
-        self._bodies = world.body_count
-        self._coords = world.joint_coord_count
-        self._dofs = world.joint_dof_count
-        self._nominal_mass = float(world.body_mass[self._object_body])
-        inertia = torch.tensor(np.asarray(world.body_inertia[self._object_body]), dtype=torch.float32).reshape(3, 3)
-        # Kept on the device: set_params runs inside the tracker's captured update, where a host
-        # copy or a checked inverse would stall or break the capture.
-        self._nominal_inertia = inertia.to(self.torch_device)
-        self._nominal_inv_inertia = torch.linalg.inv(inertia).to(self.torch_device)
-
-        settings = cfg.solver_settings
-        with wp.ScopedDevice(self.device):
-            self.solver = newton.solvers.SolverMuJoCo(
-                self.model,
-                use_mujoco_contacts=False,
-                solver=settings.solver,
-                integrator=cfg.integrator,
-                cone=cfg.cone,
-                impratio=cfg.impratio,
-                iterations=settings.iterations,
-                ls_iterations=settings.ls_iterations,
-                jacobian=settings.jacobian,
-                tolerance=cfg.tolerance,
-                nconmax=cfg.contacts_per_world,
-                njmax=cfg.constraints_per_world,
-            )
-            # Iteration-limit warnings are printf'd from inside kernels, once per world and step;
-            # at thousands of worlds they flood the log. Non-converged steps still finish.
-            self.solver.mjw_model.opt.warn_overflow = 0
-            self.pipeline = newton.CollisionPipeline(
-                self.model,
-                rigid_contact_max=self.solver.get_max_contact_count(),
-                soft_contact_max=0,
-                broad_phase=cfg.broad_phase,
-            )
-            self.contacts = self.pipeline.contacts()
-            self._observables = self.solver.observables(kinds=["contact_f"], contacts=self.contacts)
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
             self.control = self.model.control()
             self._buf = observe.allocate_buffers(self.W, self.D, self.L)
             self._static = self._static_arrays()
-
+        self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
+        """The object's mass and friction per world and the solver's constants they set."""
         self._views()
         self.obs = observe.observation_views(self._buf, self.G, self.K)
         self.reset_state()
@@ -280,31 +91,6 @@ class Population:
             self._capture()
 
     # ------------------------------------------------------------------ build
-    def _add_object(self, world: newton.ModelBuilder, obj: ObjectSpec) -> int:
-        # The object's friction rules in contacts with the hand (MuJoCo takes the max otherwise).
-        attrs = {"mujoco:geom_priority": 1}
-        body = world.add_body(label=f"object/{obj.name}")  # comes with a free joint
-        volume = float(abs(obj.mesh.volume))
-        cfg = newton.ModelBuilder.ShapeConfig(density=obj.mass / volume, mu=obj.friction)
-        if obj.box_half_extents is not None:
-            hx, hy, hz = obj.box_half_extents
-            world.add_shape_box(body, hx=hx, hy=hy, hz=hz, cfg=cfg, label=obj.name, custom_attributes=attrs)
-        elif obj.capsules:
-            # Mass comes from the surface mesh's volume; the capsules only collide.
-            cfg.density = 0.0
-            for i, cap in enumerate(obj.capsules):
-                xform, half = _capsule_xform(np.asarray(cap[:3]), np.asarray(cap[3:6]))
-                world.add_shape_capsule(body, xform=xform, radius=cap[6], half_height=half, cfg=cfg,
-                                        label=f"{obj.name}/{i}", custom_attributes=attrs)  # fmt: skip
-            inertia = (obj.mass * np.asarray(obj.mesh.moment_inertia) / abs(obj.mesh.volume)).astype(np.float32)
-            world.body_mass[body] = obj.mass
-            world.body_inertia[body] = wp.mat33(*inertia.ravel())
-        else:
-            hull = obj.mesh.convex_hull
-            mesh = newton.Mesh(np.asarray(hull.vertices, np.float32), np.asarray(hull.faces, np.int32).ravel())
-            world.add_shape_convex_hull(body, mesh=mesh, cfg=cfg, label=obj.name, custom_attributes=attrs)
-        return body
-
     def _static_arrays(self) -> dict[str, wp.array]:
         lay, W, nb = self.layout, self.W, self._bodies
         sensor_row = np.full(self.model.body_count, -1, np.int32)
@@ -343,49 +129,7 @@ class Population:
         self._target_stage = torch.zeros((G, self.D), dtype=torch.float32, device=self.torch_device)
         self._lower = torch.as_tensor(self.layout.lower, dtype=torch.float32, device=self.torch_device)
         self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
-        o = self._object_body
-        self._mass = t(self.model.body_mass)[o::nb].view(G, K)
-        self._inv_mass = t(self.model.body_inv_mass)[o::nb].view(G, K)
-        self._inertia = t(self.model.body_inertia)[o::nb].view(G, K, 3, 3)
-        self._inv_inertia = t(self.model.body_inv_inertia)[o::nb].view(G, K, 3, 3)
-        # The object's shapes sit at the same offset in every world: view them as (W, n).
-        shape_body = self.model.shape_body.numpy()
-        obj_shapes = np.flatnonzero((shape_body >= 0) & (shape_body % nb == o)).reshape(self.W, -1)
-        per_world = int(obj_shapes[1, 0] - obj_shapes[0, 0]) if self.W > 1 else 0
-        expected = obj_shapes[0] + per_world * np.arange(self.W)[:, None]
-        if not np.array_equal(obj_shapes, expected) or np.any(np.diff(obj_shapes[0]) != 1):
-            raise ValueError("object shapes: expected the same contiguous shapes in every world")
-        mu = t(self.model.shape_material_mu)
-        n = obj_shapes.shape[1]
-        self._shape_mu = torch.as_strided(mu, (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))
-        self._friction = self._shape_mu[..., 0]
         self._wrench = t(self._buf.wrench).view(G, K, 6)
-        self._solver_inertia_views()
-
-    def _solver_inertia_views(self) -> None:
-        """Views of the MuJoCo-Warp fields that the object's mass sets, with their nominal values.
-
-        Newton's notify_model_changed(BODY_INERTIAL_PROPERTIES) re-runs MuJoCo's set_const on every
-        world (kinematics, composite inertia, a factorisation: 8.5 ms at K=40 on an H100, inside the
-        update every T frames). The object is a free body whose inertia scales with its mass, so
-        every constant it changes scales exactly: mass, principal inertia and subtree mass by s =
-        m / m0, the inverse weights of the body and its six DOFs by 1 / s, the world's subtree mass
-        by m - m0. Writing those directly gives set_const's values to float rounding (checked in
-        tests/test_population.py) in a handful of torch ops."""
-        G, K, t, mjm = self.G, self.K, wp.to_torch, self.solver.mjw_model
-        body = int(np.flatnonzero(self.solver.mjc_body_to_newton.numpy()[0] == self._object_body)[0])
-        dofs = np.flatnonzero(mjm.dof_bodyid.numpy() == body)
-        if len(dofs) != 6 or np.any(np.diff(dofs) != 1):
-            raise ValueError(f"object body: expected 6 contiguous solver DOFs, got {dofs.tolist()}")
-        self._mj = {
-            "mass": t(mjm.body_mass).view(G, K, -1)[..., body],
-            "inertia": t(mjm.body_inertia).view(G, K, -1, 3)[..., body, :],
-            "subtree": t(mjm.body_subtreemass).view(G, K, -1)[..., body],
-            "root_subtree": t(mjm.body_subtreemass).view(G, K, -1)[..., 0],
-            "invweight": t(mjm.body_invweight0).view(G, K, -1, 2)[..., body, :],
-            "dof_invweight": t(mjm.dof_invweight0).view(G, K, -1)[..., dofs[0] : dofs[-1] + 1],
-        }
-        self._mj0 = {name: view.clone() for name, view in self._mj.items()}
 
     # ------------------------------------------------------------------ frame
     def _simulate(self) -> None:
@@ -456,25 +200,27 @@ class Population:
     def _capture(self) -> None:
         with wp.ScopedDevice(self.device):
             # Compile every kernel once outside capture, then record; the eager frame is undone.
-            saved = self._snapshot()
+            saved = self.snapshot()
             self._simulate()
-            self._restore(saved)
+            self.restore(saved)
             with wp.ScopedCapture(device=self.device) as capture:
                 self._simulate()
             self._graph = capture.graph
 
-    def _state_tensors(self) -> list[torch.Tensor]:
+    def state_tensors(self) -> list[torch.Tensor]:
         """Every tensor that carries a world's dynamic state from one frame to the next."""
         views = [view(s) for s in (self.state_0, self.state_1) for view in self._state_views.values()]
         return [*views, self._warmstart]
 
-    def _snapshot(self) -> list[torch.Tensor]:
+    def snapshot(self) -> list[torch.Tensor]:
+        """Copies of :meth:`state_tensors`, to :meth:`restore` later."""
         with self.on_stream():
-            return [t.clone() for t in self._state_tensors()]
+            return [t.clone() for t in self.state_tensors()]
 
-    def _restore(self, saved: list[torch.Tensor]) -> None:
+    def restore(self, saved: list[torch.Tensor]) -> None:
+        """Put back a :meth:`snapshot`."""
         with self.on_stream():
-            for t, s in zip(self._state_tensors(), saved, strict=True):
+            for t, s in zip(self.state_tensors(), saved, strict=True):
                 t.copy_(s)
 
     def step(self) -> None:
@@ -604,6 +350,17 @@ class Population:
             free[..., :3] += displacement[..., :3]
             free[..., 3:] = torch.nn.functional.normalize(rot, dim=-1)
 
+    @property
+    def object_coords(self) -> torch.Tensor:
+        """Each world's object pose in its state, (G, K, 7): position [m], quaternion (x, y, z, w);
+        a writable view (the observed pose, :attr:`obs` ``.object_pose``, follows at the next step)."""
+        return self._state_views["joint_q"](self.state_0)[..., self._free_coords()]
+
+    @property
+    def joint_qd(self) -> torch.Tensor:
+        """Each world's joint velocities in its state, (G, K, DOFs per world) [rad/s or m/s]; a writable view."""
+        return self._state_views["joint_qd"](self.state_0)
+
     def _free_coords(self) -> slice:
         start = self._coords - 7  # the object's free joint is the last joint of a world
         return slice(start, start + 7)
@@ -628,12 +385,12 @@ class Population:
     @property
     def mass(self) -> torch.Tensor:
         """Object mass per world, shape (G, K) [kg] (a view: change it with :meth:`set_params`)."""
-        return self._mass
+        return self.params.mass
 
     @property
     def friction(self) -> torch.Tensor:
         """Object friction coefficient per world, shape (G, K) (a view: change it with :meth:`set_params`)."""
-        return self._friction
+        return self.params.friction
 
     def set_params(self, mass: torch.Tensor | None = None, friction: torch.Tensor | None = None) -> None:
         """Set object mass [kg] (inertia scaled with it) and friction per world, shapes (G, K); a
@@ -648,28 +405,9 @@ class Population:
         """:meth:`set_params` for values already in range, (G, K) on the device: no host work, so
         it can run inside a captured graph (the tracker's update)."""
         with self.on_stream():
-            if mass is not None:
-                scale = (mass / self._nominal_mass)[..., None, None]
-                self._mass.copy_(mass)
-                self._inv_mass.copy_(1.0 / mass)
-                self._inertia.copy_(self._nominal_inertia * scale)
-                self._inv_inertia.copy_(self._nominal_inv_inertia / scale)
-                self._write_solver_inertia()
-            if friction is not None:
-                self._shape_mu.copy_(friction[..., None].expand_as(self._shape_mu))
+            self.params.write(mass, friction)
         if mass is not None or friction is not None:
-            self._notify_shapes()
-
-    def _write_solver_inertia(self) -> None:
-        """The solver's copies of the object's inertial constants, from ``mass`` (see _solver_inertia_views)."""
-        mj, mj0 = self._mj, self._mj0
-        scale = self._mass / self._nominal_mass
-        mj["mass"].copy_(self._mass)
-        mj["subtree"].copy_(self._mass)
-        mj["root_subtree"].copy_(mj0["root_subtree"] + (self._mass - self._nominal_mass))
-        mj["inertia"].copy_(mj0["inertia"] * scale[..., None])
-        mj["invweight"].copy_(mj0["invweight"] / scale[..., None])
-        mj["dof_invweight"].copy_(mj0["dof_invweight"] / scale[..., None])
+            self.params.notify(self.device)
 
     def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
         """``value`` as a (G, K) float32 tensor on the device, after checking it on the host."""
@@ -683,13 +421,6 @@ class Population:
         if bool(bad.any()):
             raise ValueError(f"{name}: {int(bad.sum())} values outside [{lo}, {hi}], e.g. {host[bad][0].item():.4g}")
         return value.to(self.torch_device)
-
-    def _notify_shapes(self) -> None:
-        """Push friction to the solver. It also drops the solver's cached contact parameters, which
-        a new mass makes stale too; the inertial constants themselves are written directly
-        (:meth:`_write_solver_inertia`)."""
-        with wp.ScopedDevice(self.device):
-            self.solver.notify_model_changed(newton.ModelFlags.SHAPE_PROPERTIES)
 
     # ------------------------------------------------------------------ resampling
     def resample(self, index: torch.Tensor) -> None:
@@ -715,9 +446,8 @@ class Population:
         it can run inside a captured graph (the tracker's update, whose indices never leave the device)."""
         with self.on_stream():
             tensors = [view(self.state_0) for view in self._state_views.values()]
-            tensors += [self._warmstart, self._mass[..., None], self._inv_mass[..., None], self._shape_mu]
-            tensors += [self._inertia.view(self.G, self.K, 9), self._inv_inertia.view(self.G, self.K, 9)]
+            tensors += [self._warmstart, *self.params.tensors]
             for t in tensors:
                 t.copy_(torch.gather(t, 1, index[..., None].expand(-1, -1, t.shape[-1])))
-            self._write_solver_inertia()
-        self._notify_shapes()
+            self.params.write_solver_constants()
+        self.params.notify(self.device)

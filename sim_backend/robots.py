@@ -60,8 +60,6 @@ class RobotLayout:
     """Actuated joints, shape (D,)."""
     coord_indices: np.ndarray
     """Index of each actuated joint in a world's ``joint_q``, shape (D,), int."""
-    dof_indices: np.ndarray
-    """Index of each actuated joint in a world's ``joint_qd`` / ``joint_target_q``, shape (D,), int."""
     lower: np.ndarray
     """Lower joint limits, shape (D,) [rad or m]."""
     upper: np.ndarray
@@ -74,8 +72,6 @@ class RobotLayout:
     """Body index of the link carrying each sensor, shape (L,), int."""
     sensor_offsets: np.ndarray
     """Sensor frame in its link's frame, shape (L, 7): position [m] then quaternion (x, y, z, w)."""
-    body_count: int
-    """Bodies the robot adds to a world."""
 
     @property
     def dof_count(self) -> int:
@@ -286,7 +282,7 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
     tips.append(b15)
 
     builder.add_articulation(joints, label=spec.name)
-    coord, dof = _joint_coord_dof(builder, joints)
+    coord, _ = _joint_coord_dof(builder, joints)
     low, up = np.asarray(lower), np.asarray(upper)
     if spec.default_q:
         default_q = np.asarray(spec.default_q, dtype=np.float64)
@@ -302,14 +298,12 @@ def _add_hand(builder: newton.ModelBuilder, spec: HandSpec) -> RobotLayout:
         name=spec.name,
         joint_names=tuple(names),
         coord_indices=coord,
-        dof_indices=dof,
         lower=low,
         upper=up,
         default_q=default_q,
         sensor_names=("index_tip", "middle_tip", "ring_tip", "thumb_tip"),
         sensor_bodies=np.asarray(tips) - body_start,
         sensor_offsets=np.asarray([finger_pad] * 3 + [thumb_pad]),
-        body_count=builder.body_count - body_start,
     )
 
 
@@ -379,14 +373,12 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
         name=spec.name,
         joint_names=tuple(spec.joints),
         coord_indices=coord,
-        dof_indices=dof,
         lower=lower,
         upper=upper,
         default_q=default_q,
         sensor_names=tuple(spec.sensor_links),
         sensor_bodies=np.asarray([body_names[n] for n in spec.sensor_links]) - body_start,
         sensor_offsets=offsets,
-        body_count=builder.body_count - body_start,
     )
 
 

@@ -75,7 +75,7 @@ def test_mass_writes_the_constants_set_const_would(name):
         torch.testing.assert_close(fast[f], full, rtol=1e-6, atol=1e-9, msg=lambda m, f=f: f"{f}: {m}")
     # A resample carries the constants with the mass.
     pop.resample(torch.tensor([[1, 1], [0, 0]]))
-    assert torch.equal(pop._mj["mass"], pop.mass)
+    assert torch.equal(pop.params.solver_constants["mass"], pop.mass)
 
 
 def test_resampled_copies_stay_bit_identical(hand):
@@ -94,7 +94,7 @@ def test_resampled_copies_stay_bit_identical(hand):
         for a, b in ((0, 1), (2, 3)):
             assert torch.equal(pop.obs.object_pose[0, a], pop.obs.object_pose[0, b])
             assert torch.equal(pop.obs.q[0, a], pop.obs.q[0, b])
-    for tensor in pop._state_tensors():
+    for tensor in pop.state_tensors():
         assert torch.equal(tensor[0, 0], tensor[0, 1]) and torch.equal(tensor[0, 2], tensor[0, 3])
 
 
@@ -127,15 +127,15 @@ def test_a_displaced_object_keeps_what_the_grasp_cannot_see_and_loses_what_it_ca
 
 def test_graph_replay_equals_eager_stepping(hand):
     pop, _ = _grasped(hand, "foam_brick", worlds=2)
-    saved = pop._snapshot()
+    saved = pop.snapshot()
     for _ in range(5):
         pop.step()
-    replayed = [t.clone() for t in pop._state_tensors()]
+    replayed = [t.clone() for t in pop.state_tensors()]
     obs_replayed = pop.obs.force.clone()
-    pop._restore(saved)
+    pop.restore(saved)
     for _ in range(5):
         pop.step_eager()
-    for a, b in zip(replayed, pop._state_tensors(), strict=True):
+    for a, b in zip(replayed, pop.state_tensors(), strict=True):
         assert torch.equal(a, b)
     assert torch.equal(obs_replayed, pop.obs.force)
 
@@ -233,7 +233,7 @@ def test_health_mask_marks_lost_and_nan_worlds_without_raising(hand):
     poses = np.tile(grasp.object_pose, (1, 3, 1))
     poses[0, 1, :3] = [0.1, 0.4, 0.025]  # on the table, far from the hand
     pop.reset_state(poses, grasp.q_touch)
-    qd = pop._state_views["joint_qd"](pop.state_0)
+    qd = pop.joint_qd
     qd[0, 2, 3] = math.nan  # a world blows up
     pop.step()
     assert pop.obs.health[0].tolist() == [HEALTH_OK, HEALTH_LOST, HEALTH_NAN]

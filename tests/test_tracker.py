@@ -103,8 +103,8 @@ def test_a_real_drop_puts_the_hypotheses_on_the_table(hand, recording):
         numb.force = np.zeros_like(numb.force)
         status = tr.step(numb).status
     assert (status == Status.DIVERGED).all()
-    pose = tr.pop._state_views["joint_q"](tr.pop.state_0)[..., tr.pop._free_coords()]
-    hull = torch.as_tensor(tr._hull)
+    pose = tr.pop.object_coords
+    hull = torch.as_tensor(tr.pop.object.mesh.convex_hull.vertices, dtype=torch.float32)
     z = pose[..., 2] + _lowest_point(pose[..., 3:], hull)
     assert ((z > 0.0015) & (z < 0.0025)).all(), f"lowest points {z} m: not resting on the table"
     assert pose[..., 2].max().item() < lifted, "the hypotheses stayed up in the hand"
@@ -142,7 +142,7 @@ def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):
     for f in range(first + 1, carry):
         assert (tr.step(_frame(recording, f)).status == Status.RECOVERING).all()
     second = knock_out(carry)
-    seeded = tr.pop._state_views["joint_q"](tr.pop.state_0)[..., tr.pop._free_coords()][..., :3].mean(1).numpy()
+    seeded = tr.pop.object_coords[..., :3].mean(1).numpy()
     rise = recording.object_pose[second, :, 2] - recording.object_pose[lift, :, 2]
     assert (rise > 0.03).all(), f"the hand lifted the object only {rise} m"
     off = np.linalg.norm(seeded - recording.object_pose[second, :, :3], axis=-1)
@@ -226,7 +226,7 @@ def test_a_nan_world_never_becomes_the_estimate_when_every_world_lost_the_object
     pose = np.tile(recording.initial_pose[:, None], (1, tr.K, 1))
     pose[..., :3] += [0.0, 0.5, 0.0]  # every object half a metre from the hand: lost
     tr.pop.reset_state(pose, np.tile(recording.q[9][:, None], (1, tr.K, 1)))
-    qd = tr.pop._state_views["joint_qd"](tr.pop.state_0)
+    qd = tr.pop.joint_qd
     qd[:, 0, 3] = float("nan")  # and world 0 of every group blows up
     est = tr.step(_frame(recording, 10))
     # The estimate comes before the divergence's re-seed, which clears the worlds' health.

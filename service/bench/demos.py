@@ -24,10 +24,10 @@ import numpy as np
 import torch
 
 from protocol import SENSING, GroundTruth, Trajectory
+from sim_backend import Population
 from sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
 from sim_backend.kinematics import Kinematics
 from sim_backend.objects import ObjectSpec
-from sim_backend.population import Population
 
 SENSING_NAMES = tuple(f.name for f in SENSING)
 

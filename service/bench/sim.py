@@ -11,10 +11,10 @@ import numpy as np
 import torch
 import warp as wp
 
+from sim_backend import Population, PopulationConfig, resolve_device
 from sim_backend.grasp import plan_pinch
 from sim_backend.kinematics import Kinematics
 from sim_backend.objects import catalog_object
-from sim_backend.population import Population, PopulationConfig, resolve_device
 from sim_backend.robots import HandSpec
 
 __all__ = ["SimBenchResult", "bench_sim", "release_memory", "used_bytes"]

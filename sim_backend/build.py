@@ -1,0 +1,147 @@
+"""The built model: one world of robot + object replicated G x K times into one Newton model, and
+the MuJoCo-Warp solver and collision pipeline that step it. Static once built."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import newton
+import numpy as np
+import warp as wp
+
+from .config import PopulationConfig
+from .objects import ObjectSpec
+from .robots import RobotLayout, RobotSpec, add_robot
+
+__all__ = ["BuiltModel", "Physics", "build_model", "make_physics"]
+
+
+@dataclass
+class BuiltModel:
+    """The replicated model and what one world of it holds."""
+
+    model: newton.Model
+    layout: RobotLayout
+    """The robot's joints, sensors and limits in one world."""
+    object_body: int
+    """The object's body index within a world."""
+    bodies: int
+    """Bodies per world."""
+    coords: int
+    """Joint coordinates per world (the object's free joint last: 7)."""
+    dofs: int
+    """Joint DOFs per world."""
+    nominal_mass: float
+    """The object's mass as built [kg]."""
+    nominal_inertia: np.ndarray
+    """The object's inertia about its centre of mass as built, (3, 3) [kg m^2]."""
+
+
+@dataclass
+class Physics:
+    """What steps the model: the solver, the collision pipeline and their buffers."""
+
+    solver: newton.solvers.SolverMuJoCo
+    pipeline: newton.CollisionPipeline
+    contacts: newton.Contacts
+    observables: object
+    """The solver's contact forces, read by the observation kernels."""
+
+
+def build_model(robot: RobotSpec, obj: ObjectSpec, cfg: PopulationConfig, device: wp.context.Device) -> BuiltModel:
+    """One world of ``robot`` and ``obj``, replicated ``cfg.world_count`` times over a ground plane."""
+    world = newton.ModelBuilder()
+    newton.solvers.SolverMuJoCo.register_custom_attributes(world)
+    # Newton's default detection gap (0.1 m) turns every shape pair within 10 cm into contacts;
+    # a few millimetres is plenty at 240 Hz substeps and keeps the buffers small.
+    world.rigid_gap = cfg.contact_gap
+    layout = add_robot(world, robot)
+    object_body = add_object(world, obj)
+    builder = newton.ModelBuilder()
+    newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
+    builder.rigid_gap = cfg.contact_gap
+    builder.add_ground_plane()
+    builder.replicate(world, cfg.world_count)
+    with wp.ScopedDevice(device):
+        model = builder.finalize(device=device)
+    return BuiltModel(
+        model=model,
+        layout=layout,
+        object_body=object_body,
+        bodies=world.body_count,
+        coords=world.joint_coord_count,
+        dofs=world.joint_dof_count,
+        nominal_mass=float(world.body_mass[object_body]),
+        nominal_inertia=np.asarray(world.body_inertia[object_body], dtype=np.float32).reshape(3, 3),
+    )
+
+
+def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:
+    """The MuJoCo-Warp solver with ``cfg``'s budget, and Newton's collision pipeline feeding it."""
+    settings = cfg.solver_settings
+    with wp.ScopedDevice(device):
+        solver = newton.solvers.SolverMuJoCo(
+            model,
+            use_mujoco_contacts=False,
+            solver=settings.solver,
+            integrator=cfg.integrator,
+            cone=cfg.cone,
+            impratio=cfg.impratio,
+            iterations=settings.iterations,
+            ls_iterations=settings.ls_iterations,
+            jacobian=settings.jacobian,
+            tolerance=cfg.tolerance,
+            nconmax=cfg.contacts_per_world,
+            njmax=cfg.constraints_per_world,
+        )
+        # Iteration-limit warnings are printf'd from inside kernels, once per world and step;
+        # at thousands of worlds they flood the log. Non-converged steps still finish.
+        solver.mjw_model.opt.warn_overflow = 0
+        pipeline = newton.CollisionPipeline(
+            model,
+            rigid_contact_max=solver.get_max_contact_count(),
+            soft_contact_max=0,
+            broad_phase=cfg.broad_phase,
+        )
+        contacts = pipeline.contacts()
+        observables = solver.observables(kinds=["contact_f"], contacts=contacts)
+    return Physics(solver, pipeline, contacts, observables)
+
+
+def add_object(world: newton.ModelBuilder, obj: ObjectSpec) -> int:
+    """Add ``obj`` as a free body of ``world``; returns its body index."""
+    # The object's friction rules in contacts with the hand (MuJoCo takes the max otherwise).
+    attrs = {"mujoco:geom_priority": 1}
+    body = world.add_body(label=f"object/{obj.name}")  # comes with a free joint
+    volume = float(abs(obj.mesh.volume))
+    cfg = newton.ModelBuilder.ShapeConfig(density=obj.mass / volume, mu=obj.friction)
+    if obj.box_half_extents is not None:
+        hx, hy, hz = obj.box_half_extents
+        world.add_shape_box(body, hx=hx, hy=hy, hz=hz, cfg=cfg, label=obj.name, custom_attributes=attrs)
+    elif obj.capsules:
+        # Mass comes from the surface mesh's volume; the capsules only collide.
+        cfg.density = 0.0
+        for i, cap in enumerate(obj.capsules):
+            xform, half = _capsule_xform(np.asarray(cap[:3]), np.asarray(cap[3:6]))
+            world.add_shape_capsule(body, xform=xform, radius=cap[6], half_height=half, cfg=cfg,
+                                    label=f"{obj.name}/{i}", custom_attributes=attrs)  # fmt: skip
+        inertia = (obj.mass * np.asarray(obj.mesh.moment_inertia) / abs(obj.mesh.volume)).astype(np.float32)
+        world.body_mass[body] = obj.mass
+        world.body_inertia[body] = wp.mat33(*inertia.ravel())
+    else:
+        hull = obj.mesh.convex_hull
+        mesh = newton.Mesh(np.asarray(hull.vertices, np.float32), np.asarray(hull.faces, np.int32).ravel())
+        world.add_shape_convex_hull(body, mesh=mesh, cfg=cfg, label=obj.name, custom_attributes=attrs)
+    return body
+
+
+def _capsule_xform(p0: np.ndarray, p1: np.ndarray) -> tuple[wp.transform, float]:
+    """Transform putting a capsule's z axis from ``p0`` to ``p1``, and its half height."""
+    axis = p1 - p0
+    length = float(np.linalg.norm(axis))
+    z = np.array([0.0, 0.0, 1.0])
+    cross = np.cross(z, axis / length)
+    angle = math.atan2(float(np.linalg.norm(cross)), float(axis[2] / length))
+    rot = wp.quat_from_axis_angle(wp.vec3(*(cross / max(np.linalg.norm(cross), 1e-12))), angle)
+    return wp.transform(wp.vec3(*(0.5 * (p0 + p1))), rot), 0.5 * length

@@ -1,0 +1,148 @@
+"""A population's settings: size, stepping, the solver's budget and the sensing thresholds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import warp as wp
+
+from protocol import DEFAULT_WORLDS
+
+__all__ = ["PopulationConfig", "SolverSettings", "resolve_device"]
+
+
+@dataclass(frozen=True)
+class PopulationConfig:
+    """Size, stepping and sensing settings of a population."""
+
+    groups: int = 1
+    """G: independent tracks stepped together."""
+    worlds: int = DEFAULT_WORLDS
+    """K: worlds per group."""
+    substeps: int = 8
+    """Physics substeps per control frame; even, so the state buffers come back to the captured ones."""
+    frame_rate: float = 30.0
+    """Control frames per second [Hz]."""
+    device: str = "auto"
+    """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
+    use_graph: bool = True
+    """Replay a captured graph per frame (False steps eagerly, for debugging)."""
+    solver: str = "auto"
+    """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in 1-8
+    iterations where CG needs 10-40 (a quarter of CG's steps stop at 40 unconverged); each
+    Newton iteration assembles and factors a Hessian, which the sparse Jacobian keeps cheap on
+    the CPU (K=40 on 2 cores, the hand in motion: 49 ms of physics per frame against CG's 94;
+    docs/benchmarks.md)."""
+    integrator: str = "implicitfast"
+    """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
+    cone: str = "elliptic"
+    """Friction cone: "elliptic" (accurate sticking) or "pyramidal"."""
+    impratio: float = 10.0
+    """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer."""
+    iterations: int | None = None
+    """Solver iterations; None: 20 for Newton, 40 for CG."""
+    ls_iterations: int | None = None
+    """Line-search iterations; None: 10 for Newton, 6 for CG."""
+    jacobian: str = "sparse"
+    """Constraint Jacobian layout: "dense" or "sparse". A contact row touches the wrist, one finger
+    and the object, about half of the DOFs, so the sparse Hessian products do half the work: on an
+    H100 at K=4096, 4 substeps, 10.2 ms a frame against dense's 13.5; on the 2-core CPU at K=40,
+    8 substeps, 49 against 85 (docs/benchmarks.md)."""
+    tolerance: float = 1e-6
+    """Solver convergence tolerance on the scaled cost improvement and gradient."""
+    contacts_per_world: int = 32
+    """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
+    broad_phase: str = "explicit"
+    """Collision broad phase: "explicit" tests the model's precomputed shape pairs (the hand never
+    collides with itself, so that list is short), "sap" or "nxn" search all shapes."""
+    contact_gap: float = 0.005
+    """Shapes closer than this make (speculative) contacts [m]."""
+    constraints_per_world: int = 160
+    """MuJoCo constraint rows per world (njmax)."""
+    slip_speed: float = 0.01
+    """Tangential speed of a pad against the object above which it slips [m/s]."""
+    spin_speed: float = 0.3
+    """Spin of a pad against the object about the pad normal above which it slips [rad/s]."""
+    lost_distance: float = 0.35
+    """An object farther than this from the centre of the sensors is lost [m]."""
+    lost_speed: float = 5.0
+    """An object faster than this has exploded [m/s]."""
+    floor_z: float = -0.05
+    """An object below this height has fallen through the table [m]."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        counts = (
+            "groups",
+            "worlds",
+            "substeps",
+            "iterations",
+            "ls_iterations",
+            "contacts_per_world",
+            "constraints_per_world",
+        )
+        for name in counts:
+            value = getattr(self, name)
+            if value is None and name.endswith("iterations"):
+                continue
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"population {name}: expected a positive integer, got {value!r}")
+        if self.substeps % 2:
+            raise ValueError(f"population substeps: expected an even number, got {self.substeps}")
+        if self.solver not in ("auto", "newton", "cg"):
+            raise ValueError(f"population solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
+        if self.jacobian not in ("dense", "sparse"):
+            raise ValueError(f"population jacobian: expected 'dense' or 'sparse', got {self.jacobian!r}")
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"population tolerance: expected 0 < tolerance < 1, got {self.tolerance}")
+        if not (0.0 < self.frame_rate <= 1000.0):
+            raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
+        # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
+        # MuJoCo's friction singular or flag every world lost, far from where it was set.
+        for name in ("impratio", "slip_speed", "spin_speed", "lost_distance", "lost_speed"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"population {name}: expected > 0, got {getattr(self, name)}")
+        if not self.contact_gap >= 0.0:
+            raise ValueError(f"population contact_gap: expected >= 0 m, got {self.contact_gap}")
+
+    @property
+    def world_count(self) -> int:
+        return self.groups * self.worlds
+
+    @property
+    def frame_dt(self) -> float:
+        return 1.0 / self.frame_rate
+
+    @property
+    def solver_settings(self) -> SolverSettings:
+        """The solver as it runs: "auto" resolved and the default iteration counts filled in."""
+        solver = self.solver if self.solver != "auto" else "newton"
+        iterations, ls_iterations = (20, 10) if solver == "newton" else (40, 6)
+        return SolverSettings(solver, self.jacobian, self.iterations or iterations, self.ls_iterations or ls_iterations)
+
+
+class SolverSettings(NamedTuple):
+    """A population's constraint solver as it runs."""
+
+    solver: str
+    jacobian: str
+    iterations: int
+    ls_iterations: int
+
+    @property
+    def name(self) -> str:
+        """E.g. "newton/sparse", as the benchmark tables show it."""
+        return f"{self.solver}/{self.jacobian}"
+
+
+def resolve_device(name: str = "auto") -> wp.context.Device:
+    """The Warp device for ``name``; "auto" picks CUDA when present, else the CPU."""
+    if name == "auto":
+        return wp.get_device("cuda:0" if wp.is_cuda_available() else "cpu")
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"population device: '{name}' requested but no CUDA device is available")
+    try:
+        return wp.get_device(name)
+    except Exception as exc:
+        raise ValueError(f"population device: unknown device '{name}'") from exc
