@@ -36,7 +36,7 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         "",
         f"- command: `{command}`" if command else "",
         f"- device: {results['device']}; K = {results['worlds']} worlds per track (OLP: 1); "
-        f"{results.get('substeps', 8)} tracker substeps per frame",
+        f"{results['substeps']} tracker substeps per frame",
         f"- {len({t['trajectory'] for t in results['tracks']})} trajectories of about {suite['seconds']:g} s at 30 Hz "
         f"({', '.join(suite['kinds'])}; {', '.join(suite['objects'])}); "
         f"ground truth {results['seconds']['ground_truth']:.0f} s, tracking {results['seconds']['tracking']:.0f} s",
