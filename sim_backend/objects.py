@@ -29,6 +29,8 @@ __all__ = [
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "objects.toml"
 """Where the objects' physics (mass, friction and their ranges) are configured."""
+_DENSITY = (5.0, 25000.0)
+"""Plausible densities of a held object [kg/m^3]: expanded polystyrene to the densest metals."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,48 @@ def _centred(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return mesh
 
 
+def load_mesh_object(
+    name: str,
+    path: str,
+    *,
+    mass: float,
+    mass_range: tuple[float, float],
+    friction: float = 0.8,
+    friction_range: tuple[float, float] = (0.3, 1.5),
+    scale: float = 1.0,
+) -> ObjectSpec:
+    """An object from any mesh file trimesh reads (STL, OBJ, PLY, GLB, ...), in metres after ``scale``."""
+    if not os.path.isfile(path):
+        raise ValueError(f"object '{name}' mesh: no such file '{path}'")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as exc:  # trimesh raises many kinds for bad files
+        raise ValueError(f"object '{name}' mesh: cannot read '{path}': {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"object '{name}' mesh: '{path}' holds no triangles")
+    mesh.apply_scale(scale)
+    extent = float(np.max(mesh.extents))
+    if not (0.005 <= extent <= 0.5):
+        raise ValueError(f"object '{name}' mesh: largest extent {extent:.4g} m is outside [0.005, 0.5] m; check scale")
+    if not mesh.is_watertight:
+        # Its volume, and so the density the physics is given, would be meaningless.
+        raise ValueError(f"object '{name}' mesh: '{path}' is not watertight (its volume sets the density)")
+    density = mass / abs(float(mesh.volume))
+    if not (_DENSITY[0] <= density <= _DENSITY[1]):
+        raise ValueError(
+            f"object '{name}' mass: {mass} kg in the {abs(float(mesh.volume)) * 1e6:.4g} cm^3 of '{path}' is "
+            f"{density:.4g} kg/m^3, outside [{_DENSITY[0]}, {_DENSITY[1]}]; check mass and scale"
+        )
+    return ObjectSpec(
+        name=name,
+        mesh=_centred(mesh),
+        mass=mass,
+        mass_range=mass_range,
+        friction=friction,
+        friction_range=friction_range,
+    )
+
+
 def _box(name: str, size: tuple[float, float, float], **kw) -> ObjectSpec:
     half = tuple(0.5 * s for s in size)
     return ObjectSpec(name=name, mesh=trimesh.creation.box(extents=size), box_half_extents=half, **kw)  # type: ignore[arg-type]
@@ -177,36 +221,3 @@ def catalog_object(name: str) -> ObjectSpec:
         return CATALOG[name]
     except KeyError:
         raise ValueError(f"object: unknown name '{name}', known: {sorted(CATALOG)}") from None
-
-
-def load_mesh_object(
-    name: str,
-    path: str,
-    *,
-    mass: float,
-    mass_range: tuple[float, float],
-    friction: float = 0.8,
-    friction_range: tuple[float, float] = (0.3, 1.5),
-    scale: float = 1.0,
-) -> ObjectSpec:
-    """An object from any mesh file trimesh reads (STL, OBJ, PLY, GLB, ...), in metres after ``scale``."""
-    if not os.path.isfile(path):
-        raise ValueError(f"object '{name}' mesh: no such file '{path}'")
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as exc:  # trimesh raises many kinds for bad files
-        raise ValueError(f"object '{name}' mesh: cannot read '{path}': {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"object '{name}' mesh: '{path}' holds no triangles")
-    mesh.apply_scale(scale)
-    extent = float(np.max(mesh.extents))
-    if not (0.005 <= extent <= 0.5):
-        raise ValueError(f"object '{name}' mesh: largest extent {extent:.4g} m is outside [0.005, 0.5] m; check scale")
-    return ObjectSpec(
-        name=name,
-        mesh=_centred(mesh),
-        mass=mass,
-        mass_range=mass_range,
-        friction=friction,
-        friction_range=friction_range,
-    )

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import tomllib
+import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -130,6 +131,9 @@ class FileRobotSpec:
     base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     """Pose of the robot's root in the world: position [m], quaternion (x, y, z, w)."""
     default_q: tuple[float, ...] = ()
+    package_dirs: tuple[str, ...] = ()
+    """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
+    NAME folder); the URDF's own package folder is found without it."""
 
 
 RobotSpec = HandSpec | FileRobotSpec
@@ -322,17 +326,28 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
     if len(spec.base) != 7:
         raise ValueError(f"robot '{spec.name}' base: expected 7 values (x, y, z, qx, qy, qz, qw), got {len(spec.base)}")
     base = wp.transform(wp.vec3(*spec.base[:3]), wp.normalize(wp.quat(*spec.base[3:])))
+    packages = {"package_dirs": list(spec.package_dirs)} if spec.package_dirs else {}
     try:
-        if ext == ".urdf":
-            builder.add_urdf(spec.path, xform=base, floating=spec.floating)
-        elif ext in (".xml", ".mjcf"):
-            builder.add_mjcf(spec.path, xform=base, floating=spec.floating)
-        else:
-            raise ValueError(f"robot '{spec.name}' path: expected .urdf, .xml or .mjcf, got '{ext}'")
+        # The importers warn and carry on when a mesh path does not resolve, dropping the shape:
+        # a hand whose fingertips cannot touch anything would "track" on joints alone.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if ext == ".urdf":
+                builder.add_urdf(spec.path, xform=base, floating=spec.floating, **packages)
+            elif ext in (".xml", ".mjcf"):
+                builder.add_mjcf(spec.path, xform=base, floating=spec.floating)
+            else:
+                raise ValueError(f"robot '{spec.name}' path: expected .urdf, .xml or .mjcf, got '{ext}'")
     except ValueError:
         raise
     except Exception as exc:  # parsers raise many kinds; the user needs the file and the cause
         raise ValueError(f"robot '{spec.name}' path: cannot load '{spec.path}': {exc}") from exc
+    unresolved = [str(w.message) for w in caught if "resolve" in str(w.message).lower()]
+    if unresolved:
+        raise ValueError(
+            f"robot '{spec.name}' path: '{spec.path}' names files that were not found, so their shapes would be "
+            f"dropped: {unresolved[0]} (set package_dirs to the folder that holds the package)"
+        )
 
     labels = [builder.joint_label[j] for j in range(joint_start, builder.joint_count)]
     by_name = {_short(lbl): joint_start + i for i, lbl in enumerate(labels)}
@@ -359,6 +374,13 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
     missing = [n for n in spec.sensor_links if n not in body_names]
     if missing:
         raise ValueError(f"robot '{spec.name}' sensor_links: {missing} not in {spec.path} (has {sorted(body_names)})")
+    for link in spec.sensor_links:
+        shapes = builder.body_shapes.get(body_names[link], [])
+        if not any(builder.shape_flags[sh] & newton.ShapeFlags.COLLIDE_SHAPES for sh in shapes):
+            raise ValueError(
+                f"robot '{spec.name}' sensor_links: '{link}' in '{spec.path}' has no collision shape, so its "
+                f"sensor could never touch the object"
+            )
     offsets = np.zeros((len(spec.sensor_links), 7))
     offsets[:, 6] = 1.0
     if spec.sensor_offsets:
@@ -405,6 +427,7 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
         raise ValueError(f"robot config '{path}': unknown keys {unknown} for kind '{kind}' (known: {sorted(known)})")
     if kind == "file":
         table["path"] = str(path.parent / table["path"])
+        table["package_dirs"] = tuple(str(path.parent / d) for d in table.get("package_dirs", ()))
         table["sensor_offsets"] = tuple(tuple(o) for o in table.get("sensor_offsets", ()))
     table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
     try:

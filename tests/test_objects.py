@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import sys
+import types
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
 
-from sim_backend import CATALOG, HandSpec, Population, PopulationConfig, load_catalog
+from sim_backend import CATALOG, HandSpec, Population, PopulationConfig, load_catalog, load_mesh_object
 
 
 def test_catalog_has_the_papers_three_objects_with_their_physics():
@@ -51,3 +55,31 @@ def test_bad_config_names_the_file_and_entry(tmp_path):
         load_catalog(cfg)
     with pytest.raises(ValueError, match="objects config: cannot read"):
         load_catalog(tmp_path / "missing.toml")
+
+
+def test_a_mesh_object_is_refused_when_its_volume_or_mass_cannot_be_right(tmp_path):
+    box = trimesh.creation.box(extents=(0.05, 0.05, 0.05))
+    open_box = box.copy()
+    open_box.update_faces(np.arange(len(box.faces)) > 1)  # one side missing: not watertight
+    open_box.export(tmp_path / "open.stl")
+    with pytest.raises(ValueError, match=r"object 'cup' mesh: '.*open.stl' is not watertight"):
+        load_mesh_object("cup", str(tmp_path / "open.stl"), mass=0.1, mass_range=(0.05, 0.2))
+    box.export(tmp_path / "box.stl")
+    with pytest.raises(ValueError, match=r"object 'lead' mass: 5.0 kg in the 125 cm\^3 .* is 4e\+04 kg/m\^3, outside"):
+        load_mesh_object("lead", str(tmp_path / "box.stl"), mass=5.0, mass_range=(1.0, 6.0))
+
+
+def test_a_mesh_object_in_the_default_objects_file_loads_at_import(tmp_path, monkeypatch):
+    """The catalog is read when the module is imported: a mesh entry in the default file must load
+    then too (the module is run as it is, with its default file pointed at one with a mesh)."""
+    import sim_backend.objects as objects
+
+    trimesh.creation.box(extents=(0.04, 0.04, 0.06)).export(tmp_path / "block.stl")
+    cfg = tmp_path / "objects.toml"
+    cfg.write_text('[block]\nmesh = "block.stl"\nmass = 0.1\nmass_range = [0.05, 0.2]\n')
+    source = Path(objects.__file__).read_text()
+    line = next(x for x in source.splitlines() if x.startswith("DEFAULT_CONFIG = "))
+    module = types.ModuleType("objects_with_a_mesh")
+    monkeypatch.setitem(sys.modules, module.__name__, module)  # dataclasses look their module up
+    exec(compile(source.replace(line, f"DEFAULT_CONFIG = Path({str(cfg)!r})"), objects.__file__, "exec"), vars(module))
+    assert "block" in module.CATALOG

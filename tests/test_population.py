@@ -320,3 +320,57 @@ def test_users_robot_from_urdf_named_in_a_config():
     assert tuple(pop.obs.q.shape) == (1, 2, 2) and tuple(pop.obs.force.shape) == (1, 2, 2, 3)
     # The slides move towards their targets.
     assert pop.obs.q[0, 0, 0] < -0.002 and pop.obs.q[0, 0, 1] > 0.002
+
+
+def _gripper_with_meshes(root: Path, folder: str, pad_collides: bool = True) -> Path:
+    """The example gripper with its pads as mesh files named by ``package://my_gripper/...``, in a
+    package folder called ``folder``; returns the URDF's path."""
+    import trimesh
+
+    (root / folder / "urdf").mkdir(parents=True)
+    (root / folder / "meshes").mkdir()
+    trimesh.creation.box(extents=(0.01, 0.03, 0.08)).export(root / folder / "meshes" / "pad.stl")
+    urdf = (CONFIGS / "robots" / "example_gripper.urdf").read_text()
+    pad = '<geometry><box size="0.01 0.03 0.08"/></geometry>'
+    urdf = urdf.replace(pad, '<geometry><mesh filename="package://my_gripper/meshes/pad.stl"/></geometry>')
+    if not pad_collides:  # the right pad only seen, never touched
+        head, tail = urdf.split('<link name="right">')
+        tail = tail.replace("<collision>", "<visual>", 1).replace("</collision>", "</visual>", 1)
+        urdf = head + '<link name="right">' + tail
+    path = root / folder / "urdf" / "gripper.urdf"
+    path.write_text(urdf)
+    return path
+
+
+def _gripper_spec(path: Path, **kw) -> FileRobotSpec:
+    return FileRobotSpec(
+        "gripper", str(path), joints=("left_slide", "right_slide"), sensor_links=("left", "right"), **kw
+    )
+
+
+def test_package_uris_in_a_urdf_resolve_or_are_refused_with_the_uri(tmp_path):
+    import newton
+
+    from sim_backend import add_robot
+
+    def shapes_per_link(spec: FileRobotSpec) -> list[int]:
+        builder = newton.ModelBuilder()
+        layout = add_robot(builder, spec)
+        return [len(builder.body_shapes[b]) for b in layout.sensor_bodies]
+
+    # Where the robot's description ships: the package is the folder above urdf/.
+    assert shapes_per_link(_gripper_spec(_gripper_with_meshes(tmp_path / "a", "my_gripper"))) == [1, 1]
+    # Renamed on disk, it needs package_dirs; without them the file is refused, not loaded without its pads.
+    renamed = _gripper_with_meshes(tmp_path / "b", "gripper_v2")
+    with pytest.raises(ValueError, match=r"robot 'gripper' path: '.*gripper.urdf' names files that were not found"):
+        shapes_per_link(_gripper_spec(renamed))
+    packages = tmp_path / "packages"
+    (packages / "my_gripper").mkdir(parents=True)
+    (renamed.parents[1] / "meshes").rename(packages / "my_gripper" / "meshes")
+    assert shapes_per_link(_gripper_spec(renamed, package_dirs=(str(packages),))) == [1, 1]
+
+
+def test_a_sensor_link_without_a_collision_shape_is_refused_with_the_file_and_link(tmp_path):
+    path = _gripper_with_meshes(tmp_path, "my_gripper", pad_collides=False)
+    with pytest.raises(ValueError, match=r"sensor_links: 'right' in '.*gripper.urdf' has no collision shape"):
+        Population(_gripper_spec(path), catalog_object("foam_brick"), PopulationConfig(worlds=1, device="cpu"))

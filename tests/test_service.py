@@ -323,3 +323,26 @@ def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
             client.send(traj.frame(i, healthy.session))
             assert client.latest_pose(timeout=60, after_seq=i).seq == i
         client.close_session()
+
+
+def test_an_object_from_a_mesh_file_is_tracked_through_the_service_by_a_setting(tmp_path):
+    import trimesh
+
+    from service.server import ServiceConfig, TrackerNode
+
+    trimesh.creation.box(extents=(40.0, 40.0, 60.0)).export(tmp_path / "block.stl")  # millimetres
+    objects = tmp_path / "objects.toml"
+    objects.write_text('[block]\nmesh = "block.stl"\nscale = 0.001\nmass = 0.05\nmass_range = [0.02, 0.1]\n')
+    traj = Trajectory.load(TRAJECTORY)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1, objects=str(objects))
+    with TrackerNode(config), TrackerClient(connect=[endpoint]) as client:
+        assert "block" in client.service_info().objects
+        p0 = traj.truth.initial_pose.copy()
+        p0[2] = 0.03  # resting on the table where the brick was
+        info = client.open_session(traj.robot, "block", p0, q0=traj.truth.initial_q, worlds=4)
+        for i in range(3):
+            client.send(traj.frame(i, info.session))
+            estimate = client.latest_pose(timeout=120, after_seq=i)
+        assert estimate.status == "tracking" and abs(estimate.pose[2] - 0.03) < 0.005
+        client.close_session()

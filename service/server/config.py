@@ -47,6 +47,8 @@ class ServiceConfig(BaseSettings):
     """Worlds the service may hold in all."""
     robots: Endpoints = ("configs/robots/allegro.toml",)
     """Robot configs (TOML; relative paths are from the project root)."""
+    objects: str = "configs/objects.toml"
+    """The object catalog's physics and the user's mesh objects (TOML; relative to the project root)."""
     robot_timeout_s: float = Field(3.0, gt=0)
     """A session whose robot's liveliness token is gone this long is closed and its worlds freed [s]."""
     max_wait_s: float = Field(0.05, ge=0)

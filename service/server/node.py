@@ -56,7 +56,8 @@ class TrackerNode:
             spec = load_robot(path if Path(path).is_absolute() else _ROOT / path)
             robots[spec.name] = spec
         self.device = str(resolve_device(config.device))
-        self.manager = SessionManager(config, robots, load_catalog())
+        objects = Path(config.objects) if Path(config.objects).is_absolute() else _ROOT / config.objects
+        self.manager = SessionManager(config, robots, load_catalog(objects))
         self._inbox: queue.Queue = queue.Queue()
         self._latest: dict[str, bytes] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
