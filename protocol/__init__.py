@@ -22,7 +22,7 @@ from .messages import (
     TrackState,
     check_version,
 )
-from .sensing import PRESENCE, SENSING, SensingField, check_sensing, sensing_field
+from .sensing import PRESENCE, SENSING, SensingAttributes, SensingField, check_sensing, sensing_field
 from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 
 __all__ = [
@@ -45,6 +45,7 @@ __all__ = [
     "Keys",
     "OpenSession",
     "RobotFrame",
+    "SensingAttributes",
     "SensingField",
     "ServiceInfo",
     "SessionInfo",

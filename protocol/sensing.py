@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 
-__all__ = ["PRESENCE", "SENSING", "SensingField", "check_sensing", "sensing_field"]
+__all__ = ["PRESENCE", "SENSING", "SensingAttributes", "SensingField", "check_sensing", "sensing_field"]
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,25 @@ PRESENCE: tuple[str, ...] = tuple(dict.fromkeys(f.group for f in SENSING if f.gr
 """The presence groups, in order: ("force", "slip", "spin")."""
 
 _BY_NAME = {f.name: f for f in SENSING}
+
+
+class SensingAttributes:
+    """A record whose sensing fields live in its ``sensing`` dict and read and write as attributes
+    (``rec.force``, ``rec.force = ...``): a field replaced this way is where every reader looks."""
+
+    sensing: dict
+
+    def __getattr__(self, name: str):
+        sensing = self.__dict__.get("sensing", {})
+        if name in sensing:
+            return sensing[name]
+        raise AttributeError(f"'{type(self).__name__}' object has no attribute '{name}'")
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in _BY_NAME and "sensing" in self.__dict__:
+            self.sensing[name] = value
+        else:
+            super().__setattr__(name, value)
 
 
 def sensing_field(name: str) -> SensingField:

@@ -25,7 +25,7 @@ import numpy as np
 
 from .codec import DecodeError, pack_value, unpack_array
 from .messages import RobotFrame
-from .sensing import SENSING, check_sensing, sensing_field
+from .sensing import SENSING, SensingAttributes, check_sensing, sensing_field
 
 __all__ = ["TRAJECTORY_FORMAT", "TRAJECTORY_VERSION", "GroundTruth", "Trajectory"]
 
@@ -50,10 +50,7 @@ class GroundTruth:
     """Hidden friction coefficient."""
 
 
-_SENSING_NAMES = frozenset(f.name for f in SENSING)
-
-
-class Trajectory:
+class Trajectory(SensingAttributes):
     """One robot's recorded frames (what the protocol carries) and, for benchmarks, the truth.
 
     The frames are the fields of :data:`protocol.SENSING`, each (F, ...) or None when the robot
@@ -95,18 +92,6 @@ class Trajectory:
         """How it was made (demo kind, variant, physics gap, sensor noise)."""
         if truth is not None and np.shape(truth.pose) != (f, 7):
             raise ValueError(f"trajectory '{name}' truth.pose: expected shape {(f, 7)}, got {np.shape(truth.pose)}")
-
-    def __getattr__(self, name: str) -> np.ndarray | None:
-        sensing = self.__dict__.get("sensing", {})
-        if name in sensing:
-            return sensing[name]
-        raise AttributeError(f"'Trajectory' object has no attribute '{name}'")
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in _SENSING_NAMES:  # a field is replaced where every reader looks for it
-            self.sensing[name] = value
-        else:
-            super().__setattr__(name, value)
 
     @property
     def frames(self) -> int:

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from protocol import SENSING, GroundTruth, Trajectory
+from protocol import SENSING, GroundTruth, SensingAttributes, Trajectory
 from sim_backend import Population
 from sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
 from sim_backend.kinematics import Kinematics
@@ -231,7 +231,7 @@ def make_demo(
 
 
 @dataclass
-class Recording:
+class Recording(SensingAttributes):
     """What the robots sent and where the objects really were: G tracks side by side, (F, G, ...).
 
     Tracks shorter than F are padded by holding their last controls; ``lengths`` says where each
@@ -254,12 +254,6 @@ class Recording:
     """Real frames of each track, (G,)."""
     names: tuple[str, ...]
     """Each track's name, (G,)."""
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        sensing = self.__dict__.get("sensing", {})
-        if name in sensing:
-            return sensing[name]
-        raise AttributeError(f"'Recording' object has no attribute '{name}'")
 
     @property
     def frames(self) -> int:

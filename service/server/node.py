@@ -14,7 +14,6 @@ import queue
 import threading
 import time
 from concurrent.futures import Future
-from pathlib import Path
 
 import zenoh
 
@@ -31,17 +30,17 @@ from protocol import (
     decode,
     encode,
 )
+from service.paths import PROJECT_ROOT
 from service.tracker import METHODS
 from sim_backend import load_catalog, load_robot, resolve_device
 
-from .config import DEFAULT_CONFIG, ServiceConfig
+from .config import ServiceConfig
 from .sessions import ServiceError, SessionManager
 
 __all__ = ["TrackerNode"]
 
 log = logging.getLogger(__name__)
 
-_ROOT = DEFAULT_CONFIG.parents[1]  # robot paths in the config are from the project root
 _ENCODING = zenoh.Encoding("application/msgpack")
 
 
@@ -53,11 +52,10 @@ class TrackerNode:
         self.keys = Keys(config.name)
         robots = {}
         for path in config.robots:
-            spec = load_robot(path if Path(path).is_absolute() else _ROOT / path)
+            spec = load_robot(PROJECT_ROOT / path)  # an absolute path stays what it is
             robots[spec.name] = spec
         self.device = str(resolve_device(config.device))
-        objects = Path(config.objects) if Path(config.objects).is_absolute() else _ROOT / config.objects
-        self.manager = SessionManager(config, robots, load_catalog(objects))
+        self.manager = SessionManager(config, robots, load_catalog(PROJECT_ROOT / config.objects))
         self._inbox: queue.Queue = queue.Queue()
         self._latest: dict[str, bytes] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}

@@ -13,14 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from protocol import PRESENCE, SENSING
+from protocol import PRESENCE, SENSING, SensingAttributes
 
 __all__ = ["ESTIMATE", "Columns", "Frame", "GroupEstimates", "InputLayout"]
 
-_SENSING_NAMES = frozenset(f.name for f in SENSING)
 
-
-class Frame:
+class Frame(SensingAttributes):
     """One frame from the robots of all G groups (host arrays).
 
     The fields of :data:`protocol.SENSING` by name, each (G, ...): ``controls`` and ``q`` always,
@@ -35,18 +33,6 @@ class Frame:
             raise ValueError(f"frame: unknown fields {unknown} (known: {[f.name for f in SENSING]})")
         self.sensing = {f.name: sensing.get(f.name) for f in SENSING}
         self.present = present
-
-    def __getattr__(self, name: str) -> np.ndarray | None:
-        sensing = self.__dict__.get("sensing", {})
-        if name in sensing:
-            return sensing[name]
-        raise AttributeError(f"'Frame' object has no attribute '{name}'")
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in _SENSING_NAMES:  # a field is replaced where every reader looks for it
-            self.sensing[name] = value
-        else:
-            super().__setattr__(name, value)
 
     def presence(self, groups: int) -> dict[str, np.ndarray]:
         """Each presence group's (G,) bool mask."""
@@ -63,25 +49,23 @@ class Frame:
 class Columns:
     """Named column ranges of a packed row: name -> (start, shape)."""
 
-    spans: dict[str, tuple[int, tuple[int, ...]]]
+    spans: dict[str, tuple[int, int, tuple[int, ...]]]
+    """name -> (first column, column count, shape)."""
     width: int
 
     @classmethod
     def of(cls, shapes: dict[str, tuple[int, ...]]) -> Columns:
         spans, at = {}, 0
         for name, shape in shapes.items():
-            spans[name] = (at, shape)
-            at += int(np.prod(shape, dtype=np.int64))
+            size = int(np.prod(shape, dtype=np.int64))
+            spans[name] = (at, size, shape)
+            at += size
         return cls(spans, at)
 
     def view(self, rows, name: str):
         """Field ``name`` of ``rows`` (N, width), shaped (N, *shape); a view, never a copy."""
-        start, shape = self.spans[name]
-        return rows[:, start : start + self._sizes[name]].reshape(rows.shape[0], *shape)
-
-    def __post_init__(self) -> None:
-        # Per-frame readers slice by these: no size arithmetic on the hot path.
-        object.__setattr__(self, "_sizes", {n: int(np.prod(s, dtype=np.int64)) for n, (_, s) in self.spans.items()})
+        start, size, shape = self.spans[name]
+        return rows[:, start : start + size].reshape(rows.shape[0], *shape)
 
     def pack(self, parts: dict[str, torch.Tensor]) -> torch.Tensor:
         """The row (N, width) of ``parts``, each (N, *shape), in layout order."""
