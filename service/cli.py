@@ -354,7 +354,8 @@ def _settings(settings: list[str]):
 
 @bench.command("accuracy")
 def bench_accuracy(
-    suite: Annotated[str, typer.Option(help="smoke, paper or reality-gap")] = "smoke",
+    suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap or cross-engine")] = "smoke",
+    short: Annotated[bool, typer.Option(help="the suite in short form: one object, two kinds, 10 s tracks")] = False,
     methods: Annotated[str, typer.Option(help="comma-separated: OLP, EYE, WRS, REPS, PBO")] = "OLP,EYE,WRS,REPS,PBO",
     noise: Annotated[str, typer.Option(help="initial pose noise levels: low, med, high")] = "low,med,high",
     worlds: Annotated[int | None, typer.Option(help="K, worlds per track (default: the protocol's)")] = None,
@@ -389,7 +390,7 @@ def bench_accuracy(
     try:
         with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the report or JSON
             results = run_suite(
-                SUITES[suite],
+                SUITES[suite].short() if short else SUITES[suite],
                 methods=_names(methods),
                 noises=_names(noise),
                 ablations=studies,

@@ -24,6 +24,10 @@ class PopulationConfig:
     """Physics substeps per control frame; even, so the state buffers come back to the captured ones."""
     frame_rate: float = 30.0
     """Control frames per second [Hz]."""
+    ramp_targets: bool = False
+    """Move each joint's target linearly from the last frame's to this frame's across the
+    substeps, as a real position controller interpolates between commands; off, the target steps
+    at the frame boundary and a stiff wrist jerks there."""
     device: str = "auto"
     """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
     use_graph: bool = True

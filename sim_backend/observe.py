@@ -32,6 +32,7 @@ __all__ = [
     "object_health",
     "observation_views",
     "sensor_poses",
+    "touch_from_sums",
 ]
 
 HEALTH_OK = 0
@@ -328,6 +329,39 @@ def launch_finish(b: Buffers, slip_speed: float, spin_speed: float) -> None:
         inputs=[b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, slip_speed, spin_speed],
         outputs=[b.force, b.slip, b.slip_dir, b.spin, b.spin_sense],
     )
+
+
+def touch_from_sums(
+    force: np.ndarray,
+    slip: np.ndarray,
+    spin: np.ndarray,
+    weight: np.ndarray,
+    slip_speed: float,
+    spin_speed: float,
+) -> dict[str, np.ndarray]:
+    """:func:`finish_observation` on the host, for one robot whose contacts another engine
+    reports: from the per-sensor sums in each sensor's frame (force [N], force-weighted slip
+    velocity [N m/s] and relative angular velocity [N rad/s], total force ``weight`` [N], (L, 3)
+    and (L,)) to the touch fields of :data:`protocol.SENSING`."""
+    L = weight.shape[0]
+    out = {
+        "force": force.astype(np.float32),
+        "slip": np.zeros(L, np.float32),
+        "slip_dir": np.zeros((L, 2), np.float32),
+        "spin": np.zeros(L, np.float32),
+        "spin_sense": np.zeros(L, np.float32),
+    }
+    for l in np.flatnonzero(weight > 0):
+        v = slip[l] / weight[l]
+        speed = float(np.hypot(v[0], v[1]))
+        if speed > slip_speed:
+            out["slip"][l] = 1.0
+            out["slip_dir"][l] = v[:2] / speed
+        s = spin[l, 2] / weight[l]
+        if abs(s) > spin_speed:
+            out["spin"][l] = 1.0
+            out["spin_sense"][l] = float(s > 0.0)
+    return out
 
 
 def add_sensor_noise(

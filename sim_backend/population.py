@@ -29,6 +29,20 @@ __all__ = ["Population"]
 
 
 @wp.kernel(enable_backward=False)
+def _ramp_targets(
+    goal: wp.array2d[float],
+    last: wp.array2d[float],
+    fraction: float,
+    coords_per_world: int,
+    coord_index: wp.array[wp.int32],
+    joint_target_q: wp.array[float],
+):
+    """The substep's target: ``fraction`` of the way from last frame's target to this one's. Launch dim (W, D)."""
+    w, d = wp.tid()
+    joint_target_q[w * coords_per_world + coord_index[d]] = last[w, d] + fraction * (goal[w, d] - last[w, d])
+
+
+@wp.kernel(enable_backward=False)
 def _apply_wrench(
     wrench: wp.array[wp.spatial_vector],
     bodies_per_world: int,
@@ -76,6 +90,9 @@ class Population:
             self.state_1 = self.model.state()
             self.control = self.model.control()
             self._buf = observe.allocate_buffers(self.W, self.D, self.L)
+            # With ramped targets the robot's command for the frame, and the last frame's, per world.
+            self._goal = wp.zeros((self.W, self.D), dtype=float)
+            self._last_goal = wp.zeros((self.W, self.D), dtype=float)
             self._static = self._static_arrays()
         self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
         """The object's mass and friction per world and the solver's constants they set."""
@@ -126,6 +143,8 @@ class Population:
         self._target_view = targets[..., dof[0] : dof[0] + len(dof)] if contiguous else None
         self._targets_all = targets
         self._target_index = torch.as_tensor(dof, device=self.torch_device)
+        self._goal_view = t(self._goal).view(G, K, self.D)
+        self._last_goal_view = t(self._last_goal).view(G, K, self.D)
         self._target_stage = torch.zeros((G, self.D), dtype=torch.float32, device=self.torch_device)
         self._lower = torch.as_tensor(self.layout.lower, dtype=torch.float32, device=self.torch_device)
         self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
@@ -144,9 +163,15 @@ class Population:
         dt = cfg.frame_dt / cfg.substeps
         for i in range(cfg.substeps):
             s_in, s_out = (self.state_0, self.state_1) if i % 2 == 0 else (self.state_1, self.state_0)
+            if cfg.ramp_targets:
+                wp.launch(_ramp_targets, dim=(self.W, self.D),
+                          inputs=[self._goal, self._last_goal, (i + 1) / cfg.substeps, self._coords, s["coord_index"]],
+                          outputs=[self.control.joint_target_q])  # fmt: skip
             self.pipeline.collide(s_in, self.contacts)
             self.solver.step(s_in, s_out, self.control, self.contacts, dt, observables=self._observables)
         b.wrench.zero_()  # a perturbation lasts one frame
+        if cfg.ramp_targets:
+            wp.copy(self._last_goal, self._goal)
         st = self.state_0
         wp.launch(observe.gather_joints, dim=(self.W, self.D), inputs=[st.joint_q, self._coords, s["coord_index"]],
                   outputs=[b.q])  # fmt: skip
@@ -210,7 +235,7 @@ class Population:
     def state_tensors(self) -> list[torch.Tensor]:
         """Every tensor that carries a world's dynamic state from one frame to the next."""
         views = [view(s) for s in (self.state_0, self.state_1) for view in self._state_views.values()]
-        return [*views, self._warmstart]
+        return [*views, self._warmstart, self._last_goal_view]
 
     def snapshot(self) -> list[torch.Tensor]:
         """Copies of :meth:`state_tensors`, to :meth:`restore` later."""
@@ -269,7 +294,9 @@ class Population:
         with self.on_stream():
             self._target_stage.copy_(targets, non_blocking=True)
             torch.clamp(self._target_stage, self._lower, self._upper, out=self._target_stage)
-            if self._target_view is not None:
+            if self.config.ramp_targets:
+                self._goal_view.copy_(self._target_stage[:, None, :].expand(self.G, self.K, self.D))
+            elif self._target_view is not None:
                 self._target_view.copy_(self._target_stage[:, None, :].expand(self.G, self.K, self.D))
             else:
                 self._targets_all[..., self._target_index] = self._target_stage[:, None, :]
@@ -327,6 +354,8 @@ class Population:
                 wp.to_torch(state.body_f).view(self.G, self.K, -1).masked_fill_(sel, 0.0)
             self._warmstart.masked_fill_(sel, 0.0)
             self._wrench.masked_fill_(sel, 0.0)
+            # A ramp starts where the robot stands.
+            self._last_goal_view.copy_(torch.where(sel, q, self._last_goal_view))
             self.obs.health.masked_fill_(sel[..., 0], 0)
         worlds = groups.repeat_interleave(self.K).numpy()
         with wp.ScopedDevice(self.device):

@@ -29,7 +29,7 @@ from sim_backend import HandSpec, Population, PopulationConfig, catalog_object
 from .demos import Recording
 from .progress import progress_bar
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, Suite
-from .truth import ground_truth
+from .truth import ground_truth, open_loop_disagreement
 
 __all__ = ["TrackResult", "TrackSetting", "run_suite", "run_tracks", "settings"]
 
@@ -69,6 +69,9 @@ class TrackResult:
     """ADD of the cost-weighted mean pose per frame, (F,) [m]."""
     diverged: int = 0
     """Frames on which the tracker re-seeded the group."""
+    open_loop: np.ndarray | None = field(default=None, repr=False)
+    """ADD of the tracker's physics run open loop from the true start with the true mass and
+    friction, per frame, (F,) [m]: how far the engines disagree about this track's motion."""
 
     def summary(self) -> dict:
         return {
@@ -79,6 +82,14 @@ class TrackResult:
             "add_max_mm": float(self.add.max() * 1e3),
             "mean_pose_add_mean_mm": float(self.add_mean_pose.mean() * 1e3),
             "diverged_frames": self.diverged,
+            **(
+                {}
+                if self.open_loop is None
+                else {
+                    "open_loop_mean_mm": float(self.open_loop.mean() * 1e3),
+                    "open_loop_max_mm": float(self.open_loop.max() * 1e3),
+                }
+            ),
         }
 
 
@@ -237,12 +248,16 @@ def run_suite(
     bar = progress_bar(total, "tracking", unit="world-frames", disable=quiet)
     results: list[TrackResult] = []
     for o, ts in by_object.items():
+        drift = open_loop_disagreement(ts, device, {"substeps": substeps, **(population or {})})
+        first = len(results)
         by_k: dict[int, list[TrackSetting]] = {}
         for s in plan[o]:
             by_k.setdefault(s.worlds, []).append(s)
         for k, k_tracks in by_k.items():  # the frames of one population advance all its groups at once
             t1 = time.perf_counter()
             results += run_tracks(ts, k_tracks, device, suite.seed, bar.update, substeps, config, population)
+            for r in results[first:]:
+                r.open_loop = drift[: r.add.shape[0], r.setting.trajectory]
             frames = max(t.frames for t in ts)
             seconds = time.perf_counter() - t1
             log.info(

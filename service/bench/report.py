@@ -40,7 +40,12 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         f"- {len({t['trajectory'] for t in results['tracks']})} trajectories of about {suite['seconds']:g} s at 30 Hz "
         f"({', '.join(suite['kinds'])}; {', '.join(suite['objects'])}); "
         f"ground truth {results['seconds']['ground_truth']:.0f} s, tracking {results['seconds']['tracking']:.0f} s",
-        f"- truth physics off from the tracker's: {suite['gap']}; sensor noise: {suite['sensors']}",
+        (
+            "- truth recorded in MuJoCo C from the robot's MJCF (1 ms step, its own collision detection)"
+            if suite.get("engine") == "mujoco"
+            else f"- truth physics off from the tracker's: {suite['gap']}"
+        )
+        + f"; sensor noise: {suite['sensors']}",
         f"- tracker settings other than the defaults: {results['tracker']}" if results.get("tracker") else None,
         f"- tracker physics other than the defaults: {results['population']}" if results.get("population") else None,
         "",
@@ -98,8 +103,12 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         f"## Per trajectory ({noise} noise): mean ADD [mm], frames the tracker re-seeded in brackets"
         + (", one entry per run" if results.get("repeats", 1) > 1 else ""),
         "",
-        "| trajectory | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
+        "The open-loop column is how far the tracker's physics, started at the true pose with the true"
+        " mass and friction, drifts from the truth (mean / max ADD, mm): the engines' disagreement"
+        " about the track's motion.",
+        "",
+        "| trajectory | open loop | " + " | ".join(methods) + " |",
+        "|---|---|" + "---|" * len(methods),
     ]
     for name in names:
         runs: dict[str, list[dict]] = {}
@@ -110,7 +119,13 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
             " / ".join(f"{t['add_mean_mm']:.2f} [{t['diverged_frames']}]" for t in runs[m]) if m in runs else "-"
             for m in methods
         ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        first_track = next(t for t in tracks if t["trajectory"] == name)
+        drift = (
+            f"{first_track['open_loop_mean_mm']:.1f} / {first_track['open_loop_max_mm']:.1f}"
+            if "open_loop_mean_mm" in first_track
+            else "-"
+        )
+        lines.append(f"| {name} | {drift} | " + " | ".join(cells) + " |")
         series = {m: np.asarray(runs[m][0]["add_mm"]) for m in methods if m in runs}  # the first run's
         line_chart(out / f"add_{name}.png", f"{name} {noise}", series, x_step=1 / 30)
     first = " (the first run)" if results.get("repeats", 1) > 1 else ""

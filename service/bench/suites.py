@@ -3,12 +3,13 @@ the tracker's, and the levels the paper varies."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from client.replay import NOISE_LEVELS
 from sim_backend import PopulationConfig
 
 from .demos import DEMO_KINDS
+from .motions import MOTION_KINDS
 
 __all__ = ["EXPLORATION", "K_ABLATION", "NOISE_LEVELS", "SUITES", "PhysicsGap", "SensorNoise", "Suite"]
 
@@ -29,6 +30,8 @@ class PhysicsGap:
     """Truth finger joint damping relative to the tracker's model."""
     impratio: float = 10.0
     """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding."""
+    ramp_targets: bool = True
+    """The truth's position controllers move each target across the frame, as real ones interpolate."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,16 @@ class Suite:
     gap: PhysicsGap = PhysicsGap()
     sensors: SensorNoise = SensorNoise()
     seed: int = 0
+    engine: str = "newton"
+    """What records the truth: "newton" (the tracker's own simulator, the demos) or "mujoco"
+    (MuJoCo C from the robot's MJCF, the motions of :mod:`.motions`)."""
+
+    def short(self) -> Suite:
+        """The suite in short form (one object, two kinds, 10 s tracks): a check that runs on a CPU."""
+        return replace(
+            self, name=f"{self.name}-short", objects=self.objects[:1], kinds=self.kinds[:2], variants=1,
+            seconds=min(self.seconds, 10.0),
+        )  # fmt: skip
 
 
 SUITES: dict[str, Suite] = {
@@ -71,5 +84,14 @@ SUITES: dict[str, Suite] = {
         seconds=30.0,
         gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
         sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
+    ),
+    "cross-engine": Suite(
+        "cross-engine",
+        ("spam_can", "foam_brick", "toy_banana"),
+        MOTION_KINDS,
+        1,
+        seconds=20.0,
+        sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
+        engine="mujoco",
     ),
 }

@@ -5,6 +5,7 @@ files or the cache when they are there."""
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol import Trajectory
+from service.evaluation import add_error
 from service.paths import CACHE_DIR, DATA_DIR
 from service.tracker import TrackerConfig
 from sim_backend import (
@@ -23,29 +25,39 @@ from sim_backend import (
     catalog_object,
     resolve_device,
 )
+from sim_backend.objects import ObjectSpec
 
-from .demos import Recording, make_demo, record
+from .demos import Demo, Recording, make_demo, record
+from .motions import make_motion
+from .mujoco_truth import MujocoScene, export_scene, record_mujoco
 from .suites import SensorNoise, Suite
 
-__all__ = ["ground_truth"]
+__all__ = ["ground_truth", "open_loop_disagreement"]
 
 log = logging.getLogger(__name__)
 
 
 def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR) -> list[Trajectory]:
     """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
-    written to ``cache``) with one truth population per object, one group per physics draw of a demo, hidden mass
-    and friction drawn from the tracker's prior (among those with which the hand can lift it)."""
+    written to ``cache``) with hidden mass and friction drawn from the tracker's prior (among those
+    with which the hand keeps hold of the object): the demos in the tracker's own simulator (one
+    population per object, one group per physics draw of a demo), or the motions in MuJoCo C
+    (``suite.engine``)."""
     spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
     kin = Kinematics(HandSpec())  # the robot's own model plans the demos
     out: list[Trajectory] = []
     for o, name in enumerate(suite.objects):
         obj = catalog_object(name)
-        demos = [
-            make_demo(kin, obj, kind, v, suite.seconds, suite.pace)
-            for kind in suite.kinds
-            for v in range(suite.variants)
-        ]
+        if suite.engine == "mujoco":
+            demos = [
+                make_motion(kin, obj, kind, v, suite.seconds) for kind in suite.kinds for v in range(suite.variants)
+            ]
+        else:
+            demos = [
+                make_demo(kin, obj, kind, v, suite.seconds, suite.pace)
+                for kind in suite.kinds
+                for v in range(suite.variants)
+            ]
         names = [f"{suite.name}-{d.name}.traj" for d in demos]
         for folder in (DATA_DIR, cache):
             if folder is not None and all((folder / n).exists() for n in names):
@@ -58,30 +70,72 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
         log.info(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
         t0 = time.perf_counter()
         rng = np.random.default_rng([suite.seed, o])
-        # A GPU's frame costs little more for more worlds (a held pinch: 4.9 ms at 40, 7.1 ms at
-        # 1024), so it tries a demo's draws side by side rather than one round after
-        # another (a redrawn round costs a whole demo's time): on an H100 a round of 64 draws took
-        # about what 16 did (the brick's truth 14 s against 12 s).
-        candidates = _CANDIDATES if resolve_device(device).is_cpu else 4 * _CANDIDATES
-        config = PopulationConfig(
-            groups=len(demos) * candidates,
-            worlds=1,
-            device=device,
-            substeps=suite.gap.substeps,
-            impratio=suite.gap.impratio,
-        )
-        truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
-        held, rounds = _held_recording(truth, demos, rng)
-        rec = _add_sensor_noise(held, suite.sensors, rng)
+        if suite.engine == "mujoco":
+            with tempfile.TemporaryDirectory() as tmp:
+                xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
+                scene = export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
+                recordings, rounds = _held_mujoco(scene, obj, demos, rng)
+            tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
+        else:
+            held, rounds = _held_newton(suite, spec, obj, demos, rng, device)
+            held = _add_sensor_noise(held, suite.sensors, rng)
+            tracks = [(held, g) for g in range(len(demos))]
         seconds = time.perf_counter() - t0
-        log.info(f"recorded {name}: {rounds} round(s) of {len(demos) * candidates} physics draws in {seconds:.0f} s")
-        meta = {"suite": suite.name, "gap": str(asdict(suite.gap)), "sensors": str(asdict(suite.sensors))}
-        for g, d in enumerate(demos):
+        log.info(f"recorded {name} with {suite.engine}: {rounds} round(s) of physics draws in {seconds:.0f} s")
+        meta = {
+            "suite": suite.name,
+            "engine": suite.engine,
+            "gap": str(asdict(suite.gap)),
+            "sensors": str(asdict(suite.sensors)),
+        }
+        for (rec, g), d, file in zip(tracks, demos, names, strict=True):
             traj = rec.trajectory(g, HandSpec().name, name, meta | {"demo": d.name})
             if cache is not None:
-                traj.save(cache / names[g])
+                traj.save(cache / file)
             out.append(traj)
     return out
+
+
+def _held_newton(
+    suite: Suite, spec: HandSpec, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator, device: str
+) -> tuple[Recording, int]:
+    """The demos recorded in the tracker's own simulator, with the suite's physics gap."""
+    # A GPU's frame costs little more for more worlds (a held pinch: 4.9 ms at 40, 7.1 ms at
+    # 1024), so it tries a demo's draws side by side rather than one round after
+    # another (a redrawn round costs a whole demo's time): on an H100 a round of 64 draws took
+    # about what 16 did (the brick's truth 14 s against 12 s).
+    candidates = _CANDIDATES if resolve_device(device).is_cpu else 4 * _CANDIDATES
+    config = PopulationConfig(
+        groups=len(demos) * candidates,
+        worlds=1,
+        device=device,
+        substeps=suite.gap.substeps,
+        impratio=suite.gap.impratio,
+        ramp_targets=suite.gap.ramp_targets,
+    )
+    truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
+    return _held_recording(truth, demos, rng)
+
+
+def _held_mujoco(
+    scene: MujocoScene, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator
+) -> tuple[list[Recording], int]:
+    """Each motion recorded in MuJoCo C (a track of its own: MuJoCo C steps one world) with the
+    first hidden mass and friction drawn from the prior with which the object stays in the hand
+    (see :func:`_held_recording`). Returns the recordings and the most draws one took."""
+    out, most = [], 1
+    for d in demos:
+        for draw in range(_DRAWS):
+            mass = float(_draw_prior(obj.mass, obj.mass_range, rng, 1)[0])
+            friction = float(_draw_prior(obj.friction, obj.friction_range, rng, 1)[0])
+            rec = record_mujoco(scene, d, mass, friction)
+            if rec.held([d])[0]:
+                out.append(rec)
+                most = max(most, draw + 1)
+                break
+        else:
+            raise RuntimeError(f"{d.name}: the object fell out of the hand with all {_DRAWS} physics drawn")
+    return out, most
 
 
 def _draw_prior(nominal: float, bounds: tuple[float, float], rng: np.random.Generator, n: int) -> np.ndarray:
@@ -128,3 +182,23 @@ def _add_sensor_noise(rec: Recording, noise: SensorNoise, rng: np.random.Generat
     if noise != SensorNoise():
         add_sensor_noise(rec.sensing, rng, **asdict(noise))
     return rec
+
+
+def open_loop_disagreement(
+    trajectories: list[Trajectory], device: str = "auto", population: dict | None = None
+) -> np.ndarray:
+    """How far the tracker's own physics, started exactly where the truth started and given its
+    hidden mass and friction, drifts from the truth over each track: ADD per frame, (F, n) [m],
+    zero past a track's end. What no tracker can beat by simulating alone: where it is large the
+    two engines disagree about the motion, and only the sensing can bring an estimate back."""
+    obj = catalog_object(trajectories[0].object)
+    config = PopulationConfig(groups=len(trajectories), worlds=1, device=device, **(population or {}))
+    pop = Population(HandSpec(), obj, config)
+    demos = [Demo(t.name, t.controls, t.truth.initial_pose, t.truth.initial_q, phases=()) for t in trajectories]
+    mass = np.array([t.truth.mass for t in trajectories], np.float32)
+    friction = np.array([t.truth.friction for t in trajectories], np.float32)
+    rec = record(pop, demos, mass, friction)
+    truth = Recording.stack(trajectories)
+    add = add_error(obj.surface_points(1000), truth.object_pose, rec.object_pose)
+    add[np.arange(add.shape[0])[:, None] >= truth.lengths[None]] = 0.0
+    return add
