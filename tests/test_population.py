@@ -374,3 +374,22 @@ def test_a_sensor_link_without_a_collision_shape_is_refused_with_the_file_and_li
     path = _gripper_with_meshes(tmp_path, "my_gripper", pad_collides=False)
     with pytest.raises(ValueError, match=r"sensor_links: 'right' in '.*gripper.urdf' has no collision shape"):
         Population(_gripper_spec(path), catalog_object("foam_brick"), PopulationConfig(worlds=1, device="cpu"))
+
+
+def test_ramped_targets_move_the_wrist_across_the_frame_from_where_it_stands(hand):
+    """A position controller that interpolates reaches a new target only at the frame's end, so
+    the wrist moves less within the frame than under a target held as a step; and a target at
+    the robot's own joints moves nothing, however it was commanded before the reset."""
+    moved = {}
+    for ramp in (True, False):
+        pop, grasp = _grasped(hand, "foam_brick", worlds=1, ramp_targets=ramp)
+        pop.reset_state(grasp.object_pose, grasp.q_touch)
+        pop.set_targets(grasp.q_touch[None])
+        pop.step()
+        assert abs(float(pop.obs.q[0, 0, 0]) - grasp.q_touch[0]) < 1e-4
+        target = grasp.q_touch.copy()
+        target[0] += 0.02  # wrist x, 2 cm
+        pop.set_targets(target[None])
+        pop.step()
+        moved[ramp] = float(pop.obs.q[0, 0, 0]) - grasp.q_touch[0]
+    assert 0.001 < moved[True] < 0.8 * moved[False], moved

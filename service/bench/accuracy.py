@@ -64,9 +64,9 @@ class TrackResult:
     trajectory: str
     object: str
     add: np.ndarray = field(repr=False)
-    """ADD of the estimate (the lowest-cost world's pose, as the paper) per frame, (F,) [m]."""
-    add_mean_pose: np.ndarray = field(repr=False)
-    """ADD of the cost-weighted mean pose per frame, (F,) [m]."""
+    """ADD of the estimate per frame, (F,) [m]."""
+    add_best: np.ndarray = field(repr=False)
+    """ADD of the lowest-cost world's pose (the paper's estimate) per frame, (F,) [m]."""
     diverged: int = 0
     """Frames on which the tracker re-seeded the group."""
     open_loop: np.ndarray | None = field(default=None, repr=False)
@@ -80,7 +80,7 @@ class TrackResult:
             "object": self.object,
             "add_mean_mm": float(self.add.mean() * 1e3),
             "add_max_mm": float(self.add.max() * 1e3),
-            "mean_pose_add_mean_mm": float(self.add_mean_pose.mean() * 1e3),
+            "best_world_add_mean_mm": float(self.add_best.mean() * 1e3),
             "diverged_frames": self.diverged,
             **(
                 {}
@@ -173,21 +173,21 @@ def run_tracks(
             sigma_r=np.array([NOISE_LEVELS[t.noise][1] for t in group]),
         )
         poses = np.empty((rec.frames, len(group), 7), np.float32)
-        means = np.empty_like(poses)
+        bests = np.empty_like(poses)
         diverged = np.zeros(len(group), np.int64)
         for f in range(rec.frames):
             est = tracker.step(Frame(**{name: v[f, rows] for name, v in rec.sensing.items()}))
             poses[f] = est.pose
-            means[f] = est.mean_pose
+            bests[f] = est.best_pose
             diverged += est.status == 2
             if progress:
                 progress(len(group) * k)
         add = add_error(points, rec.object_pose[:, rows], poses)  # (F, G)
-        add_mean = add_error(points, rec.object_pose[:, rows], means)
+        add_best = add_error(points, rec.object_pose[:, rows], bests)
         for g, t in enumerate(group):
             n = int(rec.lengths[t.trajectory])
             name = rec.names[t.trajectory]
-            results.append(TrackResult(t, name, obj.name, add[:n, g], add_mean[:n, g], int(diverged[g])))
+            results.append(TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g])))
     return results
 
 
@@ -286,7 +286,7 @@ def run_suite(
 
 def _stats(results: Sequence[TrackResult], of: str = "add") -> dict:
     """Mean, std and max over tracks of each track's mean ADD [mm] (``of`` the estimate, or of the
-    mean pose: "add_mean_pose"); with several repeats also the mean of each run, whose spread says
+    lowest-cost world: "add_best"); with several repeats also the mean of each run, whose spread says
     how far one run's mean is to be trusted."""
     a = np.array([getattr(r, of).mean() for r in results]) * 1e3
     out = {"mean_mm": float(a.mean()), "std_mm": float(a.std()), "max_mm": float(a.max()), "tracks": int(a.size)}
@@ -315,7 +315,7 @@ def _collect(
         s = r.setting
         if s.study == "main":
             summary.setdefault(s.method, {}).setdefault(s.noise, []).append(r)
-    fig2, mean_pose = (
+    fig2, best_world = (
         {
             m: {
                 n: {**_stats(rs, of), "max_mm": float(max(getattr(r, of).max() for r in rs) * 1e3)}
@@ -323,7 +323,7 @@ def _collect(
             }
             for m, by_noise in summary.items()
         }
-        for of in ("add", "add_mean_pose")
+        for of in ("add", "add_best")
     )
     ablation: dict[str, dict[str, dict]] = {}
 
@@ -359,7 +359,7 @@ def _collect(
         "population": dict(population or {}),
         "seconds": {"ground_truth": t_truth, "tracking": t_track},
         "summary": fig2,
-        "summary_mean_pose": mean_pose,
+        "summary_best_world": best_world,
         "ablations": ablation,
         "tracks": [r.summary() | {"add_mm": np.round(r.add * 1e3, 3).tolist()} for r in results],
     }

@@ -26,9 +26,13 @@ settings are compared with paired runs and `--repeats`, with standard errors.
 
 _TAIL = """## Reproduce
 
-- Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap} --noise low,med,high
-  --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--substeps N] [--set NAME=VALUE]` writes
-  `results.json`, `report.md` and charts to `bench-results/accuracy-SUITE/`.
+- Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap,cross-engine}
+  --noise low,med,high --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--substeps N]
+  [--set NAME=VALUE] [--short]` writes `results.json`, `report.md` and charts to
+  `bench-results/accuracy-SUITE/`. The paper and reality-gap suites' truth comes from the
+  tracker's own simulator (the reality gap with its physics and sensors off); the cross-engine
+  suite's from MuJoCo C (the hand's MJCF, a 1 ms step, other motions, sensor noise). `--short`
+  runs a suite's first object and two kinds of 10 s tracks, as CI does.
 - Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8] --json`.
 - The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
 """

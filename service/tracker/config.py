@@ -47,6 +47,12 @@ class TrackerConfig:
     the fixed displacement alone, a K=40 population still collapsed and drifted as one: in
     about one box track in twenty of the paper suite every world ended 40 to 80 mm off, the
     nearest no closer than the estimate. 0: jitter_t and jitter_r only."""
+    mean_estimate: bool = True
+    """Report the cost-weighted mean of the worlds' object poses as the estimate; False: the
+    lowest-cost world's (the paper's). Costs a few millimetres apart barely
+    separate worlds (before the hand touches the object they do not at all), so one world picked
+    among them carries their spread as error, which the mean averages out: the mean was the
+    better estimate for REPS and PBO on the paper, reality-gap and cross-engine suites alike."""
     estimate_lambda: float = 5.0
     """Sharpness of the cost weights behind the mean pose and covariance (as WRS's lambda)."""
     lost_fraction: float = 0.9

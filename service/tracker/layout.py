@@ -75,6 +75,7 @@ class Columns:
 ESTIMATE = Columns.of(
     {
         "pose": (7,),
+        "best_pose": (7,),
         "mean_pose": (7,),
         "covariance": (6, 6),
         "cost": (),
@@ -144,7 +145,10 @@ class GroupEstimates:
 
     frame: int
     pose: np.ndarray
-    """Best world's object pose, (G, 7): position [m], quaternion (x, y, z, w)."""
+    """The estimate, (G, 7): position [m], quaternion (x, y, z, w); the mean pose or the best
+    world's (``TrackerConfig.mean_estimate``)."""
+    best_pose: np.ndarray
+    """The lowest-cost world's object pose, (G, 7)."""
     cost: np.ndarray
     """Best world's window cost, (G,)."""
     mean_pose: np.ndarray
@@ -169,6 +173,7 @@ class GroupEstimates:
         return cls(
             frame=frame,
             pose=v("pose"),
+            best_pose=v("best_pose"),
             mean_pose=v("mean_pose"),
             covariance=v("covariance"),
             cost=v("cost"),

@@ -249,10 +249,12 @@ class Tracker:
             dim=-1,
         )
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
+        mean_pose = torch.cat([mean_p, mean_q], dim=-1)
         return ESTIMATE.pack(
             {
-                "pose": pose,
-                "mean_pose": torch.cat([mean_p, mean_q], dim=-1),
+                "pose": mean_pose if self.config.mean_estimate else pose,
+                "best_pose": pose,
+                "mean_pose": mean_pose,
                 "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
                 "cost": at_best(window),
                 "mass": at_best(pop.mass),
