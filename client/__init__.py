@@ -2,6 +2,16 @@
 pydantic only; never torch, warp or newton)."""
 
 from .replay import NOISE_LEVELS, ReplayResult, noisy_start, replay
-from .tracker_client import TrackerClient, TrackerError, zenoh_config
+from .tracker_client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config
 
-__all__ = ["NOISE_LEVELS", "ReplayResult", "TrackerClient", "TrackerError", "noisy_start", "replay", "zenoh_config"]
+__all__ = [
+    "NOISE_LEVELS",
+    "ReplayResult",
+    "ServiceLost",
+    "StaleEstimate",
+    "TrackerClient",
+    "TrackerError",
+    "noisy_start",
+    "replay",
+    "zenoh_config",
+]

@@ -26,7 +26,7 @@ from protocol import (
     encode,
 )
 
-__all__ = ["TrackerClient", "TrackerError", "zenoh_config"]
+__all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError", "zenoh_config"]
 
 _ENCODING = zenoh.Encoding("application/msgpack")
 
@@ -37,6 +37,16 @@ class TrackerError(Exception):
     def __init__(self, code: ErrorCode | str, message: str):
         super().__init__(f"{code}: {message}")
         self.code, self.message = ErrorCode(code), message
+
+
+class StaleEstimate(RuntimeError):
+    """The newest estimate answers a frame older than the caller allows: the service is not keeping
+    up, stalled, or no longer tracks this session."""
+
+
+class ServiceLost(ConnectionError):
+    """The service's liveliness token went away while a session was open: it stopped or
+    restarted, and the session is gone with it (:meth:`TrackerClient.reopen` starts a new one)."""
 
 
 def zenoh_config(listen=(), connect=(), scouting: bool = False) -> zenoh.Config:
@@ -79,6 +89,13 @@ class TrackerClient:
         self._latest: Estimate | None = None
         self._new = threading.Condition()
         self._callbacks: list[Callable[[Estimate], None]] = []
+        self._sent_stamp: float | None = None
+        """The robot clock of the newest frame sent [s]."""
+        self._opened: dict | None = None
+        """The last open_session's arguments, for :meth:`reopen`."""
+        self._service_watch = None
+        self.service_lost = False
+        """Set when the service's liveliness token went away while a session was open."""
 
     # ------------------------------------------------------------------ requests
     def _get(self, key: str, payload: bytes | None, model, timeout: float | None = None):
@@ -124,8 +141,12 @@ class TrackerClient:
             overrides=overrides or {},
         )
         self.info = info = self._get(self.keys.open, encode(request), SessionInfo)
+        self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
+                            method=method, worlds=worlds, overrides=overrides)  # fmt: skip
         self._seq = 0
         self._latest = None
+        self._sent_stamp = None
+        self.service_lost = False
         self._publisher = self._zenoh.declare_publisher(
             self.keys.frame(info.session),
             encoding=_ENCODING,
@@ -135,7 +156,29 @@ class TrackerClient:
         )
         self._subscriber = self._zenoh.declare_subscriber(self.keys.pose(info.session), self._on_pose)
         self._token = self._zenoh.liveliness().declare_token(self.keys.robot(info.session))
+        self._service_watch = self._zenoh.liveliness().declare_subscriber(self.keys.alive, self._on_service)
         return info
+
+    def reopen(self, p0=None, q0=None) -> SessionInfo:
+        """Open a new session like the last one, from ``p0`` (default: the last estimate, else the
+        first open's pose) after the service restarted or the session was closed."""
+        if self._opened is None:
+            raise RuntimeError("no session was ever opened: call open_session first")
+        args = dict(self._opened)
+        if p0 is not None:
+            args["p0"] = p0
+        elif self._latest is not None:
+            args["p0"] = self._latest.pose
+        if q0 is not None:
+            args["q0"] = q0
+        self._release()
+        return self.open_session(**args)
+
+    def _on_service(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            with self._new:
+                self.service_lost = True
+                self._new.notify_all()
 
     def send_frame(
         self, controls, q, *, stamp: float | None = None, seq: int | None = None, **touch: np.ndarray | None
@@ -155,11 +198,14 @@ class TrackerClient:
         )
         self._publisher.put(encode(frame))
         self._seq = max(self._seq, seq + 1)
+        self._sent_stamp = frame.stamp
         return seq
 
     def send(self, frame: RobotFrame) -> None:
         """Send a prepared frame (its session is replaced by this client's)."""
         self._publisher.put(encode(frame.model_copy(update={"session": self.info.session})))
+        self._seq = max(self._seq, frame.seq + 1)
+        self._sent_stamp = frame.stamp
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
         estimate = decode(bytes(sample.payload.to_bytes()), Estimate)
@@ -176,17 +222,37 @@ class TrackerClient:
     def remove_pose_callback(self, callback: Callable[[Estimate], None]) -> None:
         self._callbacks.remove(callback)
 
-    def latest_pose(self, timeout: float = 1.0, after_seq: int | None = None) -> Estimate:
-        """The newest estimate; with ``after_seq``, wait until one for that seq or later arrives."""
+    def latest_pose(self, timeout: float = 1.0, after_seq: int | None = None, max_age: float | None = None) -> Estimate:
+        """The newest estimate; with ``after_seq``, wait until one for that seq or later arrives.
+
+        ``max_age`` [s]: raise :class:`StaleEstimate` when the estimate answers a frame older, by
+        the robot's clock, than the newest frame sent by more than this. :class:`ServiceLost` when
+        the service went away while the session was open."""
         with self._new:
             ok = self._new.wait_for(
-                lambda: self._latest is not None and (after_seq is None or self._latest.seq >= after_seq), timeout
+                lambda: (
+                    self.service_lost
+                    or (self._latest is not None and (after_seq is None or self._latest.seq >= after_seq))
+                ),
+                timeout,
             )
-            if ok:
-                return self._latest
-        if self.info is None:
-            raise RuntimeError("no session: call open_session first")
-        return self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
+            if self.service_lost:
+                raise ServiceLost(f"service '{self.keys.service}' went away; session '{self._session_id()}' is gone")
+            estimate = self._latest if ok else None
+        if estimate is None:
+            if self.info is None:
+                raise RuntimeError("no session: call open_session first")
+            estimate = self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
+        if max_age is not None and self._sent_stamp is not None and self._sent_stamp - estimate.stamp > max_age:
+            raise StaleEstimate(
+                f"the newest estimate answers seq {estimate.seq} (stamp {estimate.stamp:.3f} s), "
+                f"{self._sent_stamp - estimate.stamp:.3f} s behind the last frame sent (seq {self._seq - 1}); "
+                f"allowed {max_age} s"
+            )
+        return estimate
+
+    def _session_id(self) -> str | None:
+        return self.info.session if self.info is not None else None
 
     def status(self, timeout: float = 5.0) -> SessionStatus:
         if self.info is None:
@@ -199,11 +265,15 @@ class TrackerClient:
         try:
             self._get(self.keys.close, encode(CloseSession(session=self.info.session)), CloseSession, 10.0)
         finally:
-            for entity in (self._token, self._subscriber, self._publisher):
-                if entity is not None:
-                    entity.undeclare()
-            self._token = self._subscriber = self._publisher = None
-            self.info = None
+            self._release()
+
+    def _release(self) -> None:
+        """Forget the session on this side: its token, subscribers and publisher."""
+        for entity in (self._token, self._subscriber, self._publisher, self._service_watch):
+            if entity is not None:
+                entity.undeclare()
+        self._token = self._subscriber = self._publisher = self._service_watch = None
+        self.info = None
 
     def close(self) -> None:
         """Close the session (if any) and leave Zenoh."""

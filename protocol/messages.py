@@ -7,11 +7,12 @@ against the session it opened.
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum, StrEnum
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, create_model
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, create_model, field_validator
 
 from .sensing import SENSING
 
@@ -123,6 +124,24 @@ class OpenSession(_Message):
     overrides: dict[str, float] = Field(default_factory=dict)
     """Tracker hyperparameters by name (e.g. update_every, wrench_force)."""
 
+    @field_validator("p0")
+    @classmethod
+    def _unit_quaternion(cls, p0: np.ndarray) -> np.ndarray:
+        # The service normalises the quaternion: one of zero, denormal or overflowing length has
+        # no direction to keep.
+        norm = float(np.linalg.norm(p0[3:].astype(np.float64)))
+        if not 1e-3 <= norm <= 1e3:
+            raise ValueError(f"quaternion (x, y, z, w) = {p0[3:].tolist()} has length {norm:.3g}, expected about 1")
+        return p0
+
+    @field_validator("overrides")
+    @classmethod
+    def _finite(cls, overrides: dict[str, float]) -> dict[str, float]:
+        bad = {k: v for k, v in overrides.items() if not math.isfinite(v)}
+        if bad:
+            raise ValueError(f"non-finite values {bad}")
+        return overrides
+
 
 class CloseSession(_Message):
     session: str
@@ -224,6 +243,11 @@ class SessionStatus(_Message):
     """Frames dropped because their seq was older than the last one applied."""
     errors: int
     """Frames refused (malformed, wrong shape, non-finite)."""
+    stale: int = 0
+    """Frames dropped unapplied under overload: the session's queue was full (the newest are kept)
+    or they waited longer than the service's bound."""
+    resyncs: int = 0
+    """Times the robot's seq jumped beyond the service's window and the session re-synchronised to it."""
     latency_p50_ms: float
     """Median of the last 1000 frames' latencies, arrival to estimate [ms]."""
     latency_p99_ms: float

@@ -412,6 +412,48 @@ def bench_accuracy(
         typer.echo(f"report: {report}")
 
 
+@bench.command("cost-ranking")
+def bench_cost_ranking(
+    suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap or cross-engine")] = "smoke",
+    short: Annotated[bool, typer.Option(help="the suite in short form")] = False,
+    method: Annotated[str, typer.Option(help="the optimizer that runs the population")] = "PBO",
+    worlds: Annotated[int, typer.Option(help="K, worlds per track")] = 40,
+    noise: Annotated[str, typer.Option(help="initial pose noise: low, med or high")] = "med",
+    device: Device = "auto",
+    cache: Annotated[Path | None, typer.Option(help="where generated trajectories are kept")] = None,
+    json_: Json = False,
+) -> None:
+    """How well each cost term ranks the worlds by their true pose error (Spearman's rho)."""
+    _gpu_stack()
+    from service.bench import SUITES, ground_truth
+    from service.bench.ranking import cost_ranking
+    from service.paths import CACHE_DIR
+
+    if suite not in SUITES:
+        raise _fail(f"--suite: expected one of {sorted(SUITES)}, got '{suite}'")
+    chosen = SUITES[suite].short() if short else SUITES[suite]
+    with contextlib.redirect_stdout(sys.stderr):
+        by_object: dict[str, list] = {}
+        for t in ground_truth(chosen, device, cache or CACHE_DIR):
+            by_object.setdefault(t.object, []).append(t)
+        try:
+            results = {o: cost_ranking(ts, worlds, method, noise, device) for o, ts in by_object.items()}
+        except ValueError as exc:
+            raise _fail(f"bench cost-ranking: {exc}") from None
+    if json_:
+        typer.echo(json.dumps({"suite": chosen.name, "method": method, "worlds": worlds, "objects": results}))
+        return
+    objects = list(results)
+    typer.echo(f"Spearman rho of cost against true ADD over each group's worlds ({chosen.name}, {method}, K={worlds})")
+    typer.echo(f"{'term':<18}" + "".join(f"{o:>22}" for o in objects))
+    for term in next(iter(results.values())):
+        cells = []
+        for o in objects:
+            r = results[o][term]
+            cells.append("-" if r["rho"] is None else f"{r['rho']:+.2f} ({100 * r['defined']:.0f} %)")
+        typer.echo(f"{term:<18}" + "".join(f"{c:>22}" for c in cells))
+
+
 @bench.command("publish")
 def bench_publish(
     results: Annotated[Path, typer.Option(help="folder of result JSON files")] = Path("docs/results"),

@@ -55,3 +55,19 @@ def test_cross_engine_suite_in_short_form_tracks_better_than_open_loop(tmp_path)
     assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
         f"cross-engine-short-spam_can_{k}_0.traj" for k in sorted(MOTION_KINDS[:2])
     ]
+
+
+def test_rank_correlation_is_spearmans_rho_per_group_and_term():
+    from scipy.stats import spearmanr
+
+    from service.bench.ranking import rank_correlation
+
+    rng = np.random.default_rng(0)
+    error = rng.random((3, 40))
+    cost = np.stack([error * 2.0, -error, rng.random((3, 40)), np.ones((3, 40))], axis=-1)
+    cost[1, :5, 2] = cost[1, 5, 2]  # ties take their mean rank, as scipy's
+    rho = rank_correlation(cost, error)
+    assert rho.shape == (3, 4)
+    assert np.allclose(rho[:, 0], 1.0) and np.allclose(rho[:, 1], -1.0)
+    assert np.allclose(rho[:, 2], [spearmanr(cost[g, :, 2], error[g]).statistic for g in range(3)])
+    assert np.isnan(rho[:, 3]).all()  # a term that does not vary ranks nothing

@@ -5,9 +5,6 @@ session closed within the timeout, a restarted service reopened, several session
 
 from __future__ import annotations
 
-import os
-import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -17,6 +14,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from service_process import ServiceProcess, free_port
 
 from client import TrackerClient, TrackerError
 from protocol import PROTOCOL_VERSION, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
@@ -26,45 +24,9 @@ TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class _Service:
-    """`inhand-tracker serve` in a subprocess on a free loopback port."""
-
-    def __init__(self, port: int, groups: int = 1, timeout_s: float = 1.0):
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-        env = os.environ | {"INHAND_GROUPS": str(groups), "INHAND_ROBOT_TIMEOUT_S": str(timeout_s)}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--listen", self.endpoint, "--device", "cpu"],
-            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )  # fmt: skip
-
-    def wait_ready(self, client: TrackerClient, timeout: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            assert self.proc.poll() is None, self.proc.stdout.read()[-3000:]
-            try:
-                client.service_info(timeout=1.0)
-                return
-            except (TimeoutError, TrackerError):
-                time.sleep(0.2)
-        raise TimeoutError("service did not come up")
-
-    def stop(self) -> float:
-        """SIGTERM; returns how long it took to exit."""
-        t0 = time.monotonic()
-        self.proc.send_signal(signal.SIGTERM)
-        self.proc.wait(timeout=30)
-        return time.monotonic() - t0
-
-
 @pytest.fixture(scope="module")
 def service():
-    svc = _Service(_free_port())
+    svc = ServiceProcess(free_port())
     with TrackerClient(connect=[svc.endpoint]) as probe:
         svc.wait_ready(probe)
     yield svc
@@ -173,7 +135,7 @@ def test_bad_input_is_refused_with_the_field_and_the_service_goes_on(service):
 
 @pytest.mark.slow
 def test_a_killed_robot_s_session_is_closed_and_a_restarted_service_reopened():
-    svc = _Service(_free_port(), groups=2, timeout_s=1.0)
+    svc = ServiceProcess(free_port(), groups=2, timeout_s=1.0)
     robot = textwrap.dedent(f"""
         import numpy as np, time
         from client import TrackerClient
@@ -206,7 +168,7 @@ def test_a_killed_robot_s_session_is_closed_and_a_restarted_service_reopened():
             watcher.latest_pose(timeout=60, after_seq=0)
             assert svc.stop() < 5.0  # SIGTERM closes everything promptly
             port = int(svc.endpoint.rsplit(":", 1)[1])
-            svc = _Service(port, groups=2)
+            svc = ServiceProcess(port, groups=2)
             svc.wait_ready(watcher)
             with pytest.raises(TrackerError) as exc:
                 watcher.status()
@@ -223,7 +185,7 @@ def test_a_killed_robot_s_session_is_closed_and_a_restarted_service_reopened():
 
 @pytest.mark.slow
 def test_eight_sessions_at_once_all_get_their_estimates():
-    svc = _Service(_free_port(), groups=8)
+    svc = ServiceProcess(free_port(), groups=8)
     traj = Trajectory.load(TRAJECTORY)
     clients = []
     try:
@@ -296,7 +258,7 @@ def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
     from service.server import ServiceConfig, TrackerNode
 
     traj = Trajectory.load(TRAJECTORY)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1)
     with caplog.at_level(logging.ERROR), TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
         broken = _open(client, traj)
@@ -334,7 +296,7 @@ def test_an_object_from_a_mesh_file_is_tracked_through_the_service_by_a_setting(
     objects = tmp_path / "objects.toml"
     objects.write_text('[block]\nmesh = "block.stl"\nscale = 0.001\nmass = 0.05\nmass_range = [0.02, 0.1]\n')
     traj = Trajectory.load(TRAJECTORY)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1, objects=str(objects))
     with TrackerNode(config), TrackerClient(connect=[endpoint]) as client:
         assert "block" in client.service_info().objects

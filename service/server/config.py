@@ -51,6 +51,14 @@ class ServiceConfig(BaseSettings):
     """The object catalog's physics and the user's mesh objects (TOML; relative to the project root)."""
     robot_timeout_s: float = Field(3.0, gt=0)
     """A session whose robot's liveliness token is gone this long is closed and its worlds freed [s]."""
+    seq_window: int = Field(300, ge=1)
+    """A frame whose seq lies further than this from the last one re-synchronises the session to
+    it (a robot that restarted its counter, or a corrupt seq) instead of being dropped as late."""
+    max_pending: int = Field(30, ge=1)
+    """Frames queued per session at most; the oldest is dropped for a new one (a robot wants its
+    newest frame tracked, not a backlog)."""
+    max_frame_age_s: float = Field(1.0, gt=0)
+    """Frames that waited longer than this are dropped unapplied, except a session's newest [s]."""
     max_wait_s: float = Field(0.05, ge=0)
     """A population steps when every session sent a frame, or when a frame waited this long [s]."""
     substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)

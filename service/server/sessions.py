@@ -68,6 +68,8 @@ class _Session:
     gaps: int = 0
     duplicates: int = 0
     late: int = 0
+    stale: int = 0
+    resyncs: int = 0
     errors: int = 0
     last_error: str | None = None
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
@@ -129,6 +131,7 @@ class SessionManager:
         unknown = sorted(set(request.overrides) - set(_TUNABLE))
         if unknown:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: unknown {unknown} (tunable: {sorted(_TUNABLE)})")
+        tconf = self._tracker_config(request)
         if request.robot not in self._kinematics:  # a model of its own: built once per robot
             self._kinematics[request.robot] = Kinematics(robot)
         kin = self._kinematics[request.robot]
@@ -136,11 +139,9 @@ class SessionManager:
         q0 = kin.layout.default_q if request.q0 is None else request.q0
         if np.shape(q0) != (d,):
             raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {np.shape(q0)[0]}")
-        pool = self._pool(request, robot)
+        pool = self._pool(request, robot, tconf)
         group = pool.sessions.index(None)
         session = _Session(uuid.uuid4().hex[:12], request.robot, request.object, request.method, pool, group)
-        pool.sessions[group] = session
-        self.sessions[session.id] = session
         tracker = pool.tracker
         tracker.set_method(group, request.method)
         mask = np.zeros(tracker.G, bool)
@@ -153,6 +154,9 @@ class SessionManager:
         for v in pool.present.values():
             v[group] = False
         tracker.start(p0, pool.sensing["q"], sigma_t=request.sigma_t, sigma_r=request.sigma_r, groups=mask)
+        # Registered only now: an open that failed on the way leaves nothing behind.
+        pool.sessions[group] = session
+        self.sessions[session.id] = session
         return SessionInfo(
             session=session.id,
             robot=request.robot,
@@ -163,7 +167,16 @@ class SessionManager:
             method=request.method,
         )
 
-    def _pool(self, request: OpenSession, robot: RobotSpec) -> _Pool:
+    @staticmethod
+    def _tracker_config(request: OpenSession) -> TrackerConfig:
+        """The session's tracker settings, refused with the field and the numbers before anything is built."""
+        try:
+            overrides = {k: _TUNABLE[k](v) for k, v in request.overrides.items()}
+            return TrackerConfig(optimizer=OptimizerConfig(method=request.method), **overrides)
+        except (ValueError, TypeError, OverflowError) as exc:
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
+
+    def _pool(self, request: OpenSession, robot: RobotSpec, tconf: TrackerConfig) -> _Pool:
         """A population with a free group for this request, built on first use."""
         key = (request.robot, request.object, request.worlds, tuple(sorted(request.overrides.items())))
         for k, pool in self.pools.items():
@@ -180,11 +193,6 @@ class SessionManager:
             self.objects[request.object],
             PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device, substeps=cfg.substeps),
         )
-        overrides = {k: _TUNABLE[k](v) for k, v in request.overrides.items()}
-        try:
-            tconf = TrackerConfig(optimizer=OptimizerConfig(method=request.method), **overrides)
-        except ValueError as exc:
-            raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
         tracker = Tracker(pop, tconf, methods=[request.method] * cfg.groups)
         g = pop.G
         sensing = {f.name: np.zeros((g, *f.shape(pop.D, pop.L)), np.float32) for f in SENSING}
@@ -213,7 +221,8 @@ class SessionManager:
     # ------------------------------------------------------------------ frames
     def submit(self, frame: RobotFrame, received: float | None = None) -> None:
         """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
-        a frame of the wrong size is refused with the field and the numbers (and counted)."""
+        a frame of the wrong size is refused with the field and the numbers (and counted). A seq
+        beyond the window either way re-synchronises the session to it; a full queue drops its oldest."""
         session = self._get(frame.session)
         if session.failed is not None:
             session.errors += 1
@@ -226,6 +235,17 @@ class SessionManager:
                 session.last_error = f"RobotFrame.{f.name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"
                 raise ServiceError(ErrorCode.BAD_REQUEST, session.last_error)
         last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
+        window = self.config.seq_window
+        if abs(frame.seq - last) > window:
+            session.resyncs += 1
+            session.stale += len(session.pending)
+            session.pending.clear()
+            session.last_error = (
+                f"RobotFrame.seq: jumped from {last} to {frame.seq}, beyond the service's window of {window}:"
+                " re-synchronised to it"
+            )
+            session.next_seq = frame.seq
+            last = frame.seq - 1
         if frame.seq <= last:
             if frame.seq == last:
                 session.duplicates += 1
@@ -233,6 +253,9 @@ class SessionManager:
                 session.late += 1
             return
         session.gaps += frame.seq - last - 1
+        if len(session.pending) >= self.config.max_pending:
+            session.pending.popleft()
+            session.stale += 1
         session.pending.append((frame, time.perf_counter() if received is None else received))
 
     def ready(self, max_wait: float) -> list[_Pool]:
@@ -252,7 +275,11 @@ class SessionManager:
         """One tick of ``pool``: each session's next frame (others hold their last controls), one
         tracker step for all groups, an estimate for each session that sent a frame."""
         stepped: list[tuple[_Session, RobotFrame, float]] = []
+        oldest = time.perf_counter() - self.config.max_frame_age_s
         for s in pool.active:
+            while len(s.pending) > 1 and s.pending[0][1] < oldest:  # overloaded: skip to what is fresh
+                s.pending.popleft()
+                s.stale += 1
             if not s.pending:
                 continue
             frame, received = s.pending.popleft()
@@ -312,6 +339,8 @@ class SessionManager:
             gaps=s.gaps,
             duplicates=s.duplicates,
             late=s.late,
+            stale=s.stale,
+            resyncs=s.resyncs,
             errors=s.errors,
             latency_p50_ms=float(np.percentile(lat, 50)),
             latency_p99_ms=float(np.percentile(lat, 99)),

@@ -1,0 +1,53 @@
+"""`inhand-tracker serve` in a subprocess on a free loopback port, for the tests that talk to it
+over real Zenoh."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from client import TrackerClient, TrackerError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServiceProcess:
+    """`inhand-tracker serve` in a subprocess on a free loopback port."""
+
+    def __init__(self, port: int, groups: int = 1, timeout_s: float = 1.0, **settings: str):
+        self.endpoint = f"tcp/127.0.0.1:{port}"
+        env = os.environ | {"INHAND_GROUPS": str(groups), "INHAND_ROBOT_TIMEOUT_S": str(timeout_s)}
+        env |= {f"INHAND_{k.upper()}": v for k, v in settings.items()}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--listen", self.endpoint, "--device", "cpu"],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+
+    def wait_ready(self, client: TrackerClient, timeout: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.proc.poll() is None, self.proc.stdout.read()[-3000:]
+            try:
+                client.service_info(timeout=1.0)
+                return
+            except (TimeoutError, TrackerError):
+                time.sleep(0.2)
+        raise TimeoutError("service did not come up")
+
+    def stop(self) -> float:
+        """SIGTERM; returns how long it took to exit."""
+        t0 = time.monotonic()
+        self.proc.send_signal(signal.SIGTERM)
+        self.proc.wait(timeout=30)
+        return time.monotonic() - t0

@@ -1,0 +1,157 @@
+"""What a hostile or broken peer sends must not stop the service, leak a session or poison another
+robot's tracking: bad opens refused at the boundary with nothing left behind, a seq that jumps
+re-synchronises the session, a flooding robot keeps only its newest frames, and the client tells
+its caller when the estimate it holds is stale or the service went away."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from pydantic import ValidationError
+from service_process import ServiceProcess, free_port
+
+from client import ServiceLost, StaleEstimate, TrackerClient
+from protocol import Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
+from service.paths import DATA_DIR
+from service.server.config import ServiceConfig
+from service.server.sessions import ServiceError, SessionManager
+from sim_backend import load_catalog, load_robot
+
+TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def traj() -> Trajectory:
+    return Trajectory.load(TRAJECTORY)
+
+
+def _manager(**settings) -> SessionManager:
+    robot = load_robot(ROOT / "configs/robots/allegro.toml")
+    return SessionManager(ServiceConfig(groups=2, device="cpu", **settings), {robot.name: robot}, load_catalog())
+
+
+def _request(traj: Trajectory, **changes) -> OpenSession:
+    return OpenSession(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose, worlds=4, **changes)
+
+
+@pytest.mark.parametrize(
+    "quaternion, length",
+    [((0, 0, 0, 0), "0"), ((1e-30, 0, 0, 0), "1e-30"), ((3e38, 3e38, 0, 0), "4.24e+38")],
+)
+def test_an_open_whose_quaternion_has_no_direction_is_refused_naming_it(traj, quaternion, length):
+    p0 = np.concatenate([traj.truth.initial_pose[:3], quaternion])
+    with pytest.raises(ValidationError) as exc:
+        OpenSession(robot=traj.robot, object=traj.object, p0=p0)
+    assert "p0" in str(exc.value) and f"length {length}" in str(exc.value)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_overrides_are_refused_at_the_boundary(traj, value):
+    with pytest.raises(ValidationError) as exc:
+        _request(traj, overrides={"estimate_lambda": value})
+    assert "overrides" in str(exc.value) and "estimate_lambda" in str(exc.value)
+
+
+def test_a_refused_open_leaves_no_session_and_builds_nothing(traj):
+    manager = _manager()
+    for overrides, words in [({"update_every": 0}, "update_every"), ({"sigma_t": -1.0}, "sigma_t")]:
+        with pytest.raises(ServiceError) as exc:
+            manager.open(_request(traj, overrides=overrides))
+        assert exc.value.code == ErrorCode.BAD_REQUEST and words in exc.value.message
+    assert manager.sessions == {} and manager.pools == {}
+
+
+def test_a_seq_jump_resynchronises_the_session_and_says_so(traj):
+    manager = _manager(seq_window=100)
+    info = manager.open(_request(traj))
+    pool = manager.sessions[info.session].pool
+    for seq in range(3):
+        manager.submit(traj.frame(seq, info.session))
+        manager.step(pool)
+    manager.submit(traj.frame(3, info.session, seq=2**31))  # a corrupt seq
+    (est,) = manager.step(pool)
+    assert est.seq == 2**31
+    for seq in (7, 8):  # the robot's own counter again: far behind, so a second re-sync, then in order
+        manager.submit(traj.frame(seq, info.session, seq=seq))
+        (est,) = manager.step(pool)
+        assert est.seq == seq
+    status = manager.status(info.session)
+    assert (status.frames, status.resyncs, status.late) == (6, 2, 0)
+    assert "RobotFrame.seq: jumped from 2147483648 to 7" in status.last_error
+    manager.submit(traj.frame(9, info.session, seq=5))  # within the window behind: late, dropped
+    assert manager.status(info.session).late == 1
+
+
+def test_a_flooding_robot_keeps_its_newest_frames_and_the_rest_are_counted(traj):
+    manager = _manager(max_pending=5, max_frame_age_s=0.5)
+    flood = manager.open(_request(traj))
+    calm = manager.open(_request(traj))
+    pool = manager.sessions[flood.session].pool
+    for seq in range(50):
+        manager.submit(traj.frame(seq, flood.session))
+    manager.submit(traj.frame(0, calm.session))
+    estimates = {e.session: e for e in manager.step(pool)}
+    assert estimates[flood.session].seq == 45 and estimates[calm.session].seq == 0  # one frame each
+    assert manager.status(flood.session).stale == 45
+    # Frames that waited past the bound are skipped, up to the newest.
+    for seq in range(1, 4):
+        manager.submit(traj.frame(seq, calm.session), received=time.perf_counter() - 1.0)
+    manager.submit(traj.frame(4, calm.session))
+    estimates = {e.session: e for e in manager.step(pool)}
+    assert estimates[calm.session].seq == 4 and manager.status(calm.session).stale == 3
+    assert estimates[flood.session].seq == 46  # the flood's queue drains in order, one frame a tick
+
+
+@pytest.fixture(scope="module")
+def service():
+    svc = ServiceProcess(free_port(), timeout_s=1.0)
+    with TrackerClient(connect=[svc.endpoint]) as probe:
+        svc.wait_ready(probe)
+    yield svc
+    svc.stop()
+
+
+def test_bad_opens_over_zenoh_are_answered_and_the_service_goes_on(service, traj):
+    keys = Keys("default")
+    with TrackerClient(connect=[service.endpoint]) as client:
+        raw = msgpack.unpackb(encode(_request(traj)), raw=False)
+        for field, value in [("overrides", {"estimate_lambda": float("nan")}), ("p0", None)]:
+            bad = dict(raw)
+            if field == "p0":
+                bad["p0"] = dict(raw["p0"], data=np.array([0, 0, 0.1, 0, 0, 0, 0], np.float32).tobytes())
+            else:
+                bad[field] = value
+            (reply,) = list(client._zenoh.get(keys.open, payload=msgpack.packb(bad, use_bin_type=True), timeout=30))
+            err = decode(bytes(reply.err.payload.to_bytes()), Error)
+            assert err.code == ErrorCode.BAD_REQUEST and f"OpenSession.{field}" in err.message, err
+        assert client.service_info().sessions == 0  # nothing leaked
+        info = client.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+        client.send(traj.frame(0, info.session))
+        assert client.latest_pose(timeout=60, after_seq=0).seq == 0
+
+
+def test_the_client_flags_a_stale_estimate_and_a_lost_service(traj):
+    svc = ServiceProcess(free_port(), timeout_s=1.0)
+    with TrackerClient(connect=[svc.endpoint]) as client:
+        svc.wait_ready(client)
+        info = client.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+        client.send(traj.frame(0, info.session))
+        assert client.latest_pose(timeout=60, after_seq=0, max_age=0.5).seq == 0
+        svc.proc.send_signal(signal.SIGSTOP)  # the service stalls
+        try:
+            client.send(traj.frame(1, info.session).model_copy(update={"stamp": 1.0}))
+            with pytest.raises(StaleEstimate, match=r"answers seq 0 .* 1.000 s behind the last frame sent \(seq 1\)"):
+                client.latest_pose(timeout=0.2, max_age=0.5)
+            assert client.latest_pose(timeout=0.2).seq == 0  # without a bound: the cached estimate, as before
+        finally:
+            svc.proc.send_signal(signal.SIGCONT)
+        assert client.latest_pose(timeout=60, after_seq=1, max_age=0.5).seq == 1
+        svc.stop()
+        with pytest.raises(ServiceLost, match="went away"):
+            client.latest_pose(timeout=10.0, after_seq=10**6)
