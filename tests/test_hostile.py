@@ -155,3 +155,46 @@ def test_the_client_flags_a_stale_estimate_and_a_lost_service(traj):
         svc.stop()
         with pytest.raises(ServiceLost, match="went away"):
             client.latest_pose(timeout=10.0, after_seq=10**6)
+
+
+def test_caps_refuse_with_the_numbers_and_an_emptied_population_is_freed(traj):
+    manager = _manager(max_sessions=2, max_populations=1)
+    a = manager.open(_request(traj))
+    with pytest.raises(ServiceError) as exc:  # another K needs a second population
+        manager.open(_request(traj).model_copy(update={"worlds": 8}))
+    assert exc.value.code == ErrorCode.CAPACITY
+    assert "populations: 1 built, this service's limit is 1" in exc.value.message
+    b = manager.open(_request(traj))
+    with pytest.raises(ServiceError) as exc:
+        manager.open(_request(traj))
+    assert exc.value.code == ErrorCode.CAPACITY and "sessions: 2 open, this service's limit is 2" in exc.value.message
+    manager.close(a.session)
+    assert len(manager.pools) == 1  # b still tracks in it
+    manager.close(b.session)
+    assert manager.pools == {}  # its memory and worlds go back
+    info = manager.open(_request(traj).model_copy(update={"worlds": 8}))
+    assert info.worlds == 8 and len(manager.pools) == 1
+
+
+def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
+    svc = ServiceProcess(free_port(), timeout_s=1.0, idle_timeout_s="3")
+    keys = Keys("default")
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as client:
+            svc.wait_ready(client)
+            # A peer that opens over the raw protocol and never declares its robot's token:
+            (reply,) = list(client._zenoh.get(keys.open, payload=encode(_request(traj)), timeout=60))
+            assert reply.ok is not None
+            # A robot with its token that never sends a frame:
+            client.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+            assert client.service_info().sessions == 2
+            deadline = time.monotonic() + 1.0 + 2.0
+            while time.monotonic() < deadline and client.service_info().sessions > 1:
+                time.sleep(0.1)
+            assert client.service_info().sessions == 1  # the tokenless one, after robot_timeout_s
+            deadline = time.monotonic() + 3.0 + 2.0
+            while time.monotonic() < deadline and client.service_info().sessions > 0:
+                time.sleep(0.1)
+            assert client.service_info().sessions == 0  # the silent one, after idle_timeout_s
+    finally:
+        svc.stop()

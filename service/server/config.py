@@ -45,12 +45,19 @@ class ServiceConfig(BaseSettings):
     """Sessions per population: sessions with the same robot, object and K share one graph replay."""
     max_worlds: int = Field(65536, ge=1)
     """Worlds the service may hold in all."""
+    max_sessions: int = Field(64, ge=1)
+    """Sessions open at once at most."""
+    max_populations: int = Field(16, ge=1)
+    """Populations at once at most: each distinct robot, object, K and overrides builds one."""
     robots: Endpoints = ("configs/robots/allegro.toml",)
     """Robot configs (TOML; relative paths are from the project root)."""
     objects: str = "configs/objects.toml"
     """The object catalog's physics and the user's mesh objects (TOML; relative to the project root)."""
     robot_timeout_s: float = Field(3.0, gt=0)
-    """A session whose robot's liveliness token is gone this long is closed and its worlds freed [s]."""
+    """A session whose robot's liveliness token is gone this long, or never came this long after
+    the open, is closed and its worlds freed [s]."""
+    idle_timeout_s: float = Field(60.0, gt=0)
+    """A session that received no frame for this long is closed [s]."""
     seq_window: int = Field(300, ge=1)
     """A frame whose seq lies further than this from the last one re-synchronises the session to
     it (a robot that restarted its counter, or a corrupt seq) instead of being dropped as late."""

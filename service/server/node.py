@@ -225,7 +225,11 @@ class TrackerNode:
             now = time.monotonic()
             for session, since in list(self._robot_gone.items()):
                 if now - since > cfg.robot_timeout_s:
+                    log.info("closing session %s: its robot's liveliness token is gone", session)
                     self._drop(session)
+            for session in [s.id for s in m.sessions.values() if now - s.heard > cfg.idle_timeout_s]:
+                log.info("closing session %s: no frame for %.0f s", session, cfg.idle_timeout_s)
+                self._drop(session)
         for session in list(m.sessions):
             self._drop(session)
 
@@ -245,6 +249,9 @@ class TrackerNode:
                     self._robot_gone.pop(session, None)
             elif kind == "open":
                 info = m.open(payload)
+                # Gone until its robot's liveliness token shows up: a robot that never declares one
+                # does not hold a session for ever.
+                self._robot_gone[info.session] = time.monotonic()
                 self._publishers[info.session] = self.session.declare_publisher(
                     self.keys.pose(info.session),
                     encoding=_ENCODING,

@@ -76,6 +76,8 @@ class _Session:
     latest: Estimate | None = None
     failed: str | None = None
     """Why the session's population failed; it takes no more frames then."""
+    heard: float = field(default_factory=time.monotonic)
+    """When the session last received a frame (or opened) [s, monotonic]."""
 
 
 @dataclass
@@ -108,6 +110,8 @@ class SessionManager:
         self.sessions: dict[str, _Session] = {}
         self.pools: dict[tuple, _Pool] = {}
         self._kinematics: dict[str, Kinematics] = {}
+        self._built = 0
+        """Populations built so far: a new one's key never repeats a dropped one's."""
 
     # ------------------------------------------------------------------ open / close
     def open(self, request: OpenSession) -> SessionInfo:
@@ -124,6 +128,9 @@ class SessionManager:
             )
         if request.method not in METHODS:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"method: expected one of {METHODS}, got '{request.method}'")
+        if len(self.sessions) >= self.config.max_sessions:
+            open_now, limit = len(self.sessions), self.config.max_sessions
+            raise ServiceError(ErrorCode.CAPACITY, f"sessions: {open_now} open, this service's limit is {limit}")
         if request.worlds > self.config.max_worlds:
             raise ServiceError(
                 ErrorCode.CAPACITY, f"worlds: {request.worlds} exceeds this service's limit of {self.config.max_worlds}"
@@ -183,6 +190,12 @@ class SessionManager:
             if k[:4] == key and None in pool.sessions and not pool.failed:
                 return pool
         cfg = self.config
+        if len(self.pools) >= cfg.max_populations:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"populations: {len(self.pools)} built, this service's limit is {cfg.max_populations}"
+                " (sessions share one when robot, object, worlds and overrides match)",
+            )
         if sum(p.tracker.G * p.tracker.K for p in self.pools.values()) + cfg.groups * request.worlds > cfg.max_worlds:
             raise ServiceError(
                 ErrorCode.CAPACITY,
@@ -203,14 +216,19 @@ class SessionManager:
         # Idle groups: the object rests on the table out of the hand's reach, where nothing happens.
         rest = -float(self.objects[request.object].mesh.bounds[0, 2])
         tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), sensing["q"])
-        pool = _Pool((*key, len(self.pools)), tracker, [None] * g, sensing, present)
+        self._built += 1
+        pool = _Pool((*key, self._built), tracker, [None] * g, sensing, present)
         self.pools[pool.key] = pool
         return pool
 
     def close(self, session_id: str) -> None:
+        """Close a session; a population left without sessions is dropped, its memory and worlds freed."""
         session = self._get(session_id)
-        session.pool.sessions[session.group] = None
+        pool = session.pool
+        pool.sessions[session.group] = None
         del self.sessions[session_id]
+        if not pool.active:
+            del self.pools[pool.key]
 
     def _get(self, session_id: str) -> _Session:
         session = self.sessions.get(session_id)
@@ -252,6 +270,7 @@ class SessionManager:
             else:
                 session.late += 1
             return
+        session.heard = time.monotonic()
         session.gaps += frame.seq - last - 1
         if len(session.pending) >= self.config.max_pending:
             session.pending.popleft()
