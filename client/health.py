@@ -1,4 +1,5 @@
-"""Container health check: ask the local service's info key over Zenoh; exit 0 when it answers.
+"""Container health check: ask the local service's info key over Zenoh; exit 0 when it answers
+and is ready (kernels compiled, its tracking loop running).
 
 python -m client.health [ENDPOINT]   (default: INHAND_LISTEN with 0.0.0.0 read as 127.0.0.1)
 """
@@ -20,6 +21,10 @@ def main() -> int:
             info = client.service_info(timeout=5.0)
     except Exception as exc:  # any failure is "unhealthy", with the reason for `docker inspect`
         print(f"unhealthy: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    if not info.ready:
+        why = "warming up, or its tracking loop stopped"
+        print(f"unhealthy: service '{info.name}' is not ready ({why})", file=sys.stderr)
         return 1
     print(f"healthy: service '{info.name}' on {info.device}, {info.sessions} sessions")
     return 0

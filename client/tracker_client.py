@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -103,15 +104,35 @@ class TrackerClient:
         for reply in replies:
             if reply.ok is not None:
                 return decode(bytes(reply.ok.payload.to_bytes()), model)
+            raw = bytes(reply.err.payload.to_bytes())
             try:
-                err = decode(bytes(reply.err.payload.to_bytes()), Error)
+                err = decode(raw, Error)
             except DecodeError:
-                raise TrackerError(ErrorCode.INTERNAL, f"{key}: unreadable error reply") from None
+                # Not the service's: Zenoh's own (a query that timed out says "Timeout").
+                text = raw.decode("utf-8", "replace")
+                if "timeout" in text.lower():
+                    raise TimeoutError(f"{key}: no reply from service '{self.keys.service}': {text}") from None
+                raise TrackerError(ErrorCode.INTERNAL, f"{key}: unreadable error reply: {text!r}") from None
             raise TrackerError(err.code, err.message)
         raise TimeoutError(f"{key}: no reply from service '{self.keys.service}' within {timeout or self.timeout} s")
 
     def service_info(self, timeout: float = 5.0) -> ServiceInfo:
         return self._get(self.keys.info, None, ServiceInfo, timeout)
+
+    def wait_ready(self, timeout: float | None = None) -> ServiceInfo:
+        """Wait until the service answers and has compiled its kernels (minutes on a first start
+        with a cold cache); TimeoutError after ``timeout`` [s] (default the client's)."""
+        deadline = time.monotonic() + (timeout or self.timeout)
+        while True:
+            try:
+                info = self.service_info(timeout=min(5.0, max(0.1, deadline - time.monotonic())))
+                if info.ready:
+                    return info
+            except TimeoutError:
+                pass
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"service '{self.keys.service}' not ready within {timeout or self.timeout} s")
+            time.sleep(0.2)
 
     def open_session(
         self,
@@ -129,6 +150,7 @@ class TrackerClient:
         """Ask the service to track ``object`` in ``robot``'s hand from the pose estimate ``p0`` (7,)."""
         if self.info is not None:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
+        self.wait_ready()
         request = OpenSession(
             robot=robot,
             object=object,

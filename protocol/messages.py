@@ -103,6 +103,8 @@ class ServiceInfo(_Message):
     max_worlds: int
     sessions: int
     """Sessions open now."""
+    ready: bool = True
+    """False while the service compiles its kernels on start; opens wait until it is ready."""
 
 
 class OpenSession(_Message):

@@ -39,8 +39,9 @@ class ServiceProcess:
         while time.monotonic() < deadline:
             assert self.proc.poll() is None, self.proc.stdout.read()[-3000:]
             try:
-                client.service_info(timeout=1.0)
-                return
+                if client.service_info(timeout=1.0).ready:
+                    return
+                time.sleep(0.2)
             except (TimeoutError, TrackerError):
                 time.sleep(0.2)
         raise TimeoutError("service did not come up")

@@ -64,6 +64,9 @@ class TrackerNode:
         self.failed = threading.Event()
         """Set when the loop thread died: the service withdrew its liveliness token and must exit."""
         self._loop = threading.Thread(target=self._guarded_run, name="inhand-gpu-loop", daemon=True)
+        self.ready = False
+        """Kernels compiled and the liveliness token declared: sessions may open."""
+        self._token = None
         self.session: zenoh.Session | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -79,9 +82,7 @@ class TrackerNode:
             s.declare_subscriber(keys.every("frame"), self._on_frame),
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
         ]
-        self._loop.start()
-        self._token = s.liveliness().declare_token(keys.alive)  # ready: only now do clients see us
-        log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
+        self._loop.start()  # it warms up, then declares the service's liveliness token
         return self
 
     def close(self) -> None:
@@ -124,6 +125,7 @@ class TrackerNode:
             groups=self.config.groups,
             max_worlds=self.config.max_worlds,
             sessions=len(m.sessions),
+            ready=self.ready,
         )
         self._reply(query, info)
 
@@ -188,6 +190,7 @@ class TrackerNode:
             self._run()
         except BaseException:
             log.critical("the GPU loop died; withdrawing the service's liveliness token", exc_info=True)
+            self.ready = False
             token = getattr(self, "_token", None)
             if token is not None:
                 token.undeclare()
@@ -195,6 +198,11 @@ class TrackerNode:
 
     def _run(self) -> None:
         m, cfg = self.manager, self.config
+        log.info("service '%s' warming up on %s: compiling kernels", cfg.name, self.device)
+        m.warm()
+        self.ready = True
+        self._token = self.session.liveliness().declare_token(self.keys.alive)  # only now do robots see us
+        log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
         while not self._stop.is_set():
             idle = not any(s.pending for s in m.sessions.values())
             try:

@@ -236,6 +236,16 @@ class SessionManager:
             raise ServiceError(ErrorCode.UNKNOWN_SESSION, f"session: '{session_id}' is not open")
         return session
 
+    def warm(self) -> None:
+        """Build, capture and drop a one-world population of the first robot and object, so that
+        the kernels are compiled (minutes on a cold cache) before any robot waits on an open."""
+        robot, obj = next(iter(self.robots)), next(iter(self.objects))
+        kin = self._kinematics.setdefault(robot, Kinematics(self.robots[robot]))
+        rest = np.array([0.3, 0.0, -float(self.objects[obj].mesh.bounds[0, 2]), 0, 0, 0, 1], np.float32)
+        request = OpenSession(robot=robot, object=obj, p0=rest, q0=kin.layout.default_q, worlds=1)
+        pool = self._pool(request, self.robots[robot], self._tracker_config(request))
+        del self.pools[pool.key]
+
     # ------------------------------------------------------------------ frames
     def submit(self, frame: RobotFrame, received: float | None = None) -> None:
         """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
