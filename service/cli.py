@@ -320,6 +320,27 @@ def bench_speed(
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
 
 
+@bench.command("load")
+def bench_load(
+    sessions: Annotated[int, typer.Option(help="robots streaming at once, one session each")] = 4,
+    worlds: Annotated[int, typer.Option(help="K per session")] = 40,
+    rate: Annotated[float, typer.Option(help="each robot's frames per second")] = 30.0,
+    seconds: Annotated[float, typer.Option(help="how long the robots stream")] = 10.0,
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """The service under load: N robots at a fixed rate; estimates per second, latency, late frames."""
+    _gpu_stack()
+    from service.bench.load import as_dicts, bench_load, format_table
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            results = bench_load(sessions, worlds, rate, seconds, device)
+    except ValueError as exc:
+        raise _fail(f"bench load: {exc}") from None
+    typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
+
+
 def _settings(settings: list[str]):
     """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
     tracker's number and flag fields, its optimizer's as optimizer.NAME, and the population's

@@ -6,6 +6,7 @@ its caller when the estimate it holds is stale or the service went away."""
 from __future__ import annotations
 
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -196,5 +197,53 @@ def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
             while time.monotonic() < deadline and client.service_info().sessions > 0:
                 time.sleep(0.1)
             assert client.service_info().sessions == 0  # the silent one, after idle_timeout_s
+    finally:
+        svc.stop()
+
+
+def test_a_flooding_peer_does_not_starve_another_session(traj):
+    """One robot streams at 10 Hz, alone and then beside a peer that floods its own session as
+    fast as it can publish: it keeps at least 80 % of its estimate rate, and the flood's backlog
+    stays bounded (counted stale)."""
+    svc = ServiceProcess(free_port(), groups=2)
+    seconds, rate = 4.0, 10.0
+
+    def stream(client: TrackerClient, start: int) -> int:
+        got: list[int] = []
+        client.on_pose(lambda est: got.append(est.seq))
+        t0 = time.perf_counter()
+        n = 0
+        while time.perf_counter() - t0 < seconds:
+            time.sleep(max(0.0, t0 + n / rate - time.perf_counter()))
+            client.send(traj.frame(n % traj.frames, client.info.session, seq=start + n))
+            n += 1
+        time.sleep(0.5)
+        return len(got)
+
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as robot, TrackerClient(connect=[svc.endpoint]) as flood:
+            svc.wait_ready(robot)
+            for c in (robot, flood):
+                c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+            alone = stream(robot, 0)
+            stop = threading.Event()
+
+            def flooding() -> None:
+                n = 0
+                while not stop.is_set():
+                    flood.send(traj.frame(n % traj.frames, flood.info.session, seq=n))
+                    n += 1
+
+            worker = threading.Thread(target=flooding)
+            worker.start()
+            try:
+                beside = stream(robot, 10_000)
+            finally:
+                stop.set()
+                worker.join()
+            assert alone >= 0.8 * rate * seconds, alone
+            assert beside >= 0.8 * alone, (alone, beside)
+            status = flood.status()
+            assert status.stale > 0 and status.frames < 10 * rate * seconds, status
     finally:
         svc.stop()

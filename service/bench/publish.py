@@ -35,6 +35,8 @@ _TAIL = """## Reproduce
   runs a suite's first object and two kinds of 10 s tracks, as CI does.
 - Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8] --json`.
 - The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
+- The service under load: `inhand-tracker bench load --sessions 4 --worlds 40 --rate 30 --seconds 10`
+  (robots streaming through real clients to a service embedded on loopback).
 - The cost's ranking: `inhand-tracker bench cost-ranking --suite SUITE [--short] --method PBO --worlds 40`.
 """
 

@@ -1,0 +1,124 @@
+"""The service under load: N robots, each streaming a bundled trajectory at a fixed rate through
+its own client to a service embedded on loopback (real Zenoh sessions), and what each got back:
+estimates per second, latency (arrival at the service to estimate) p50 and p99, and the frames
+the service counted late, stale (dropped under overload) or skipped."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client import TrackerClient
+from protocol import Trajectory
+from service.paths import DATA_DIR
+from service.server import ServiceConfig, TrackerNode
+
+__all__ = ["LoadResult", "as_dicts", "bench_load", "format_table"]
+
+
+@dataclass
+class LoadResult:
+    session: int
+    worlds: int
+    rate_hz: float
+    sent: int
+    estimates: int
+    estimates_per_s: float
+    latency_p50_ms: float
+    latency_p99_ms: float
+    late: int
+    stale: int
+    gaps: int
+
+
+def bench_load(
+    sessions: int = 4,
+    worlds: int = 40,
+    rate: float = 30.0,
+    seconds: float = 10.0,
+    device: str = "auto",
+    file: Path | None = None,
+) -> list[LoadResult]:
+    """Run ``sessions`` robots at ``rate`` [Hz] for ``seconds`` against one embedded service whose
+    population holds them all (groups = sessions)."""
+    if sessions < 1 or worlds < 1 or rate <= 0 or seconds <= 0:
+        got = f"{sessions}, {worlds}, {rate}, {seconds}"
+        raise ValueError(f"load: expected sessions, worlds, rate and seconds > 0, got {got}")
+    traj = Trajectory.load(file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    config = ServiceConfig(listen=(endpoint,), device=device, groups=sessions, max_sessions=max(64, sessions))
+    with TrackerNode(config):
+        clients = [TrackerClient(connect=[endpoint]) for _ in range(sessions)]
+        try:
+            for c in clients:
+                c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=worlds)
+            received = [[] for _ in clients]
+            for c, got in zip(clients, received, strict=True):
+                c.on_pose(lambda est, got=got: got.append(est.latency_ms))
+            sent = [0] * sessions
+            start = threading.Barrier(sessions)
+
+            def robot(i: int) -> None:
+                # Each robot replays the trajectory forth and back (no jump at the end) at its rate.
+                c, period = clients[i], 2 * traj.frames - 2
+                start.wait()
+                t0 = time.perf_counter()
+                n = 0
+                while (now := time.perf_counter()) - t0 < seconds:
+                    time.sleep(max(0.0, t0 + n / rate - now))
+                    k = n % period
+                    row = k if k < traj.frames else period - k
+                    c.send(traj.frame(row, c.info.session, seq=n).model_copy(update={"stamp": n / rate}))
+                    n += 1
+                sent[i] = n
+
+            threads = [threading.Thread(target=robot, args=(i,)) for i in range(sessions)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            time.sleep(1.0)  # the last estimates in flight
+            out = []
+            for i, (c, got) in enumerate(zip(clients, received, strict=True)):
+                status = c.status()
+                lat = np.asarray(got) if got else np.full(1, np.nan)
+                out.append(
+                    LoadResult(
+                        session=i,
+                        worlds=worlds,
+                        rate_hz=rate,
+                        sent=sent[i],
+                        estimates=len(got),
+                        estimates_per_s=len(got) / seconds,
+                        latency_p50_ms=float(np.percentile(lat, 50)),
+                        latency_p99_ms=float(np.percentile(lat, 99)),
+                        late=status.late,
+                        stale=status.stale,
+                        gaps=status.gaps,
+                    )
+                )
+            return out
+        finally:
+            for c in clients:
+                c.close()
+
+
+def format_table(results: list[LoadResult]) -> str:
+    head = "session  worlds  rate Hz  sent  estimates/s  latency p50 ms  p99 ms  late  stale  gaps"
+    rows = [
+        f"{r.session:>7}  {r.worlds:>6}  {r.rate_hz:>7g}  {r.sent:>4}  {r.estimates_per_s:>11.1f}"
+        f"  {r.latency_p50_ms:>14.1f}  {r.latency_p99_ms:>6.1f}  {r.late:>4}  {r.stale:>5}  {r.gaps:>4}"
+        for r in results
+    ]
+    return "\n".join([head, *rows])
+
+
+def as_dicts(results: list[LoadResult]) -> list[dict]:
+    return [asdict(r) for r in results]
