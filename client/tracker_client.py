@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -50,9 +51,10 @@ class ServiceLost(ConnectionError):
     restarted, and the session is gone with it (:meth:`TrackerClient.reopen` starts a new one)."""
 
 
-def zenoh_config(listen=(), connect=(), scouting: bool = False) -> zenoh.Config:
-    """A peer config: listen and connect endpoints, multicast scouting on or off."""
-    conf = zenoh.Config()
+def zenoh_config(listen=(), connect=(), scouting: bool = False, file: str | os.PathLike | None = None) -> zenoh.Config:
+    """A peer config: listen and connect endpoints, multicast scouting on or off; on top of the
+    Zenoh config ``file`` when given (TLS certificates, access control rules)."""
+    conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
     if connect:
@@ -78,10 +80,12 @@ class TrackerClient:
         listen=(),
         scouting: bool = False,
         timeout: float = 120.0,
+        zenoh_file: str | os.PathLike | None = None,
     ):
+        """``zenoh_file``: a Zenoh JSON5 config (TLS or mTLS certificates) under the endpoints given."""
         self.keys = Keys(service)
         self.timeout = timeout
-        self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting))
+        self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file))
         self.info: SessionInfo | None = None
         self._seq = 0
         self._publisher: zenoh.Publisher | None = None

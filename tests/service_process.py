@@ -25,8 +25,8 @@ def free_port() -> int:
 class ServiceProcess:
     """`inhand-tracker serve` in a subprocess on a free loopback port."""
 
-    def __init__(self, port: int, groups: int = 1, timeout_s: float = 1.0, **settings: str):
-        self.endpoint = f"tcp/127.0.0.1:{port}"
+    def __init__(self, port: int, groups: int = 1, timeout_s: float = 1.0, scheme: str = "tcp", **settings: str):
+        self.endpoint = f"{scheme}/127.0.0.1:{port}"
         env = os.environ | {"INHAND_GROUPS": str(groups), "INHAND_ROBOT_TIMEOUT_S": str(timeout_s)}
         env |= {f"INHAND_{k.upper()}": v for k, v in settings.items()}
         self.proc = subprocess.Popen(

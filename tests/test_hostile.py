@@ -5,7 +5,10 @@ its caller when the estimate it holds is stale or the service went away."""
 
 from __future__ import annotations
 
+import json
+import shutil
 import signal
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -245,5 +248,56 @@ def test_a_flooding_peer_does_not_starve_another_session(traj):
             assert beside >= 0.8 * alone, (alone, beside)
             status = flood.status()
             assert status.stale > 0 and status.frames < 10 * rate * seconds, status
+    finally:
+        svc.stop()
+
+
+def _certificates(folder: Path) -> dict[str, Path]:
+    """A private CA, a service certificate for 127.0.0.1 and a robot's client certificate (openssl)."""
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is needed to make test certificates")
+    run = lambda *args: subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)  # noqa: E731
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.crt", "-days", "2",
+        "-subj", "/CN=inhand test CA")  # fmt: skip
+    for name, usage in (("service", "serverAuth"), ("robot", "clientAuth")):
+        (folder / f"{name}.ext").write_text(
+            f"subjectAltName=IP:127.0.0.1,DNS:localhost\nextendedKeyUsage={usage}\nbasicConstraints=CA:FALSE\n"
+        )
+        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
+            "-subj", f"/CN={name}")  # fmt: skip
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", f"{name}.crt", "-days", "2", "-extfile", f"{name}.ext")  # fmt: skip
+    return {n: folder / n for n in ("ca.crt", "service.crt", "service.key", "robot.crt", "robot.key")}
+
+
+def test_mtls_admits_a_robot_with_a_certificate_and_no_one_without(traj, tmp_path):
+    certs = _certificates(tmp_path)
+
+    def zenoh_file(name: str, **tls) -> Path:
+        path = tmp_path / f"{name}.json5"
+        tls = {k: str(certs[v]) if isinstance(v, str) else v for k, v in tls.items()}
+        path.write_text(json.dumps({"transport": {"link": {"tls": tls}}}))
+        return path
+
+    service_conf = zenoh_file("service", listen_certificate="service.crt", listen_private_key="service.key",
+                              root_ca_certificate="ca.crt", enable_mtls=True)  # fmt: skip
+    robot_conf = zenoh_file("robot", root_ca_certificate="ca.crt", enable_mtls=True,
+                            connect_certificate="robot.crt", connect_private_key="robot.key")  # fmt: skip
+    stranger_conf = zenoh_file("stranger", root_ca_certificate="ca.crt")  # trusts the service, has no certificate
+    svc = ServiceProcess(free_port(), scheme="tls", zenoh_config=str(service_conf))
+    try:
+        with TrackerClient(connect=[svc.endpoint], zenoh_file=robot_conf) as robot:
+            svc.wait_ready(robot)
+            info = robot.open_session(
+                traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4
+            )
+            robot.send(traj.frame(0, info.session))
+            assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
+            with TrackerClient(connect=[svc.endpoint], zenoh_file=stranger_conf) as stranger:
+                with pytest.raises(TimeoutError):
+                    stranger.service_info(timeout=3.0)
+            with TrackerClient(connect=[svc.endpoint.replace("tls/", "tcp/")]) as plain:
+                with pytest.raises(TimeoutError):
+                    plain.service_info(timeout=3.0)
     finally:
         svc.stop()

@@ -39,6 +39,9 @@ class ServiceConfig(BaseSettings):
     """Zenoh endpoints to listen on."""
     connect: Endpoints = ()
     """Zenoh endpoints (a router, or peers) to connect to."""
+    zenoh_config: str | None = None
+    """A Zenoh JSON5 config file under listen, connect and scouting: TLS and mTLS certificates,
+    access control rules (relative to the project root)."""
     scouting: bool = False
     """Zenoh multicast scouting; off, so a service is found only where it is told to be."""
     groups: int = Field(8, ge=1)

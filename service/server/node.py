@@ -72,7 +72,8 @@ class TrackerNode:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> TrackerNode:
         cfg, keys = self.config, self.keys
-        self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting))
+        file = PROJECT_ROOT / cfg.zenoh_config if cfg.zenoh_config else None
+        self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting, file))
         self._entities = [
             s.declare_queryable(keys.info, self._on_info),
             s.declare_queryable(keys.open, self._on_open),
