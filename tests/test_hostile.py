@@ -259,7 +259,7 @@ def _certificates(folder: Path) -> dict[str, Path]:
     run = lambda *args: subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)  # noqa: E731
     run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.crt", "-days", "2",
         "-subj", "/CN=inhand test CA")  # fmt: skip
-    for name, usage in (("service", "serverAuth"), ("robot", "clientAuth")):
+    for name, usage in (("service", "serverAuth"), ("robot", "clientAuth"), ("observer", "clientAuth")):
         (folder / f"{name}.ext").write_text(
             f"subjectAltName=IP:127.0.0.1,DNS:localhost\nextendedKeyUsage={usage}\nbasicConstraints=CA:FALSE\n"
         )
@@ -267,20 +267,31 @@ def _certificates(folder: Path) -> dict[str, Path]:
             "-subj", f"/CN={name}")  # fmt: skip
         run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial",
             "-out", f"{name}.crt", "-days", "2", "-extfile", f"{name}.ext")  # fmt: skip
-    return {n: folder / n for n in ("ca.crt", "service.crt", "service.key", "robot.crt", "robot.key")}
+    return {p.name: p for p in folder.glob("*.crt")} | {p.name: p for p in folder.glob("*.key")}
 
 
-def test_mtls_admits_a_robot_with_a_certificate_and_no_one_without(traj, tmp_path):
+def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(traj, tmp_path):
+    """Only peers with a certificate from the lab's CA connect; among them, an access-control rule
+    keeps the observer's certificate from querying anything under the service's keys."""
     certs = _certificates(tmp_path)
 
-    def zenoh_file(name: str, **tls) -> Path:
+    def zenoh_file(name: str, extra: dict | None = None, **tls) -> Path:
         path = tmp_path / f"{name}.json5"
         tls = {k: str(certs[v]) if isinstance(v, str) else v for k, v in tls.items()}
-        path.write_text(json.dumps({"transport": {"link": {"tls": tls}}}))
+        path.write_text(json.dumps({"transport": {"link": {"tls": tls}}} | (extra or {})))
         return path
 
-    service_conf = zenoh_file("service", listen_certificate="service.crt", listen_private_key="service.key",
+    acl = {"access_control": {
+        "enabled": True, "default_permission": "allow",
+        "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
+                   "key_exprs": ["inhand/v1/default/**"]}],
+        "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
+        "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
+    }}  # fmt: skip
+    service_conf = zenoh_file("service", acl, listen_certificate="service.crt", listen_private_key="service.key",
                               root_ca_certificate="ca.crt", enable_mtls=True)  # fmt: skip
+    observer_conf = zenoh_file("observer", root_ca_certificate="ca.crt", enable_mtls=True,
+                               connect_certificate="observer.crt", connect_private_key="observer.key")  # fmt: skip
     robot_conf = zenoh_file("robot", root_ca_certificate="ca.crt", enable_mtls=True,
                             connect_certificate="robot.crt", connect_private_key="robot.key")  # fmt: skip
     stranger_conf = zenoh_file("stranger", root_ca_certificate="ca.crt")  # trusts the service, has no certificate
@@ -293,6 +304,19 @@ def test_mtls_admits_a_robot_with_a_certificate_and_no_one_without(traj, tmp_pat
             )
             robot.send(traj.frame(0, info.session))
             assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
+            with TrackerClient(connect=[svc.endpoint], zenoh_file=observer_conf) as observer:
+                with pytest.raises(TimeoutError):
+                    observer.service_info(timeout=3.0)  # denied by the rule
+                seen = []  # connected all the same: what the rule allows still flows
+                watch = observer._zenoh.declare_subscriber(Keys("default").every("pose"), seen.append)
+                time.sleep(0.5)
+                robot.send(traj.frame(1, info.session))
+                robot.latest_pose(timeout=60, after_seq=1)
+                deadline = time.monotonic() + 5.0
+                while not seen and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                watch.undeclare()
+                assert seen
             with TrackerClient(connect=[svc.endpoint], zenoh_file=stranger_conf) as stranger:
                 with pytest.raises(TimeoutError):
                     stranger.service_info(timeout=3.0)
