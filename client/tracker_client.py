@@ -216,6 +216,7 @@ class TrackerClient:
         seq = self._seq if seq is None else seq
         frame = RobotFrame(
             session=self.info.session,
+            token=self.info.token,
             seq=seq,
             stamp=float(seq / 30.0 if stamp is None else stamp),
             controls=controls,
@@ -228,8 +229,8 @@ class TrackerClient:
         return seq
 
     def send(self, frame: RobotFrame) -> None:
-        """Send a prepared frame (its session is replaced by this client's)."""
-        self._publisher.put(encode(frame.model_copy(update={"session": self.info.session})))
+        """Send a prepared frame (its session and token are replaced by this client's)."""
+        self._publisher.put(encode(frame.model_copy(update={"session": self.info.session, "token": self.info.token})))
         self._seq = max(self._seq, frame.seq + 1)
         self._sent_stamp = frame.stamp
 
@@ -268,7 +269,7 @@ class TrackerClient:
         if estimate is None:
             if self.info is None:
                 raise RuntimeError("no session: call open_session first")
-            estimate = self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
+            estimate = self._get(self.keys.pose(self.info.session), self._credentials(), Estimate, timeout)
         if max_age is not None and self._sent_stamp is not None and self._sent_stamp - estimate.stamp > max_age:
             raise StaleEstimate(
                 f"the newest estimate answers seq {estimate.seq} (stamp {estimate.stamp:.3f} s), "
@@ -283,13 +284,17 @@ class TrackerClient:
     def status(self, timeout: float = 5.0) -> SessionStatus:
         if self.info is None:
             raise RuntimeError("no session: call open_session first")
-        return self._get(self.keys.status(self.info.session), None, SessionStatus, timeout)
+        return self._get(self.keys.status(self.info.session), self._credentials(), SessionStatus, timeout)
+
+    def _credentials(self) -> bytes:
+        """The payload that proves a request comes from this session's robot."""
+        return encode(CloseSession(session=self.info.session, token=self.info.token))
 
     def close_session(self) -> None:
         if self.info is None:
             return
         try:
-            self._get(self.keys.close, encode(CloseSession(session=self.info.session)), CloseSession, 10.0)
+            self._get(self.keys.close, self._credentials(), CloseSession, 10.0)
         finally:
             self._release()
 

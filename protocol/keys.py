@@ -1,15 +1,18 @@
 """Every Zenoh key expression of the protocol, in one place.
 
-``inhand/v1/{service}/...``: ``v1`` changes when a message changes incompatibly.
+``inhand/v2/{service}/...``: the version is the protocol's; it changes when a message changes
+incompatibly.
 """
 
 from __future__ import annotations
 
 import re
 
+from .messages import PROTOCOL_VERSION
+
 __all__ = ["PREFIX", "Keys", "check_name"]
 
-PREFIX = "inhand/v1"
+PREFIX = f"inhand/v{PROTOCOL_VERSION}"
 _NAME = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
 
 

@@ -33,8 +33,8 @@ __all__ = [
     "check_version",
 ]
 
-PROTOCOL_VERSION = 1
-"""Bumped with the key prefix's ``v1`` when a message changes incompatibly."""
+PROTOCOL_VERSION = 2
+"""Bumped, with the key prefix's ``v2``, when a message changes incompatibly."""
 DEFAULT_WORLDS = 40
 """K, a session's worlds when it does not say: the paper's."""
 DEFAULT_METHOD = "PBO"
@@ -73,8 +73,8 @@ class ErrorCode(StrEnum):
     VERSION_MISMATCH = "version_mismatch"
     UNKNOWN_ROBOT = "unknown_robot"
     UNKNOWN_OBJECT = "unknown_object"
-    UNKNOWN_SESSION = "unknown_session"
     CAPACITY = "capacity"
+    FORBIDDEN = "forbidden"
     INTERNAL = "internal"
 
 
@@ -146,7 +146,11 @@ class OpenSession(_Message):
 
 
 class CloseSession(_Message):
+    """Close a session; also the payload of a session's status and pose queries."""
+
     session: str
+    token: str = ""
+    """The session's secret from :class:`SessionInfo`: only its robot may close or query it."""
 
 
 class SessionInfo(_Message):
@@ -154,6 +158,10 @@ class SessionInfo(_Message):
 
     protocol: int = PROTOCOL_VERSION
     session: str
+    token: str
+    """The session's secret: every frame, close, status and pose query must carry it. Zenoh's
+    access control (or mTLS) decides who may connect and read; the token keeps peers that may
+    from steering or closing another robot's session."""
     robot: str
     object: str
     joint_names: list[str]
@@ -169,6 +177,8 @@ class _FrameHeader(_Message):
     """Frame counter, consecutive from 0; the service applies frames in seq order."""
     stamp: float
     """Robot clock when the frame was sensed [s]."""
+    token: str = ""
+    """The session's secret (:attr:`SessionInfo.token`); a frame without it is refused."""
 
 
 def _sensing_fields() -> dict:

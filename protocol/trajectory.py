@@ -97,10 +97,11 @@ class Trajectory(SensingAttributes):
     def frames(self) -> int:
         return self.sensing["controls"].shape[0]
 
-    def frame(self, i: int, session: str, seq: int | None = None) -> RobotFrame:
-        """Row ``i`` as the message a robot sends."""
+    def frame(self, i: int, session: str, seq: int | None = None, token: str = "") -> RobotFrame:
+        """Row ``i`` as the message a robot sends (``token``: its session's secret)."""
         return RobotFrame(
             session=session,
+            token=token,
             seq=i if seq is None else seq,
             stamp=float(self.stamp[i]),
             **{k: v[i] for k, v in self.sensing.items() if v is not None},

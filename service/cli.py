@@ -94,7 +94,7 @@ def serve(
     config: Annotated[Path | None, typer.Option(help="service TOML (default configs/service.toml)")] = None,
     listen: Annotated[str | None, typer.Option(help="Zenoh endpoints to listen on, comma-separated")] = None,
     connect: Annotated[str | None, typer.Option(help="Zenoh endpoints to connect to (a router)")] = None,
-    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v1/NAME")] = None,
+    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v2/NAME")] = None,
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
 ) -> None:
     """Run the tracking service."""

@@ -20,7 +20,7 @@ from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
 from client import ServiceLost, StaleEstimate, TrackerClient
-from protocol import Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
+from protocol import CloseSession, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
 from service.paths import DATA_DIR
 from service.server.config import ServiceConfig
 from service.server.sessions import ServiceError, SessionManager
@@ -76,20 +76,20 @@ def test_a_seq_jump_resynchronises_the_session_and_says_so(traj):
     info = manager.open(_request(traj))
     pool = manager.sessions[info.session].pool
     for seq in range(3):
-        manager.submit(traj.frame(seq, info.session))
+        manager.submit(traj.frame(seq, info.session, token=info.token))
         manager.step(pool)
-    manager.submit(traj.frame(3, info.session, seq=2**31))  # a corrupt seq
+    manager.submit(traj.frame(3, info.session, token=info.token, seq=2**31))  # a corrupt seq
     (est,) = manager.step(pool)
     assert est.seq == 2**31
     for seq in (7, 8):  # the robot's own counter again: far behind, so a second re-sync, then in order
-        manager.submit(traj.frame(seq, info.session, seq=seq))
+        manager.submit(traj.frame(seq, info.session, token=info.token, seq=seq))
         (est,) = manager.step(pool)
         assert est.seq == seq
-    status = manager.status(info.session)
+    status = manager.status(info.session, info.token)
     assert (status.frames, status.resyncs, status.late) == (6, 2, 0)
     assert "RobotFrame.seq: jumped from 2147483648 to 7" in status.last_error
-    manager.submit(traj.frame(9, info.session, seq=5))  # within the window behind: late, dropped
-    assert manager.status(info.session).late == 1
+    manager.submit(traj.frame(9, info.session, token=info.token, seq=5))  # within the window behind: late, dropped
+    assert manager.status(info.session, info.token).late == 1
 
 
 def test_a_flooding_robot_keeps_its_newest_frames_and_the_rest_are_counted(traj):
@@ -98,17 +98,17 @@ def test_a_flooding_robot_keeps_its_newest_frames_and_the_rest_are_counted(traj)
     calm = manager.open(_request(traj))
     pool = manager.sessions[flood.session].pool
     for seq in range(50):
-        manager.submit(traj.frame(seq, flood.session))
-    manager.submit(traj.frame(0, calm.session))
+        manager.submit(traj.frame(seq, flood.session, token=flood.token))
+    manager.submit(traj.frame(0, calm.session, token=calm.token))
     estimates = {e.session: e for e in manager.step(pool)}
     assert estimates[flood.session].seq == 45 and estimates[calm.session].seq == 0  # one frame each
-    assert manager.status(flood.session).stale == 45
+    assert manager.status(flood.session, flood.token).stale == 45
     # Frames that waited past the bound are skipped, up to the newest.
     for seq in range(1, 4):
-        manager.submit(traj.frame(seq, calm.session), received=time.perf_counter() - 1.0)
-    manager.submit(traj.frame(4, calm.session))
+        manager.submit(traj.frame(seq, calm.session, token=calm.token), received=time.perf_counter() - 1.0)
+    manager.submit(traj.frame(4, calm.session, token=calm.token))
     estimates = {e.session: e for e in manager.step(pool)}
-    assert estimates[calm.session].seq == 4 and manager.status(calm.session).stale == 3
+    assert estimates[calm.session].seq == 4 and manager.status(calm.session, calm.token).stale == 3
     assert estimates[flood.session].seq == 46  # the flood's queue drains in order, one frame a tick
 
 
@@ -172,9 +172,9 @@ def test_caps_refuse_with_the_numbers_and_an_emptied_population_is_freed(traj):
     with pytest.raises(ServiceError) as exc:
         manager.open(_request(traj))
     assert exc.value.code == ErrorCode.CAPACITY and "sessions: 2 open, this service's limit is 2" in exc.value.message
-    manager.close(a.session)
+    manager.close(a.session, a.token)
     assert len(manager.pools) == 1  # b still tracks in it
-    manager.close(b.session)
+    manager.close(b.session, b.token)
     assert manager.pools == {}  # its memory and worlds go back
     info = manager.open(_request(traj).model_copy(update={"worlds": 8}))
     assert info.worlds == 8 and len(manager.pools) == 1
@@ -284,7 +284,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
     acl = {"access_control": {
         "enabled": True, "default_permission": "allow",
         "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                   "key_exprs": ["inhand/v1/default/**"]}],
+                   "key_exprs": ["inhand/v2/default/**"]}],
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip
@@ -325,3 +325,23 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
                     plain.service_info(timeout=3.0)
     finally:
         svc.stop()
+
+
+def test_a_peer_without_the_session_token_can_neither_steer_query_nor_close_it(service, traj):
+    with TrackerClient(connect=[service.endpoint]) as robot, TrackerClient(connect=[service.endpoint]) as peer:
+        info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+        robot.send(traj.frame(0, info.session))
+        robot.latest_pose(timeout=60, after_seq=0)
+        keys, guess = Keys("default"), CloseSession(session=info.session, token="0" * 32)
+        # A frame on the session's key with the wrong token is refused, and its robot is told.
+        peer._zenoh.put(keys.frame(info.session), encode(traj.frame(5, info.session, token="0" * 32)))
+        deadline = time.monotonic() + 10
+        while (status := robot.status()).errors < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert status.frames == 1 and "RobotFrame.token: does not match" in status.last_error
+        for key in (keys.status(info.session), keys.pose(info.session), keys.close):
+            (reply,) = list(peer._zenoh.get(key, payload=encode(guess), timeout=30))
+            assert decode(bytes(reply.err.payload.to_bytes()), Error).code == ErrorCode.FORBIDDEN, key
+        robot.send(traj.frame(1, info.session))  # the robot's own session goes on
+        assert robot.latest_pose(timeout=60, after_seq=1).seq == 1
+        robot.close_session()

@@ -17,7 +17,7 @@ import pytest
 from service_process import ServiceProcess, free_port
 
 from client import TrackerClient, TrackerError
-from protocol import PROTOCOL_VERSION, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
+from protocol import PROTOCOL_VERSION, CloseSession, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
 from service.paths import DATA_DIR
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
@@ -67,7 +67,7 @@ def test_tracks_with_the_same_estimates_as_the_in_process_manager(service):
                                    q0=traj.truth.initial_q))  # fmt: skip
     pool = manager.sessions[local_info.session].pool
     for i in range(frames):
-        manager.submit(traj.frame(i, local_info.session))
+        manager.submit(traj.frame(i, local_info.session, token=local_info.token))
         (local,) = manager.step(pool)
         assert local.seq == remote[i].seq == i
         assert np.array_equal(local.pose, remote[i].pose), f"frame {i}: {local.pose} != {remote[i].pose}"
@@ -102,14 +102,18 @@ def test_bad_input_is_refused_with_the_field_and_the_service_goes_on(service):
         assert err.code == ErrorCode.BAD_REQUEST and "OpenSession.p0" in err.message and "nan" in err.message
         err = rpc(keys.open, b"\x80" + b"x" * (2 << 20))
         assert err.code == ErrorCode.BAD_REQUEST and "exceeds the limit" in err.message
-        (reply,) = list(z.get(keys.pose("nosuchsession"), timeout=10))
-        assert decode(bytes(reply.err.payload.to_bytes()), Error).code == ErrorCode.UNKNOWN_SESSION
+        (reply,) = list(z.get(keys.pose("nosuchsession"), timeout=10))  # no token at all
+        err = decode(bytes(reply.err.payload.to_bytes()), Error)
+        assert err.code == ErrorCode.BAD_REQUEST and "token" in err.message
+        ask = encode(CloseSession(session="nosuchsession", token="0" * 32))
+        (reply,) = list(z.get(keys.pose("nosuchsession"), payload=ask, timeout=10))
+        assert decode(bytes(reply.err.payload.to_bytes()), Error).code == ErrorCode.FORBIDDEN
 
         info = _open(client, traj)
         client.send(traj.frame(0, info.session))
         client.latest_pose(timeout=30, after_seq=0)
-        short = traj.frame(1, info.session).model_copy(update={"q": traj.q[1][:21]})
-        raw = msgpack.unpackb(encode(traj.frame(1, info.session)), raw=False)
+        short = traj.frame(1, info.session, token=info.token).model_copy(update={"q": traj.q[1][:21]})
+        raw = msgpack.unpackb(encode(traj.frame(1, info.session, token=info.token)), raw=False)
         raw["force"]["data"] = np.full(12, np.inf, np.float32).tobytes()
         bad_frames = [
             (encode(short), "RobotFrame.q: expected shape (22,), got (21,) (seq 1)"),  # wrong size
@@ -172,7 +176,7 @@ def test_a_killed_robot_s_session_is_closed_and_a_restarted_service_reopened():
             svc.wait_ready(watcher)
             with pytest.raises(TrackerError) as exc:
                 watcher.status()
-            assert exc.value.code == ErrorCode.UNKNOWN_SESSION
+            assert exc.value.code == ErrorCode.FORBIDDEN
             with pytest.raises(TrackerError):  # the old session died with the old service
                 watcher.close_session()
             info = _open(watcher, traj)
@@ -232,17 +236,18 @@ def test_touch_presence_is_per_session_in_a_shared_population():
     robot = load_robot(ROOT / "configs/robots/allegro.toml")
     manager = SessionManager(ServiceConfig(groups=2, device="cpu"), {robot.name: robot}, load_catalog())
     open_one = lambda: manager.open(Open(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose,  # noqa: E731
-                                         q0=traj.truth.initial_q)).session  # fmt: skip
-    touch, blind = open_one(), open_one()
+                                         q0=traj.truth.initial_q))  # fmt: skip
+    touch_info, blind_info = open_one(), open_one()
+    touch, blind = touch_info.session, blind_info.session
     pool = manager.sessions[touch].pool
     assert manager.sessions[blind].pool is pool
     g_touch, g_blind = manager.sessions[touch].group, manager.sessions[blind].group
     contact_terms = slice(3, 6)  # contact disagreement, force magnitude and direction
     felt = 0.0
     for i in range(60):  # the fingers close on the brick from frame 41
-        manager.submit(traj.frame(i, touch))
-        manager.submit(traj.frame(i, blind).model_copy(update={"force": None, "slip": None, "slip_dir": None,
-                                                                "spin": None, "spin_sense": None}))  # fmt: skip
+        manager.submit(traj.frame(i, touch, token=touch_info.token))
+        no_touch = {"force": None, "slip": None, "slip_dir": None, "spin": None, "spin_sense": None}
+        manager.submit(traj.frame(i, blind, token=blind_info.token).model_copy(update=no_touch))
         manager.step(pool)
         terms = pool.tracker.cost.last_terms
         assert float(terms[g_blind, :, contact_terms].abs().sum()) == 0.0, f"frame {i}"

@@ -32,7 +32,7 @@ class ServiceConfig(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="INHAND_", extra="forbid", frozen=True, toml_file=DEFAULT_CONFIG)
 
     name: str = "default"
-    """The service's name: its keys live under inhand/v1/{name}."""
+    """The service's name: its keys live under inhand/v2/{name}."""
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, cuda or cuda:N."""
     listen: Endpoints = ("tcp/127.0.0.1:7447",)

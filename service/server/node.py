@@ -142,22 +142,35 @@ class TrackerNode:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", CloseSession)
         except DecodeError as exc:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._call("close", request.session))
+        self._reply(query, self._call("close", request))
+
+    def _session_request(self, query: zenoh.Query) -> CloseSession | Error:
+        """The session and token a status or pose query carries; the session is the key's."""
+        try:
+            request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", CloseSession)
+        except DecodeError as exc:
+            return Error(code=ErrorCode.BAD_REQUEST, message=f"{exc} (the payload carries the session's token)")
+        return request.model_copy(update={"session": self.keys.session_of(query.key_expr)})
 
     def _on_pose(self, query: zenoh.Query) -> None:
-        session = self.keys.session_of(query.key_expr)
-        latest = self._latest.get(session)
+        request = self._session_request(query)
+        if isinstance(request, Error):
+            return self._reply(query, request)
+        try:
+            self.manager.authorize(request.session, request.token)  # a dict read: safe off the loop
+        except ServiceError as exc:
+            return self._reply(query, exc.to_message())
+        latest = self._latest.get(request.session)
         with query:
             if latest is None:
-                known = session in self.manager.sessions
-                code = ErrorCode.BAD_REQUEST if known else ErrorCode.UNKNOWN_SESSION
-                text = f"session '{session}': no estimate yet" if known else f"session: '{session}' is not open"
-                query.reply_err(encode(Error(code=code, message=text)), encoding=_ENCODING)
+                text = f"session '{request.session}': no estimate yet"
+                query.reply_err(encode(Error(code=ErrorCode.BAD_REQUEST, message=text)), encoding=_ENCODING)
             else:
                 query.reply(query.key_expr, latest, encoding=_ENCODING)
 
     def _on_status(self, query: zenoh.Query) -> None:
-        self._reply(query, self._call("status", self.keys.session_of(query.key_expr)))
+        request = self._session_request(query)
+        self._reply(query, request if isinstance(request, Error) else self._call("status", request))
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         received = time.perf_counter()
@@ -269,10 +282,11 @@ class TrackerNode:
                 )
                 done.set_result(info)
             elif kind == "close":
-                self._drop(payload, must_exist=True)
-                done.set_result(CloseSession(session=payload))
+                m.authorize(payload.session, payload.token)
+                self._drop(payload.session)
+                done.set_result(CloseSession(session=payload.session))
             elif kind == "status":
-                done.set_result(m.status(payload))
+                done.set_result(m.status(payload.session, payload.token))
         except ServiceError as exc:
             if done is not None:
                 done.set_result(exc.to_message())
@@ -281,12 +295,10 @@ class TrackerNode:
             if done is not None:
                 done.set_result(Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
 
-    def _drop(self, session: str, must_exist: bool = False) -> None:
+    def _drop(self, session: str) -> None:
         if session not in self.manager.sessions:
-            if must_exist:
-                self.manager.close(session)  # raises UNKNOWN_SESSION
             return
-        self.manager.close(session)
+        self.manager.drop(session)
         self._robot_gone.pop(session, None)
         self._latest.pop(session, None)
         pub = self._publishers.pop(session, None)

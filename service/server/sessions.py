@@ -9,6 +9,7 @@ steps every population that has work and returns the estimates to publish.
 
 from __future__ import annotations
 
+import secrets
 import time
 import uuid
 from collections import deque
@@ -56,6 +57,8 @@ class ServiceError(Exception):
 @dataclass
 class _Session:
     id: str
+    token: str
+    """The session's secret: frames, close, status and pose queries must carry it."""
     robot: str
     object: str
     method: str
@@ -148,7 +151,9 @@ class SessionManager:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {np.shape(q0)[0]}")
         pool = self._pool(request, robot, tconf)
         group = pool.sessions.index(None)
-        session = _Session(uuid.uuid4().hex[:12], request.robot, request.object, request.method, pool, group)
+        session = _Session(
+            uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group
+        )
         tracker = pool.tracker
         tracker.set_method(group, request.method)
         mask = np.zeros(tracker.G, bool)
@@ -166,6 +171,7 @@ class SessionManager:
         self.sessions[session.id] = session
         return SessionInfo(
             session=session.id,
+            token=session.token,
             robot=request.robot,
             object=request.object,
             joint_names=list(kin.layout.joint_names),
@@ -221,19 +227,29 @@ class SessionManager:
         self.pools[pool.key] = pool
         return pool
 
-    def close(self, session_id: str) -> None:
-        """Close a session; a population left without sessions is dropped, its memory and worlds freed."""
-        session = self._get(session_id)
+    def close(self, session_id: str, token: str) -> None:
+        """Close a session at its robot's request (``token``: the session's secret)."""
+        self.authorize(session_id, token)
+        self.drop(session_id)
+
+    def drop(self, session_id: str) -> None:
+        """Close a session (if open); a population left without sessions is dropped, its memory and
+        worlds freed."""
+        session = self.sessions.get(session_id)
+        if session is None:
+            return
         pool = session.pool
         pool.sessions[session.group] = None
         del self.sessions[session_id]
         if not pool.active:
             del self.pools[pool.key]
 
-    def _get(self, session_id: str) -> _Session:
+    def authorize(self, session_id: str, token: str) -> _Session:
+        """The session, if ``token`` is its secret; else FORBIDDEN (an unknown id answers the same,
+        so a wrong token tells a peer nothing about which sessions exist)."""
         session = self.sessions.get(session_id)
-        if session is None:
-            raise ServiceError(ErrorCode.UNKNOWN_SESSION, f"session: '{session_id}' is not open")
+        if session is None or not secrets.compare_digest(session.token, token):
+            raise ServiceError(ErrorCode.FORBIDDEN, f"session '{session_id}': not open, or not yours (token)")
         return session
 
     def warm(self) -> None:
@@ -251,7 +267,11 @@ class SessionManager:
         """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
         a frame of the wrong size is refused with the field and the numbers (and counted). A seq
         beyond the window either way re-synchronises the session to it; a full queue drops its oldest."""
-        session = self._get(frame.session)
+        session = self.sessions.get(frame.session)
+        if session is not None and not secrets.compare_digest(session.token, frame.token):
+            session.errors += 1  # visible to its robot: some other peer publishes on its key
+            session.last_error = f"RobotFrame.token: does not match the session's (seq {frame.seq}); frame refused"
+        session = self.authorize(frame.session, frame.token)
         if session.failed is not None:
             session.errors += 1
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
@@ -358,8 +378,8 @@ class SessionManager:
         pool.failed = True
         return failed
 
-    def status(self, session_id: str) -> SessionStatus:
-        s = self._get(session_id)
+    def status(self, session_id: str, token: str) -> SessionStatus:
+        s = self.authorize(session_id, token)
         lat = np.asarray(s.latencies) if s.latencies else np.zeros(1)
         cov = s.latest.covariance if s.latest is not None else np.zeros((6, 6))
         return SessionStatus(
