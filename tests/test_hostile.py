@@ -345,3 +345,20 @@ def test_a_peer_without_the_session_token_can_neither_steer_query_nor_close_it(s
         robot.send(traj.frame(1, info.session))  # the robot's own session goes on
         assert robot.latest_pose(timeout=60, after_seq=1).seq == 1
         robot.close_session()
+
+
+def test_bench_load_reports_every_session_and_the_memory():
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    result = CliRunner().invoke(
+        app, ["bench", "load", "--sessions", "2", "--worlds", "4", "--rate", "10", "--seconds", "3", "--device", "cpu",
+              "--json"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.stdout)
+    assert [r["session"] for r in rows] == [0, 1]
+    for r in rows:
+        assert r["sent"] >= 25 and r["estimates"] >= 0.8 * r["sent"], r
+        assert 0 < r["latency_p50_ms"] <= r["latency_p99_ms"] and r["rss_mib_end"] > 0, r

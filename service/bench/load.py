@@ -1,10 +1,12 @@
 """The service under load: N robots, each streaming a bundled trajectory at a fixed rate through
 its own client to a service embedded on loopback (real Zenoh sessions), and what each got back:
 estimates per second, latency (arrival at the service to estimate) p50 and p99, and the frames
-the service counted late, stale (dropped under overload) or skipped."""
+the service counted late, stale (dropped under overload) or skipped. A long run is a soak: the
+process's resident memory a tenth of the way in and at the end says whether anything grows."""
 
 from __future__ import annotations
 
+import resource
 import socket
 import threading
 import time
@@ -34,6 +36,20 @@ class LoadResult:
     late: int
     stale: int
     gaps: int
+    rss_mib_early: float
+    """The process's resident memory a tenth of the way into the run [MiB]."""
+    rss_mib_end: float
+    """The same at the end [MiB]."""
+
+
+def _rss_mib() -> float:
+    """Resident memory of this process [MiB] (Linux /proc; NaN elsewhere). Written by hand: one
+    line of /proc is all it takes, psutil would be a dependency for it."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+    return pages * resource.getpagesize() / 2**20
 
 
 def bench_load(
@@ -82,8 +98,11 @@ def bench_load(
             threads = [threading.Thread(target=robot, args=(i,)) for i in range(sessions)]
             for t in threads:
                 t.start()
+            threads[0].join(timeout=0.1 * seconds)
+            rss_early = _rss_mib()
             for t in threads:
                 t.join()
+            rss_end = _rss_mib()
             time.sleep(1.0)  # the last estimates in flight
             out = []
             for i, (c, got) in enumerate(zip(clients, received, strict=True)):
@@ -102,6 +121,8 @@ def bench_load(
                         late=status.late,
                         stale=status.stale,
                         gaps=status.gaps,
+                        rss_mib_early=rss_early,
+                        rss_mib_end=rss_end,
                     )
                 )
             return out
@@ -117,7 +138,13 @@ def format_table(results: list[LoadResult]) -> str:
         f"  {r.latency_p50_ms:>14.1f}  {r.latency_p99_ms:>6.1f}  {r.late:>4}  {r.stale:>5}  {r.gaps:>4}"
         for r in results
     ]
-    return "\n".join([head, *rows])
+    r = results[0]
+    growth = 100 * (r.rss_mib_end / r.rss_mib_early - 1)
+    memory = (
+        f"resident memory: {r.rss_mib_early:.1f} MiB a tenth of the way in,"
+        f" {r.rss_mib_end:.1f} at the end ({growth:+.2f} %)"
+    )
+    return "\n".join([head, *rows, memory])
 
 
 def as_dicts(results: list[LoadResult]) -> list[dict]:
