@@ -19,7 +19,7 @@ import pytest
 from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
-from client import ServiceLost, StaleEstimate, TrackerClient
+from client import ServiceLost, StaleEstimate, TrackerClient, TrackerError
 from protocol import CloseSession, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
 from service.paths import DATA_DIR
 from service.server.config import ServiceConfig
@@ -362,3 +362,19 @@ def test_bench_load_reports_every_session_and_the_memory():
     for r in rows:
         assert r["sent"] >= 25 and r["estimates"] >= 0.8 * r["sent"], r
         assert 0 < r["latency_p50_ms"] <= r["latency_p99_ms"] and r["rss_mib_end"] > 0, r
+
+
+def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
+    """Building a new population holds the loop for longer than this service's watchdog allows: the
+    watchdog withdraws the service's token and `serve` exits non-zero (a live token on a stuck
+    loop would look healthy to every robot)."""
+    svc = ServiceProcess(free_port(), watchdog_s="0.3")
+    with TrackerClient(connect=[svc.endpoint]) as client:
+        svc.wait_ready(client)
+        try:  # answered or not: the service is going down meanwhile
+            client.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=64)
+        except (TimeoutError, TrackerError):
+            pass
+        svc.proc.wait(timeout=60)
+        log = svc.proc.stdout.read()
+    assert svc.proc.returncode == 1 and "has not come round" in log and "withdrawing" in log, log[-2000:]

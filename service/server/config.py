@@ -69,6 +69,10 @@ class ServiceConfig(BaseSettings):
     newest frame tracked, not a backlog)."""
     max_frame_age_s: float = Field(1.0, gt=0)
     """Frames that waited longer than this are dropped unapplied, except a session's newest [s]."""
+    watchdog_s: float = Field(600.0, gt=0)
+    """Once ready, the tracking loop must come round at least this often [s]; one stuck longer (in
+    a step, or a population build: keep this above the slowest) takes the service down: it
+    withdraws its liveliness token and `serve` exits non-zero."""
     max_wait_s: float = Field(0.05, ge=0)
     """A population steps when every session sent a frame, or when a frame waited this long [s]."""
     substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)

@@ -66,6 +66,8 @@ class TrackerNode:
         self._loop = threading.Thread(target=self._guarded_run, name="inhand-gpu-loop", daemon=True)
         self.ready = False
         """Kernels compiled and the liveliness token declared: sessions may open."""
+        self._beat = time.monotonic()
+        """When the loop last came round [s, monotonic]."""
         self._token = None
         self.session: zenoh.Session | None = None
 
@@ -84,6 +86,8 @@ class TrackerNode:
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
         ]
         self._loop.start()  # it warms up, then declares the service's liveliness token
+        self._watchdog = threading.Thread(target=self._watch, name="inhand-watchdog", daemon=True)
+        self._watchdog.start()
         return self
 
     def close(self) -> None:
@@ -203,21 +207,36 @@ class TrackerNode:
         try:
             self._run()
         except BaseException:
-            log.critical("the GPU loop died; withdrawing the service's liveliness token", exc_info=True)
-            self.ready = False
-            token = getattr(self, "_token", None)
-            if token is not None:
-                token.undeclare()
-            self.failed.set()
+            log.critical("the GPU loop died", exc_info=True)
+            self._withdraw()
+
+    def _watch(self) -> None:
+        """A loop that stops coming round (stuck in a step or a build) is as dead as one that raised."""
+        while not self._stop.wait(0.5) and not self.failed.is_set():
+            stalled, limit = time.monotonic() - self._beat, self.config.watchdog_s
+            if self.ready and stalled > limit:
+                log.critical("the GPU loop has not come round for %.1f s (watchdog_s %g)", stalled, limit)
+                self._withdraw()
+
+    def _withdraw(self) -> None:
+        """Stop announcing the service (token, ready) and tell `serve` to exit non-zero."""
+        log.critical("withdrawing the service's liveliness token")
+        self.ready = False
+        token, self._token = self._token, None
+        if token is not None:
+            token.undeclare()
+        self.failed.set()
 
     def _run(self) -> None:
         m, cfg = self.manager, self.config
         log.info("service '%s' warming up on %s: compiling kernels", cfg.name, self.device)
         m.warm()
+        self._beat = time.monotonic()
         self.ready = True
         self._token = self.session.liveliness().declare_token(self.keys.alive)  # only now do robots see us
         log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
         while not self._stop.is_set():
+            self._beat = time.monotonic()
             idle = not any(s.pending for s in m.sessions.values())
             try:
                 item = self._inbox.get(timeout=0.01 if idle else 0.0005)
