@@ -239,6 +239,9 @@ class Estimate(_Message):
     """A :class:`TrackState` name in lower case: tracking, uncertain, diverged or recovering."""
     latency_ms: float
     """From the frame's arrival at the service to this estimate [ms]."""
+    notice: str | None = None
+    """What the robot should know about this frame, once: e.g. that its seq jumped and the
+    session re-synchronised to it."""
 
 
 class SessionStatus(_Message):

@@ -80,11 +80,11 @@ def test_a_seq_jump_resynchronises_the_session_and_says_so(traj):
         manager.step(pool)
     manager.submit(traj.frame(3, info.session, token=info.token, seq=2**31))  # a corrupt seq
     (est,) = manager.step(pool)
-    assert est.seq == 2**31
+    assert est.seq == 2**31 and "jumped from 2 to 2147483648" in est.notice  # the robot is told
     for seq in (7, 8):  # the robot's own counter again: far behind, so a second re-sync, then in order
         manager.submit(traj.frame(seq, info.session, token=info.token, seq=seq))
         (est,) = manager.step(pool)
-        assert est.seq == seq
+        assert est.seq == seq and (est.notice is not None) == (seq == 7)  # said once
     status = manager.status(info.session, info.token)
     assert (status.frames, status.resyncs, status.late) == (6, 2, 0)
     assert "RobotFrame.seq: jumped from 2147483648 to 7" in status.last_error

@@ -79,6 +79,8 @@ class _Session:
     latest: Estimate | None = None
     failed: str | None = None
     """Why the session's population failed; it takes no more frames then."""
+    notice: str | None = None
+    """Said to the robot with its next estimate, then cleared."""
     heard: float = field(default_factory=time.monotonic)
     """When the session last received a frame (or opened) [s, monotonic]."""
 
@@ -292,6 +294,7 @@ class SessionManager:
                 f"RobotFrame.seq: jumped from {last} to {frame.seq}, beyond the service's window of {window}:"
                 " re-synchronised to it"
             )
+            session.notice = session.last_error
             session.next_seq = frame.seq
             last = frame.seq - 1
         if frame.seq <= last:
@@ -360,7 +363,9 @@ class SessionManager:
                 friction=float(est.friction[g]),
                 status=TrackState(int(est.status[g])).name.lower(),
                 latency_ms=latency,
+                notice=s.notice,
             )
+            s.notice = None
             out.append(s.latest)
         return out
 
