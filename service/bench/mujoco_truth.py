@@ -19,6 +19,7 @@ import mujoco
 import newton
 import numpy as np
 import warp as wp
+from scipy.spatial.transform import Rotation
 
 from protocol import SENSING
 from sim_backend import PopulationConfig, RobotSpec, observe
@@ -162,31 +163,13 @@ def _run(
     )
 
 
-def _quat_rotate_inv(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate ``v`` by the inverse of unit quaternion ``q`` (x, y, z, w)."""
-    u, w = q[:3], q[3]
-    t = 2.0 * np.cross(-u, v)
-    return v + w * t + np.cross(-u, t)
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    (ax, ay, az, aw), (bx, by, bz, bw) = a, b
-    return np.array([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ])  # fmt: skip
-
-
 def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed: float) -> dict[str, np.ndarray]:
     """What the robot senses now, as :mod:`sim_backend.observe` computes it for a world."""
     m = scene.model
     L = len(scene.sensor_bodies)
-    rot = np.empty((L, 4))
-    for l, b in enumerate(scene.sensor_bodies):
-        wxyz = d.xquat[b]
-        rot[l] = _quat_mul(np.array([*wxyz[1:], wxyz[0]]), scene.sensor_offsets[l, 3:])
+    sensors = Rotation.from_matrix(d.xmat[scene.sensor_bodies].reshape(-1, 3, 3)) * Rotation.from_quat(
+        scene.sensor_offsets[:, 3:]
+    )  # each sensor frame in the world (scipy's quaternions are (x, y, z, w), as ours)
     force, slip_acc, spin_acc, weight = np.zeros((L, 3)), np.zeros((L, 3)), np.zeros((L, 3)), np.zeros(L)
     row = {int(b): l for l, b in enumerate(scene.sensor_bodies)}
     f6, vel = np.zeros(6), np.zeros((2, 6))
@@ -217,9 +200,8 @@ def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed
         slip_acc[l] += w * (v_rel - np.dot(v_rel, n) * n)
         spin_acc[l] += w * (vel[0, :3] - vel[1, :3])
         weight[l] += w
-    forces = np.stack([_quat_rotate_inv(rot[l], force[l]) for l in range(L)])
-    sliding = np.stack([_quat_rotate_inv(rot[l], slip_acc[l]) for l in range(L)])
-    turning = np.stack([_quat_rotate_inv(rot[l], spin_acc[l]) for l in range(L)])
+    to_sensor = sensors.inv()
+    forces, sliding, turning = (to_sensor.apply(v) for v in (force, slip_acc, spin_acc))
     return {
         "q": d.qpos[scene.qpos].copy(),
         **observe.touch_from_sums(forces, sliding, turning, weight, slip_speed, spin_speed),
