@@ -253,6 +253,9 @@ def demo(
     config = ServiceConfig(listen=(endpoint,), device=device, groups=1)  # one session: no idle groups to step
     log.info("starting the service on %s (device %s)", endpoint, device)
     with TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
+        # The embedded service compiles its kernels first: minutes on a cold cache and a small CPU,
+        # with a progress line meanwhile. This client waits for it however long that takes.
+        client.wait_ready(timeout=3600)
         log.info("service up on %s; replaying through a client", node.device)
         file = file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
         raise typer.Exit(_replay(client, file, method, worlds, 0.0, "med", live=True))

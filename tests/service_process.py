@@ -34,7 +34,8 @@ class ServiceProcess:
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )  # fmt: skip
 
-    def wait_ready(self, client: TrackerClient, timeout: float = 120.0) -> None:
+    def wait_ready(self, client: TrackerClient, timeout: float = 900.0) -> None:
+        # A first start on a cold kernel cache compiles for minutes before the service is ready.
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             assert self.proc.poll() is None, self.proc.stdout.read()[-3000:]
