@@ -372,9 +372,9 @@ def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
     with TrackerClient(connect=[svc.endpoint]) as client:
         svc.wait_ready(client)
         try:  # answered or not: the service is going down meanwhile
-            client.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=64)
+            client.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=512)
         except (TimeoutError, TrackerError):
             pass
-        svc.proc.wait(timeout=60)
+        svc.proc.wait(timeout=30)  # promptly, though the loop may still be building
         log = svc.proc.stdout.read()
     assert svc.proc.returncode == 1 and "has not come round" in log and "withdrawing" in log, log[-2000:]

@@ -9,11 +9,12 @@ timeout.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
 import time
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 
 import zenoh
 
@@ -68,6 +69,8 @@ class TrackerNode:
         """Kernels compiled and the liveliness token declared: sessions may open."""
         self._beat = time.monotonic()
         """When the loop last came round [s, monotonic]."""
+        self._in_flight: Future | None = None
+        """The request the loop is handling now."""
         self._token = None
         self.session: zenoh.Session | None = None
 
@@ -95,6 +98,13 @@ class TrackerNode:
         self._stop.set()
         if self._loop.is_alive():
             self._loop.join(timeout=10)
+        # A loop still busy (a population build) or dead leaves requests unanswered, and Zenoh's
+        # close waits for the handlers that wait on them: answer them, so the service can go.
+        pending = [self._in_flight]
+        while not self._inbox.empty():
+            pending.append(self._inbox.get_nowait()[2])
+        for done in pending:
+            _answer(done, Error(code=ErrorCode.INTERNAL, message="the service is stopping"))
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -276,6 +286,7 @@ class TrackerNode:
 
     def _handle(self, kind: str, payload, done: Future | None) -> None:
         m = self.manager
+        self._in_flight = done
         try:
             if kind == "frame":
                 frame, received = payload
@@ -299,20 +310,18 @@ class TrackerNode:
                     express=True,
                     priority=zenoh.Priority.REAL_TIME,
                 )
-                done.set_result(info)
+                _answer(done, info)
             elif kind == "close":
                 m.authorize(payload.session, payload.token)
                 self._drop(payload.session)
-                done.set_result(CloseSession(session=payload.session))
+                _answer(done, CloseSession(session=payload.session))
             elif kind == "status":
-                done.set_result(m.status(payload.session, payload.token))
+                _answer(done, m.status(payload.session, payload.token))
         except ServiceError as exc:
-            if done is not None:
-                done.set_result(exc.to_message())
+            _answer(done, exc.to_message())
         except Exception as exc:  # the loop never dies of a request; the caller gets the reason
             log.exception("request '%s' failed", kind)
-            if done is not None:
-                done.set_result(Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
+            _answer(done, Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
 
     def _drop(self, session: str) -> None:
         if session not in self.manager.sessions:
@@ -323,3 +332,10 @@ class TrackerNode:
         pub = self._publishers.pop(session, None)
         if pub is not None:
             pub.undeclare()
+
+
+def _answer(done: Future | None, value) -> None:
+    """Answer a request once: a stopping service may have answered it already."""
+    if done is not None:
+        with contextlib.suppress(InvalidStateError):
+            done.set_result(value)
