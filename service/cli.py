@@ -329,6 +329,9 @@ def bench_load(
     worlds: Annotated[int, typer.Option(help="K per session")] = 40,
     rate: Annotated[float, typer.Option(help="each robot's frames per second")] = 30.0,
     seconds: Annotated[float, typer.Option(help="how long the robots stream")] = 10.0,
+    connect: Annotated[
+        str, typer.Option(help="a running service's endpoints, comma-separated (default: embed one)")
+    ] = "",
     device: Device = "auto",
     json_: Json = False,
 ) -> None:
@@ -338,7 +341,7 @@ def bench_load(
 
     try:
         with contextlib.redirect_stdout(sys.stderr):
-            results = bench_load(sessions, worlds, rate, seconds, device)
+            results = bench_load(sessions, worlds, rate, seconds, device, connect=tuple(_names(connect)))
     except ValueError as exc:
         raise _fail(f"bench load: {exc}") from None
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))

@@ -347,14 +347,15 @@ def test_a_peer_without_the_session_token_can_neither_steer_query_nor_close_it(s
         robot.close_session()
 
 
-def test_bench_load_reports_every_session_and_the_memory():
+@pytest.mark.parametrize("where", ["embedded", "running"])
+def test_bench_load_reports_every_session_and_the_memory(service, where):
     from typer.testing import CliRunner
 
     from service.cli import app
 
+    target = ["--device", "cpu"] if where == "embedded" else ["--connect", service.endpoint]
     result = CliRunner().invoke(
-        app, ["bench", "load", "--sessions", "2", "--worlds", "4", "--rate", "10", "--seconds", "3", "--device", "cpu",
-              "--json"],
+        app, ["bench", "load", "--sessions", "2", "--worlds", "4", "--rate", "10", "--seconds", "3", "--json", *target],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     rows = json.loads(result.stdout)

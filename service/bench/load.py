@@ -6,6 +6,7 @@ process's resident memory a tenth of the way in and at the end says whether anyt
 
 from __future__ import annotations
 
+import contextlib
 import resource
 import socket
 import threading
@@ -59,19 +60,25 @@ def bench_load(
     seconds: float = 10.0,
     device: str = "auto",
     file: Path | None = None,
+    connect: tuple[str, ...] = (),
 ) -> list[LoadResult]:
     """Run ``sessions`` robots at ``rate`` [Hz] for ``seconds`` against one embedded service whose
-    population holds them all (groups = sessions)."""
+    population holds them all (groups = sessions), or against the running service at ``connect``
+    (its own settings; the memory figures are then this process's, the robots', not the service's)."""
     if sessions < 1 or worlds < 1 or rate <= 0 or seconds <= 0:
         got = f"{sessions}, {worlds}, {rate}, {seconds}"
         raise ValueError(f"load: expected sessions, worlds, rate and seconds > 0, got {got}")
     traj = Trajectory.load(file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{sock.getsockname()[1]}"
-    config = ServiceConfig(listen=(endpoint,), device=device, groups=sessions, max_sessions=max(64, sessions))
-    with TrackerNode(config):
-        clients = [TrackerClient(connect=[endpoint]) for _ in range(sessions)]
+    if connect:
+        endpoints, service = list(connect), contextlib.nullcontext()
+    else:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            endpoints = [f"tcp/127.0.0.1:{sock.getsockname()[1]}"]
+        config = ServiceConfig(listen=tuple(endpoints), device=device, groups=sessions, max_sessions=max(64, sessions))
+        service = TrackerNode(config)
+    with service:
+        clients = [TrackerClient(connect=endpoints) for _ in range(sessions)]
         try:
             for c in clients:
                 c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=worlds)
