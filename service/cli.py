@@ -347,6 +347,15 @@ def bench_load(
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
 
 
+def _suite(name: str, short: bool):
+    """The benchmark suite called ``name`` (in short form), or exit 2 naming the suites there are."""
+    from service.bench import SUITES
+
+    if name not in SUITES:
+        raise _fail(f"--suite: expected one of {sorted(SUITES)}, got '{name}'")
+    return SUITES[name].short() if short else SUITES[name]
+
+
 def _settings(settings: list[str]):
     """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
     tracker's number and flag fields, its optimizer's as optimizer.NAME, and the population's
@@ -401,11 +410,10 @@ def bench_accuracy(
 ) -> None:
     """Tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A."""
     _gpu_stack()
-    from service.bench import SUITES, run_suite, write_report
+    from service.bench import run_suite, write_report
     from service.paths import CACHE_DIR
 
-    if suite not in SUITES:
-        raise _fail(f"--suite: expected one of {sorted(SUITES)}, got '{suite}'")
+    chosen = _suite(suite, short)
     studies = ["exploration", "worlds", "contact", "slip"] if ablations == "all" else _names(ablations)
     try:
         config, population = _settings(set_ or [])
@@ -417,7 +425,7 @@ def bench_accuracy(
     try:
         with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the report or JSON
             results = run_suite(
-                SUITES[suite].short() if short else SUITES[suite],
+                chosen,
                 methods=_names(methods),
                 noises=_names(noise),
                 ablations=studies,
@@ -452,13 +460,11 @@ def bench_cost_ranking(
 ) -> None:
     """How well each cost term ranks the worlds by their true pose error (Spearman's rho)."""
     _gpu_stack()
-    from service.bench import SUITES, ground_truth
+    from service.bench import ground_truth
     from service.bench.ranking import cost_ranking
     from service.paths import CACHE_DIR
 
-    if suite not in SUITES:
-        raise _fail(f"--suite: expected one of {sorted(SUITES)}, got '{suite}'")
-    chosen = SUITES[suite].short() if short else SUITES[suite]
+    chosen = _suite(suite, short)
     with contextlib.redirect_stdout(sys.stderr):
         by_object: dict[str, list] = {}
         for t in ground_truth(chosen, device, cache or CACHE_DIR):

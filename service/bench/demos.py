@@ -87,19 +87,26 @@ class Demo:
         return replace(self, controls=self.controls[:end], phases=tuple(p for p in self.phases if p[1] < end))
 
 
-class _Script:
-    """Joint targets built phase by phase, each a smooth move or a hold of so many seconds."""
+def cosine_profile(t: np.ndarray) -> np.ndarray:
+    """Progress at times ``t`` in (0, 1] of a move with a cosine velocity profile."""
+    return 0.5 - 0.5 * np.cos(np.pi * t)
 
-    def __init__(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, pace: float):
-        self.q, self.lower, self.upper, self.pace = q.copy(), lower, upper, pace
+
+class Script:
+    """Joint targets built phase by phase, each a smooth move (along ``profile``: progress in
+    [0, 1] at normalised time) or a hold of so many seconds."""
+
+    def __init__(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, pace: float = 1.0,
+                 profile=cosine_profile):  # fmt: skip
+        self.q, self.lower, self.upper, self.pace, self.profile = q.copy(), lower, upper, pace, profile
         self.rows: list[np.ndarray] = []
         self.phases: list[tuple[str, int]] = []
         self.count = 0
 
     def move(self, phase: str, target: np.ndarray, seconds: float) -> None:
-        """Go to ``target`` with a cosine velocity profile (smooth start and stop)."""
+        """Go to ``target`` along the profile (smooth start and stop)."""
         n = max(2, round(seconds * self.pace * FRAME_RATE))
-        s = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, n + 1)[1:])
+        s = self.profile(np.linspace(0.0, 1.0, n + 1)[1:])
         target = np.clip(target, self.lower, self.upper)
         self._add(phase, self.q + (target - self.q) * s[:, None])
         self.q = target.copy()
@@ -145,7 +152,7 @@ def make_demo(
     palm_z = float(wrist[2])
     open_hand = lay.default_q.copy()
     open_hand[:3] = wrist[0], wrist[1], palm_z + 0.12  # straight above: the fingers clear the object
-    script = _Script(open_hand, lay.lower, lay.upper, pace)
+    script = Script(open_hand, lay.lower, lay.upper, pace)
 
     above = open_hand.copy()
     above[2] = palm_z

@@ -21,7 +21,7 @@ from sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
 from sim_backend.kinematics import Kinematics
 from sim_backend.objects import ObjectSpec
 
-from .demos import FRAME_RATE, Demo
+from .demos import FRAME_RATE, Demo, Script
 
 __all__ = ["MOTION_KINDS", "make_motion"]
 
@@ -32,31 +32,9 @@ _ABDUCTION = (6, 10, 14)
 _THUMB_SWING = 18
 
 
-class _Waypoints:
-    """Joint targets, frame by frame, through waypoints reached with a minimum-jerk profile."""
-
-    def __init__(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray):
-        self.q, self.lower, self.upper = q.copy(), lower, upper
-        self.rows: list[np.ndarray] = []
-        self.phases: list[tuple[str, int]] = []
-        self.count = 0
-
-    def to(self, phase: str, target: np.ndarray, seconds: float) -> None:
-        n = max(2, round(seconds * FRAME_RATE))
-        t = np.linspace(0.0, 1.0, n + 1)[1:]
-        s = t**3 * (10.0 - 15.0 * t + 6.0 * t**2)
-        target = np.clip(target, self.lower, self.upper)
-        self._add(phase, self.q + (target - self.q) * s[:, None])
-        self.q = target.copy()
-
-    def wait(self, phase: str, seconds: float) -> None:
-        self._add(phase, np.repeat(self.q[None], max(1, round(seconds * FRAME_RATE)), axis=0))
-
-    def _add(self, phase: str, rows: np.ndarray) -> None:
-        if not self.phases or self.phases[-1][0] != phase:
-            self.phases.append((phase, self.count))
-        self.rows.append(rows)
-        self.count += rows.shape[0]
+def _minimum_jerk(t: np.ndarray) -> np.ndarray:
+    """Progress at times ``t`` in (0, 1] with zero velocity and acceleration at both ends."""
+    return t**3 * (10.0 - 15.0 * t + 6.0 * t**2)
 
 
 def make_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 20.0) -> Demo:
@@ -74,18 +52,18 @@ def make_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, s
     grasp = plan_pinch(kin, obj, wrist_q=wrist)
     start = lay.default_q.copy()
     start[:3] = wrist[0], wrist[1], wrist[2] + 0.1
-    path = _Waypoints(start, lay.lower, lay.upper)
+    path = Script(start, lay.lower, lay.upper, profile=_minimum_jerk)
 
     above = start.copy()
     above[2] = wrist[2]
-    path.to("reach", above, 1.0)
-    path.to("close", grasp.q_touch, 0.7)
-    path.to("squeeze", grasp.q_squeeze, 0.2)
-    path.wait("squeeze", 0.3)
+    path.move("reach", above, 1.0)
+    path.move("close", grasp.q_touch, 0.7)
+    path.move("squeeze", grasp.q_squeeze, 0.2)
+    path.hold("squeeze", 0.3)
     held = grasp.q_squeeze.copy()
     held[2] += 0.05
-    path.to("lift", held, 1.0)
-    path.wait("lift", 0.3)
+    path.move("lift", held, 1.0)
+    path.hold("lift", 0.3)
 
     end = (seconds - 3.0) * FRAME_RATE  # 3 s: set down, let go, rise
     cycle = 0
@@ -96,53 +74,53 @@ def make_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, s
             # script that only shook would shake any object out of an open-loop grasp.
             moved = held.copy()
             moved[:2] += rng.uniform(-0.03, 0.03, 2)
-            path.to("carry", moved, 1.2)
+            path.move("carry", moved, 1.2)
             held = moved
         elif kind == "wrist_roll":
             angle = rng.uniform(0.35, 0.6)
             for sign in (1.0, -1.0):
                 rolled = held.copy()
                 rolled[_WRIST_ROLL] += sign * angle
-                path.to("carry", rolled, rng.uniform(0.8, 1.4))
-                path.wait("carry", 0.3)
-            path.to("carry", held, 1.0)
+                path.move("carry", rolled, rng.uniform(0.8, 1.4))
+                path.hold("carry", 0.3)
+            path.move("carry", held, 1.0)
         elif kind == "tilt_shake":
             tilted = held.copy()
             tilted[_WRIST_PITCH] += rng.uniform(0.2, 0.35)
-            path.to("carry", tilted, 0.8)
+            path.move("carry", tilted, 0.8)
             for _ in range(2):
                 stroke = tilted.copy()
                 stroke[1] += rng.choice((-1.0, 1.0)) * rng.uniform(0.015, 0.03)
-                path.to("carry", stroke, 0.3)
-                path.to("carry", tilted, 0.3)
-            path.to("carry", held, 0.8)
+                path.move("carry", stroke, 0.3)
+                path.move("carry", tilted, 0.3)
+            path.move("carry", held, 0.8)
         elif kind == "loosen":
             eased = held.copy()
             ease = rng.uniform(0.45, 0.7)  # how much of the squeeze is let off
             eased[SQUEEZE_JOINTS] = held[SQUEEZE_JOINTS] + ease * (grasp.q_touch - grasp.q_squeeze)[SQUEEZE_JOINTS]
-            path.to("carry", eased, 0.6)
-            path.wait("carry", 0.4)
-            path.to("carry", held, 0.3)
+            path.move("carry", eased, 0.6)
+            path.hold("carry", 0.4)
+            path.move("carry", held, 0.3)
         else:  # twist
             turn = rng.uniform(0.2, 0.35)
             twisted = held.copy()
             twisted[list(_ABDUCTION)] -= turn
             twisted[_THUMB_SWING] -= turn
             twisted[_WRIST_YAW] += 0.5 * turn
-            path.to("carry", twisted, 1.5)
-            path.wait("carry", 0.3)
-            path.to("carry", held, 1.5)
-        path.wait("carry", 0.4)
+            path.move("carry", twisted, 1.5)
+            path.hold("carry", 0.3)
+            path.move("carry", held, 1.5)
+        path.hold("carry", 0.4)
     down = held.copy()
     down[2] -= 0.05
     down[_WRIST_ROLL] = down[_WRIST_PITCH] = down[_WRIST_YAW] = 0.0
-    path.to("place", down, 1.0)
+    path.move("place", down, 1.0)
     release = path.q.copy()
     release[SQUEEZE_JOINTS] = grasp.q_touch[SQUEEZE_JOINTS] - 0.2
-    path.to("release", release, 0.8)
+    path.move("release", release, 0.8)
     retreat = release.copy()
     retreat[2] += 0.08
-    path.to("retreat", retreat, 1.0)
+    path.move("retreat", retreat, 1.0)
     return Demo(
         name=f"{obj.name}_{kind}_{variant}",
         controls=np.concatenate(path.rows).astype(np.float32),

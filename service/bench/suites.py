@@ -73,6 +73,9 @@ class Suite:
         )  # fmt: skip
 
 
+_REAL_SENSORS = SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2)
+"""What the suites that stand in for a real robot add to its sensing."""
+
 SUITES: dict[str, Suite] = {
     "smoke": Suite("smoke", ("foam_brick",), ("pick_place",), 2, seconds=10.0, pace=0.7),
     "paper": Suite("paper", ("spam_can", "foam_brick", "toy_banana"), DEMO_KINDS, 2, seconds=60.0),
@@ -83,7 +86,7 @@ SUITES: dict[str, Suite] = {
         1,
         seconds=30.0,
         gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
-        sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
+        sensors=_REAL_SENSORS,
     ),
     "cross-engine": Suite(
         "cross-engine",
@@ -91,7 +94,7 @@ SUITES: dict[str, Suite] = {
         MOTION_KINDS,
         1,
         seconds=20.0,
-        sensors=SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2),
+        sensors=_REAL_SENSORS,
         engine="mujoco",
     ),
 }

@@ -269,11 +269,13 @@ class SessionManager:
         """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
         a frame of the wrong size is refused with the field and the numbers (and counted). A seq
         beyond the window either way re-synchronises the session to it; a full queue drops its oldest."""
-        session = self.sessions.get(frame.session)
-        if session is not None and not secrets.compare_digest(session.token, frame.token):
-            session.errors += 1  # visible to its robot: some other peer publishes on its key
-            session.last_error = f"RobotFrame.token: does not match the session's (seq {frame.seq}); frame refused"
-        session = self.authorize(frame.session, frame.token)
+        try:
+            session = self.authorize(frame.session, frame.token)
+        except ServiceError:
+            if (known := self.sessions.get(frame.session)) is not None:  # its robot sees another peer publish
+                known.errors += 1
+                known.last_error = f"RobotFrame.token: does not match the session's (seq {frame.seq}); frame refused"
+            raise
         if session.failed is not None:
             session.errors += 1
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
