@@ -413,7 +413,7 @@ def bench_accuracy(
     from service.bench import run_suite, write_report
     from service.paths import CACHE_DIR
 
-    chosen = _suite(suite, short)
+    picked = _suite(suite, short)
     studies = ["exploration", "worlds", "contact", "slip"] if ablations == "all" else _names(ablations)
     try:
         config, population = _settings(set_ or [])
@@ -425,7 +425,7 @@ def bench_accuracy(
     try:
         with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the report or JSON
             results = run_suite(
-                chosen,
+                picked,
                 methods=_names(methods),
                 noises=_names(noise),
                 ablations=studies,
