@@ -1,7 +1,8 @@
 """Container health check: ask the local service's info key over Zenoh; exit 0 when it answers
 and is ready (kernels compiled, its tracking loop running).
 
-python -m client.health [ENDPOINT]   (default: INHAND_LISTEN with 0.0.0.0 read as 127.0.0.1)
+python -m client.health [ENDPOINT]   (default: INHAND_LISTEN with 0.0.0.0 read as 127.0.0.1;
+INHAND_ZENOH_CONFIG, when set, is the Zenoh file it connects with, as the service does)
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ def main() -> int:
     endpoint = endpoint.split(",")[0].replace("0.0.0.0", "127.0.0.1")
     service = os.environ.get("INHAND_NAME", "default")
     try:
-        with TrackerClient(connect=[endpoint], service=service) as client:
+        zenoh_file = os.environ.get("INHAND_ZENOH_CONFIG") or None
+        with TrackerClient(connect=[endpoint], service=service, zenoh_file=zenoh_file) as client:
             info = client.service_info(timeout=5.0)
     except Exception as exc:  # any failure is "unhealthy", with the reason for `docker inspect`
         print(f"unhealthy: {type(exc).__name__}: {exc}", file=sys.stderr)

@@ -53,9 +53,11 @@ class ServiceLost(ConnectionError):
 
 def zenoh_config(listen=(), connect=(), scouting: bool = False, file: str | os.PathLike | None = None) -> zenoh.Config:
     """A peer config: listen and connect endpoints, multicast scouting on or off; on top of the
-    Zenoh config ``file`` when given (TLS certificates, access control rules)."""
+    Zenoh config ``file`` when given (TLS certificates, access control rules, ``mode: "client"``
+    behind a router)."""
     conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
+    if conf.get_json("mode") == "null":
+        conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
     if connect:
         conf.insert_json5("connect/endpoints", str(list(connect)).replace("'", '"'))

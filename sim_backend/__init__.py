@@ -7,7 +7,7 @@ from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
 from .observe import HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise
 from .params import ObjectParams
-from .population import Population
+from .population import Population, no_collection
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot
 
 __all__ = [
@@ -39,6 +39,7 @@ __all__ = [
     "load_robot",
     "make_banana",
     "make_physics",
+    "no_collection",
     "plan_pinch",
     "resolve_device",
 ]

@@ -3,7 +3,10 @@ the MuJoCo-Warp solver and collision pipeline that step it. Static once built.""
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
 import newton
@@ -49,8 +52,15 @@ class Physics:
     """The solver's contact forces, read by the observation kernels."""
 
 
-def build_model(robot: RobotSpec, obj: ObjectSpec, cfg: PopulationConfig, device: wp.context.Device) -> BuiltModel:
-    """One world of ``robot`` and ``obj``, replicated ``cfg.world_count`` times over a ground plane."""
+def build_model(
+    robot: RobotSpec,
+    obj: ObjectSpec,
+    cfg: PopulationConfig,
+    device: wp.context.Device,
+    turn: Callable[[], AbstractContextManager] = contextlib.nullcontext,
+) -> BuiltModel:
+    """One world of ``robot`` and ``obj``, replicated ``cfg.world_count`` times over a ground plane.
+    The composition runs on the host; ``turn`` is entered only for the upload to ``device``."""
     world = newton.ModelBuilder()
     newton.solvers.SolverMuJoCo.register_custom_attributes(world)
     # Newton's default detection gap (0.1 m) turns every shape pair within 10 cm into contacts;
@@ -63,7 +73,7 @@ def build_model(robot: RobotSpec, obj: ObjectSpec, cfg: PopulationConfig, device
     builder.rigid_gap = cfg.contact_gap
     builder.add_ground_plane()
     builder.replicate(world, cfg.world_count)
-    with wp.ScopedDevice(device):
+    with turn(), wp.ScopedDevice(device):
         model = builder.finalize(device=device)
     return BuiltModel(
         model=model,

@@ -11,6 +11,9 @@ once as a graph and replayed by :meth:`Population.step`, on CUDA and on Warp's C
 from __future__ import annotations
 
 import contextlib
+import gc
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 
 import newton
 import numpy as np
@@ -25,7 +28,21 @@ from .params import ObjectParams
 from .robots import RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 
-__all__ = ["Population"]
+__all__ = ["Population", "no_collection"]
+
+
+@contextlib.contextmanager
+def no_collection() -> Iterator[None]:
+    """No cycle collection (on any thread) while a CUDA graph is captured: a dropped population's
+    graphs live in a reference cycle, and freeing a graph during another's capture invalidates it."""
+    gc.collect()
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if collecting:
+            gc.enable()
 
 
 @wp.kernel(enable_backward=False)
@@ -64,7 +81,17 @@ class Population:
     :attr:`obs`. Between frames: :meth:`resample`, :meth:`set_params`, :meth:`set_wrench`.
     """
 
-    def __init__(self, robot: RobotSpec, obj: ObjectSpec, config: PopulationConfig | None = None):
+    def __init__(
+        self,
+        robot: RobotSpec,
+        obj: ObjectSpec,
+        config: PopulationConfig | None = None,
+        turn: Callable[[], AbstractContextManager] = contextlib.nullcontext,
+    ):
+        """``turn``: entered around each stage of the build that uses the device (upload, solver,
+        buffers, capture), so that a population can be built on one thread while another steps
+        the others between those stages; Warp's current stream is per device, not per thread, so
+        the stages must not interleave with another thread's device work."""
         self.config = cfg = config or PopulationConfig()
         self.device = resolve_device(cfg.device)
         self.robot_spec = robot
@@ -74,7 +101,7 @@ class Population:
         self.torch_device = torch.device(torch_device)
         self._torch_stream = wp.stream_to_torch(self.device.stream) if self.device.is_cuda else None
 
-        self.built = built = build_model(robot, obj, cfg, self.device)
+        self.built = built = build_model(robot, obj, cfg, self.device, turn)
         """The replicated model and what one world of it holds (static)."""
         self.model = built.model
         self.layout: RobotLayout = built.layout
@@ -82,10 +109,11 @@ class Population:
             built.object_body, built.bodies, built.coords, built.dofs
         )  # fmt: skip
         self.D, self.L = self.layout.dof_count, self.layout.sensor_count
-        physics = make_physics(self.model, cfg, self.device)
+        with turn():
+            physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
         self._observables = physics.observables
-        with wp.ScopedDevice(self.device):
+        with turn(), wp.ScopedDevice(self.device):
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
             self.control = self.model.control()
@@ -94,18 +122,17 @@ class Population:
             self._goal = wp.zeros((self.W, self.D), dtype=float)
             self._last_goal = wp.zeros((self.W, self.D), dtype=float)
             self._static = self._static_arrays()
-        self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
-        """The object's mass and friction per world and the solver's constants they set."""
-        self._views()
-        self.obs = observe.observation_views(self._buf, self.G, self.K)
-        self.reset_state()
-        self.set_params(
-            mass=torch.full((self.G, self.K), obj.mass), friction=torch.full((self.G, self.K), obj.friction)
-        )
-        self.set_targets(np.broadcast_to(self.layout.default_q, (self.G, self.D)))
+            self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
+            """The object's mass and friction per world and the solver's constants they set."""
+            self._views()
+            self.obs = observe.observation_views(self._buf, self.G, self.K)
+            self.reset_state()
+            mass, friction = (torch.full((self.G, self.K), v) for v in (obj.mass, obj.friction))
+            self.set_params(mass=mass, friction=friction)
+            self.set_targets(np.broadcast_to(self.layout.default_q, (self.G, self.D)))
         self._graph = None
         if cfg.use_graph:
-            self._capture()
+            self._capture(turn)
 
     # ------------------------------------------------------------------ build
     def _static_arrays(self) -> dict[str, wp.array]:
@@ -222,15 +249,15 @@ class Population:
             outputs=[b.object_pose, b.health],
         )
 
-    def _capture(self) -> None:
-        with wp.ScopedDevice(self.device):
-            # Compile every kernel once outside capture, then record; the eager frame is undone.
+    def _capture(self, turn: Callable[[], AbstractContextManager]) -> None:
+        # Compile every kernel once outside capture, then record; the eager frame is undone.
+        with turn(), wp.ScopedDevice(self.device):
             saved = self.snapshot()
             self._simulate()
             self.restore(saved)
-            with wp.ScopedCapture(device=self.device) as capture:
-                self._simulate()
-            self._graph = capture.graph
+        with turn(), wp.ScopedDevice(self.device), no_collection(), wp.ScopedCapture(device=self.device) as capture:
+            self._simulate()
+        self._graph = capture.graph
 
     def state_tensors(self) -> list[torch.Tensor]:
         """Every tensor that carries a world's dynamic state from one frame to the next."""

@@ -25,12 +25,24 @@ def free_port() -> int:
 class ServiceProcess:
     """`inhand-tracker serve` in a subprocess on a free loopback port."""
 
-    def __init__(self, port: int, groups: int = 1, timeout_s: float = 1.0, scheme: str = "tcp", **settings: str):
+    def __init__(
+        self,
+        port: int,
+        groups: int = 1,
+        timeout_s: float = 1.0,
+        scheme: str = "tcp",
+        listen: bool = True,
+        **settings: str,
+    ):
+        """``listen``: on the port; else on nothing (a client of a router named by ``settings``)."""
         self.endpoint = f"{scheme}/127.0.0.1:{port}"
         env = os.environ | {"INHAND_GROUPS": str(groups), "INHAND_ROBOT_TIMEOUT_S": str(timeout_s)}
         env |= {f"INHAND_{k.upper()}": v for k, v in settings.items()}
+        endpoints = ["--listen", self.endpoint] if listen else []
+        if not listen:
+            env["INHAND_LISTEN"] = ""
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--listen", self.endpoint, "--device", "cpu"],
+            [sys.executable, "-m", "service.cli", "serve", *endpoints, "--device", "cpu"],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )  # fmt: skip
 

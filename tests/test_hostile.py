@@ -6,9 +6,11 @@ its caller when the estimate it holds is stale or the service went away."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -16,6 +18,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
@@ -181,7 +184,7 @@ def test_caps_refuse_with_the_numbers_and_an_emptied_population_is_freed(traj):
 
 
 def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
-    svc = ServiceProcess(free_port(), timeout_s=1.0, idle_timeout_s="3")
+    svc = ServiceProcess(free_port(), groups=2, timeout_s=1.0, idle_timeout_s="3")  # one population
     keys = Keys("default")
     try:
         with TrackerClient(connect=[svc.endpoint]) as client:
@@ -253,20 +256,12 @@ def test_a_flooding_peer_does_not_starve_another_session(traj):
 
 
 def _certificates(folder: Path) -> dict[str, Path]:
-    """A private CA, a service certificate for 127.0.0.1 and a robot's client certificate (openssl)."""
+    """The lab's CA and certificates from docker/tls/make-certs.sh: the router's (a TLS server's),
+    the service's, a robot's and an observer's, for 127.0.0.1."""
     if shutil.which("openssl") is None:
         pytest.skip("openssl is needed to make test certificates")
-    run = lambda *args: subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)  # noqa: E731
-    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.crt", "-days", "2",
-        "-subj", "/CN=inhand test CA")  # fmt: skip
-    for name, usage in (("service", "serverAuth"), ("robot", "clientAuth"), ("observer", "clientAuth")):
-        (folder / f"{name}.ext").write_text(
-            f"subjectAltName=IP:127.0.0.1,DNS:localhost\nextendedKeyUsage={usage}\nbasicConstraints=CA:FALSE\n"
-        )
-        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
-            "-subj", f"/CN={name}")  # fmt: skip
-        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial",
-            "-out", f"{name}.crt", "-days", "2", "-extfile", f"{name}.ext")  # fmt: skip
+    script = ROOT / "docker/tls/make-certs.sh"
+    subprocess.run(["bash", script, folder, "127.0.0.1", "robot", "observer"], check=True, capture_output=True)
     return {p.name: p for p in folder.glob("*.crt")} | {p.name: p for p in folder.glob("*.key")}
 
 
@@ -288,7 +283,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip
-    service_conf = zenoh_file("service", acl, listen_certificate="service.crt", listen_private_key="service.key",
+    service_conf = zenoh_file("service", acl, listen_certificate="router.crt", listen_private_key="router.key",
                               root_ca_certificate="ca.crt", enable_mtls=True)  # fmt: skip
     observer_conf = zenoh_file("observer", root_ca_certificate="ca.crt", enable_mtls=True,
                                connect_certificate="observer.crt", connect_private_key="observer.key")  # fmt: skip
@@ -379,3 +374,91 @@ def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
         svc.proc.wait(timeout=30)  # promptly, though the loop may still be building
         log = svc.proc.stdout.read()
     assert svc.proc.returncode == 1 and "has not come round" in log and "withdrawing" in log, log[-2000:]
+
+
+def test_an_open_that_builds_a_population_does_not_freeze_running_sessions(traj):
+    """A robot streams at 10 Hz while another opens with a K that needs a population of its own:
+    the build runs beside the loop, so the first robot's estimates keep coming through it."""
+    svc = ServiceProcess(free_port(), groups=1)
+    rate = 10.0
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as robot, TrackerClient(connect=[svc.endpoint]) as newcomer:
+            svc.wait_ready(robot)
+            robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+            arrivals: list[float] = []
+            robot.on_pose(lambda est: arrivals.append(time.monotonic()))
+            stop = threading.Event()
+
+            def stream() -> None:
+                n = 0
+                t0 = time.perf_counter()
+                while not stop.is_set():
+                    time.sleep(max(0.0, t0 + n / rate - time.perf_counter()))
+                    robot.send(traj.frame(n % traj.frames, robot.info.session, seq=n))
+                    n += 1
+
+            worker = threading.Thread(target=stream)
+            worker.start()
+            try:
+                time.sleep(1.0)
+                began = time.monotonic()
+                newcomer.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=1024)
+                ended = time.monotonic()
+            finally:
+                stop.set()
+                worker.join()
+            during = [t for t in arrivals if began <= t <= ended]
+            gaps = np.diff([began, *during, ended])
+            assert ended - began > 1.0, "the build was too quick to tell"
+            # On the CPU each device stage of the build (a frame of 1024 worlds) holds the loop for
+            # up to a second; frames it holds up past max_frame_age_s are counted stale, not stepped.
+            assert len(during) >= 3, (during, began, ended)
+            assert gaps.max() < 0.6 * (ended - began), (gaps, ended - began)
+    finally:
+        svc.stop()
+
+
+def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_router(traj, tmp_path):
+    """docker/compose-tls.yml's Zenoh files as shipped (certificates from make-certs.sh, their
+    paths and port moved here): a router that accepts only mTLS, the service as its client with
+    no endpoint of its own, a robot with its certificate tracking through it, the health check
+    through it, and a peer without a certificate kept out."""
+    certs = tmp_path / "certs"
+    _certificates(certs)
+    port = free_port()
+
+    def shipped(name: str) -> Path:
+        text = (ROOT / "docker/tls" / name).read_text()
+        text = text.replace("/certs/", f"{certs}/").replace('"certs/', f'"{certs}/').replace(":7447", f":{port}")
+        path = tmp_path / name
+        path.write_text(text)
+        return path
+
+    router = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time, zenoh\n"
+         "s = zenoh.open(zenoh.Config.from_file(sys.argv[1])); print('up', flush=True); time.sleep(3600)",
+         shipped("router.json5")],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    assert router.stdout.readline().strip() == "up"
+    endpoint = f"tls/127.0.0.1:{port}"
+    svc = ServiceProcess(0, listen=False, connect="", zenoh_config=str(shipped("service.json5")))
+    try:
+        with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5")) as robot:
+            svc.wait_ready(robot)
+            info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
+            robot.send(traj.frame(0, info.session))
+            assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
+            env = os.environ | {"INHAND_ZENOH_CONFIG": str(tmp_path / "service.json5")}
+            health = subprocess.run([sys.executable, "-m", "client.health", endpoint], env=env, cwd=ROOT,
+                                    capture_output=True, text=True, timeout=60)  # fmt: skip
+            assert health.returncode == 0 and "healthy" in health.stdout, health.stderr
+        stranger = tmp_path / "stranger.json5"
+        stranger.write_text(json.dumps({"mode": "client", "transport": {"link": {"tls": {
+            "root_ca_certificate": str(certs / "ca.crt")}}}}))  # fmt: skip
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):  # a client must reach the router
+            TrackerClient(connect=[endpoint], zenoh_file=stranger)
+    finally:
+        svc.stop()
+        router.kill()
+        router.wait()

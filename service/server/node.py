@@ -1,5 +1,6 @@
-"""The service on Zenoh: handlers that only decode, validate and queue, and one loop thread that
-owns the GPU (the :class:`SessionManager`) and publishes every estimate.
+"""The service on Zenoh: handlers that only decode, validate and queue, one loop thread that
+owns the GPU (the :class:`SessionManager`) and publishes every estimate, and a builder thread
+that builds new populations between the loop's steps, so that an open never freezes the others.
 
 Keys (protocol/keys.py): a liveliness token ``alive``; queryables ``info``, ``rpc/open``,
 ``rpc/close``, ``s/*/pose`` (latest estimate) and ``s/*/status``; a subscriber on ``s/*/frame``;
@@ -14,7 +15,7 @@ import logging
 import queue
 import threading
 import time
-from concurrent.futures import Future, InvalidStateError
+from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
 
 import zenoh
 
@@ -71,6 +72,10 @@ class TrackerNode:
         """When the loop last came round [s, monotonic]."""
         self._in_flight: Future | None = None
         """The request the loop is handling now."""
+        self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
+        """Builds populations off the loop thread."""
+        self._waiting: dict[tuple, list[tuple[OpenSession, Future | None]]] = {}
+        """Opens waiting for their population's build, by population key."""
         self._token = None
         self.session: zenoh.Session | None = None
 
@@ -100,7 +105,8 @@ class TrackerNode:
             self._loop.join(timeout=10)
         # A loop still busy (a population build) or dead leaves requests unanswered, and Zenoh's
         # close waits for the handlers that wait on them: answer them, so the service can go.
-        pending = [self._in_flight]
+        self._builder.shutdown(wait=False, cancel_futures=True)
+        pending = [self._in_flight, *(done for waits in self._waiting.values() for _, done in waits)]
         while not self._inbox.empty():
             pending.append(self._inbox.get_nowait()[2])
         for done in pending:
@@ -300,17 +306,9 @@ class TrackerNode:
                 else:
                     self._robot_gone.pop(session, None)
             elif kind == "open":
-                info = m.open(payload)
-                # Gone until its robot's liveliness token shows up: a robot that never declares one
-                # does not hold a session for ever.
-                self._robot_gone[info.session] = time.monotonic()
-                self._publishers[info.session] = self.session.declare_publisher(
-                    self.keys.pose(info.session),
-                    encoding=_ENCODING,
-                    express=True,
-                    priority=zenoh.Priority.REAL_TIME,
-                )
-                _answer(done, info)
+                self._open(payload, done)
+            elif kind == "built":
+                self._adopt(*payload)
             elif kind == "close":
                 m.authorize(payload.session, payload.token)
                 self._drop(payload.session)
@@ -322,6 +320,49 @@ class TrackerNode:
         except Exception as exc:  # the loop never dies of a request; the caller gets the reason
             log.exception("request '%s' failed", kind)
             _answer(done, Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
+
+    def _open(self, request: OpenSession, done: Future | None) -> None:
+        """Open in a population with room, or queue the open behind the build of its population
+        on the builder thread, so that the running sessions keep stepping meanwhile."""
+        m = self.manager
+        admission = m.admit(request)
+        if admission.pool is None:
+            self._waiting.setdefault(admission.key, []).append((request, done))
+            if not admission.building:
+                m.reserve(admission)
+                robot, obj, worlds = admission.key[:3]
+                log.info("building a population of %d x %d worlds (%s, %s)", self.config.groups, worlds, robot, obj)
+                build = self._builder.submit(m.build, admission)
+                began = time.monotonic()
+                build.add_done_callback(lambda f: self._inbox.put(("built", (admission, f, began), None)))
+            return
+        info = m.attach(admission)
+        # Gone until its robot's liveliness token shows up: a robot that never declares one
+        # does not hold a session for ever.
+        self._robot_gone[info.session] = time.monotonic()
+        self._publishers[info.session] = self.session.declare_publisher(
+            self.keys.pose(info.session),
+            encoding=_ENCODING,
+            express=True,
+            priority=zenoh.Priority.REAL_TIME,
+        )
+        _answer(done, info)
+
+    def _adopt(self, admission, build: Future, began: float) -> None:
+        """A build finished: its population joins the loop and the opens that waited for it go on."""
+        waiting = self._waiting.pop(admission.key, [])
+        try:
+            pool = build.result()
+        except Exception as exc:
+            self.manager.building.pop(admission.key, None)
+            log.error("building a population for %s failed", admission.key[:3], exc_info=exc)
+            for _, done in waiting:
+                _answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
+            return
+        self.manager.adopt(pool)
+        log.info("population built in %.1f s", time.monotonic() - began)
+        for request, done in waiting:
+            self._handle("open", request, done)
 
     def _drop(self, session: str) -> None:
         if session not in self.manager.sessions:

@@ -10,6 +10,7 @@ steps every population that has work and returns the estimates to publish.
 from __future__ import annotations
 
 import secrets
+import threading
 import time
 import uuid
 from collections import deque
@@ -37,7 +38,7 @@ from sim_backend.kinematics import Kinematics
 
 from .config import ServiceConfig
 
-__all__ = ["ServiceError", "SessionManager"]
+__all__ = ["Admission", "ServiceError", "SessionManager"]
 
 _TUNABLE = setting_types(TrackerConfig)
 """Tracker hyperparameters a session may override, with their types."""
@@ -107,19 +108,73 @@ class _Pool:
         return [s for s in self.sessions if s is not None]
 
 
+class Turn:
+    """A lock granted in the order it was asked for. ``threading.Lock`` is not fair: the loop,
+    releasing and re-taking it every step, would keep a population build waiting for ever."""
+
+    def __init__(self) -> None:
+        self._changed = threading.Condition()
+        self._next = self._serving = 0
+
+    def __enter__(self) -> None:
+        with self._changed:
+            ticket, self._next = self._next, self._next + 1
+            self._changed.wait_for(lambda: self._serving == ticket)
+
+    def __exit__(self, *exc) -> None:
+        with self._changed:
+            self._serving += 1
+            self._changed.notify_all()
+
+
+@dataclass
+class Admission:
+    """A validated open: the request, the population it belongs in, and its settings."""
+
+    request: OpenSession
+    key: tuple
+    """(robot, object, worlds, overrides): sessions with the same key share a population."""
+    robot: RobotSpec
+    tracker_config: TrackerConfig
+    pool: _Pool | None = None
+    """A population with a free group; None when one must be built first."""
+    building: bool = False
+    """One with this key is being built: wait for it."""
+
+
 class SessionManager:
-    """Every session and population of one service; single-threaded by design."""
+    """Every session and population of one service. One thread (the service's loop) owns it;
+    only :meth:`build` may run on another, taking :attr:`turn` for its device work."""
 
     def __init__(self, config: ServiceConfig, robots: dict[str, RobotSpec], objects: dict[str, ObjectSpec]):
         self.config, self.robots, self.objects = config, robots, objects
         self.sessions: dict[str, _Session] = {}
         self.pools: dict[tuple, _Pool] = {}
+        self.building: dict[tuple, int] = {}
+        """Populations being built, by key, with the worlds each will hold."""
+        self.turn = Turn()
+        """Held for device work: the loop's steps and opens, and each device stage of a build."""
         self._kinematics: dict[str, Kinematics] = {}
         self._built = 0
         """Populations built so far: a new one's key never repeats a dropped one's."""
 
     # ------------------------------------------------------------------ open / close
     def open(self, request: OpenSession) -> SessionInfo:
+        """Open a session, building its population here if none has room (the service builds on
+        another thread: :meth:`admit`, :meth:`build`, :meth:`adopt`, :meth:`attach`)."""
+        admission = self.admit(request)
+        if admission.pool is None:
+            self.reserve(admission)
+            try:
+                self.adopt(self.build(admission))
+            finally:
+                self.building.pop(admission.key, None)
+            admission = self.admit(request)
+        return self.attach(admission)
+
+    def admit(self, request: OpenSession) -> Admission:
+        """Validate an open (ServiceError with the field and the numbers) and find its population:
+        one with a free group, or none when one must be built (``building``: one is on its way)."""
         try:
             check_version(request.protocol)
         except ValueError as exc:
@@ -146,12 +201,76 @@ class SessionManager:
         tconf = self._tracker_config(request)
         if request.robot not in self._kinematics:  # a model of its own: built once per robot
             self._kinematics[request.robot] = Kinematics(robot)
+        d = self._kinematics[request.robot].layout.dof_count
+        if request.q0 is not None and np.shape(request.q0) != (d,):
+            got = np.shape(request.q0)[0]
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {got}")
+        key = (request.robot, request.object, request.worlds, tuple(sorted(request.overrides.items())))
+        admission = Admission(request, key, robot, tconf)
+        for k, pool in self.pools.items():
+            if k[:4] == key and None in pool.sessions and not pool.failed:
+                admission.pool = pool
+                return admission
+        if key in self.building:
+            admission.building = True
+            return admission
+        cfg = self.config
+        populations = len(self.pools) + len(self.building)
+        if populations >= cfg.max_populations:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"populations: {populations} built, this service's limit is {cfg.max_populations}"
+                " (sessions share one when robot, object, worlds and overrides match)",
+            )
+        worlds = sum(p.tracker.G * p.tracker.K for p in self.pools.values()) + sum(self.building.values())
+        if worlds + cfg.groups * request.worlds > cfg.max_worlds:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"worlds: no room for {cfg.groups} x {request.worlds} more worlds"
+                f" ({worlds} in use, limit {cfg.max_worlds})",
+            )
+        return admission
+
+    def reserve(self, admission: Admission) -> None:
+        """Count a population being built against the caps until it is adopted (or failed)."""
+        self.building[admission.key] = self.config.groups * admission.request.worlds
+
+    def build(self, admission: Admission) -> _Pool:
+        """The population ``admission`` needs, with every group idle; safe on a thread of its own
+        (it touches nothing of the manager's; its device work takes :attr:`turn`)."""
+        request, cfg = admission.request, self.config
+        pop = Population(
+            admission.robot,
+            self.objects[request.object],
+            PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device, substeps=cfg.substeps),
+            turn=self._turn,
+        )
+        with self.turn:
+            tracker = Tracker(pop, admission.tracker_config, methods=[request.method] * cfg.groups)
+            g = pop.G
+            sensing = {f.name: np.zeros((g, *f.shape(pop.D, pop.L)), np.float32) for f in SENSING}
+            for f in SENSING:
+                if f.per == "joint":
+                    sensing[f.name][:] = pop.layout.default_q
+            present = {p: np.zeros(g, bool) for p in PRESENCE}
+            # Idle groups: the object rests on the table out of the hand's reach, where nothing happens.
+            rest = -float(self.objects[request.object].mesh.bounds[0, 2])
+            tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), sensing["q"])
+        return _Pool(admission.key, tracker, [None] * g, sensing, present)
+
+    def adopt(self, pool: _Pool) -> None:
+        """Take a built population into service (its build no longer counts as one in flight)."""
+        self.building.pop(pool.key, None)
+        self._built += 1
+        pool.key = (*pool.key, self._built)
+        self.pools[pool.key] = pool
+
+    def attach(self, admission: Admission) -> SessionInfo:
+        """Open the session in a free group of ``admission.pool``."""
+        request, pool = admission.request, admission.pool
+        assert pool is not None, "attach: the admission has no population yet"
         kin = self._kinematics[request.robot]
-        d = kin.layout.dof_count
         q0 = kin.layout.default_q if request.q0 is None else request.q0
-        if np.shape(q0) != (d,):
-            raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {np.shape(q0)[0]}")
-        pool = self._pool(request, robot, tconf)
         group = pool.sessions.index(None)
         session = _Session(
             uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group
@@ -167,7 +286,8 @@ class SessionManager:
             v[group] = q0 if sensing_field(name).per == "joint" else 0.0
         for v in pool.present.values():
             v[group] = False
-        tracker.start(p0, pool.sensing["q"], sigma_t=request.sigma_t, sigma_r=request.sigma_r, groups=mask)
+        with self.turn:
+            tracker.start(p0, pool.sensing["q"], sigma_t=request.sigma_t, sigma_r=request.sigma_r, groups=mask)
         # Registered only now: an open that failed on the way leaves nothing behind.
         pool.sessions[group] = session
         self.sessions[session.id] = session
@@ -191,44 +311,6 @@ class SessionManager:
         except (ValueError, TypeError, OverflowError) as exc:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
 
-    def _pool(self, request: OpenSession, robot: RobotSpec, tconf: TrackerConfig) -> _Pool:
-        """A population with a free group for this request, built on first use."""
-        key = (request.robot, request.object, request.worlds, tuple(sorted(request.overrides.items())))
-        for k, pool in self.pools.items():
-            if k[:4] == key and None in pool.sessions and not pool.failed:
-                return pool
-        cfg = self.config
-        if len(self.pools) >= cfg.max_populations:
-            raise ServiceError(
-                ErrorCode.CAPACITY,
-                f"populations: {len(self.pools)} built, this service's limit is {cfg.max_populations}"
-                " (sessions share one when robot, object, worlds and overrides match)",
-            )
-        if sum(p.tracker.G * p.tracker.K for p in self.pools.values()) + cfg.groups * request.worlds > cfg.max_worlds:
-            raise ServiceError(
-                ErrorCode.CAPACITY,
-                f"worlds: no room for {cfg.groups} x {request.worlds} more worlds (limit {cfg.max_worlds})",
-            )
-        pop = Population(
-            robot,
-            self.objects[request.object],
-            PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device, substeps=cfg.substeps),
-        )
-        tracker = Tracker(pop, tconf, methods=[request.method] * cfg.groups)
-        g = pop.G
-        sensing = {f.name: np.zeros((g, *f.shape(pop.D, pop.L)), np.float32) for f in SENSING}
-        for f in SENSING:
-            if f.per == "joint":
-                sensing[f.name][:] = self._kinematics[request.robot].layout.default_q
-        present = {p: np.zeros(g, bool) for p in PRESENCE}
-        # Idle groups: the object rests on the table out of the hand's reach, where nothing happens.
-        rest = -float(self.objects[request.object].mesh.bounds[0, 2])
-        tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), sensing["q"])
-        self._built += 1
-        pool = _Pool((*key, self._built), tracker, [None] * g, sensing, present)
-        self.pools[pool.key] = pool
-        return pool
-
     def close(self, session_id: str, token: str) -> None:
         """Close a session at its robot's request (``token``: the session's secret)."""
         self.authorize(session_id, token)
@@ -246,6 +328,9 @@ class SessionManager:
         if not pool.active:
             del self.pools[pool.key]
 
+    def _turn(self) -> Turn:
+        return self.turn
+
     def authorize(self, session_id: str, token: str) -> _Session:
         """The session, if ``token`` is its secret; else FORBIDDEN (an unknown id answers the same,
         so a wrong token tells a peer nothing about which sessions exist)."""
@@ -261,8 +346,7 @@ class SessionManager:
         kin = self._kinematics.setdefault(robot, Kinematics(self.robots[robot]))
         rest = np.array([0.3, 0.0, -float(self.objects[obj].mesh.bounds[0, 2]), 0, 0, 0, 1], np.float32)
         request = OpenSession(robot=robot, object=obj, p0=rest, q0=kin.layout.default_q, worlds=1)
-        pool = self._pool(request, self.robots[robot], self._tracker_config(request))
-        del self.pools[pool.key]
+        self.build(self.admit(request))
 
     # ------------------------------------------------------------------ frames
     def submit(self, frame: RobotFrame, received: float | None = None) -> None:
@@ -345,7 +429,8 @@ class SessionManager:
                 v[g] = getattr(frame, name) is not None
             s.next_seq = frame.seq + 1
             stepped.append((s, frame, received))
-        est = pool.tracker.step(Frame(present=pool.present, **pool.sensing))
+        with self.turn:
+            est = pool.tracker.step(Frame(present=pool.present, **pool.sensing))
         done = time.perf_counter()
         out = []
         for s, frame, received in stepped:

@@ -10,11 +10,12 @@ one Warp CPU graph replay.
 
 from __future__ import annotations
 
-import gc
 from collections.abc import Callable
 
 import torch
 import warp as wp
+
+from sim_backend import no_collection
 
 __all__ = ["CapturedOps"]
 
@@ -72,19 +73,11 @@ class CapturedOps:
         if self.generator is not None:
             graph.register_generator_state(self.generator)
         pool = self._pool_from.graph.pool() if self._pool_from is not None and self._pool_from.graph else None
-        # A tracker and its graphs form a reference cycle, so a dropped tracker's graphs are freed by
-        # the cycle collector, whenever it runs. Freeing a CUDA graph while another is being
-        # captured invalidates that capture (the paper suite failed so at its fourth population).
-        # torch.cuda.graph no longer collects on entry (only under force_cudagraph_gc), so we do.
-        gc.collect()
-        collecting = gc.isenabled()
-        gc.disable()
-        try:
-            # thread_local: the service's Zenoh threads keep running while the loop thread captures.
-            with torch.cuda.graph(graph, pool=pool, stream=self.stream, capture_error_mode="thread_local"):
-                with wp.ScopedCapture(device=self.device, stream=self.device.stream, external=True) as capture:
-                    self.fn()
-        finally:
-            if collecting:
-                gc.enable()
+        # thread_local: the service's Zenoh threads keep running while the loop thread captures.
+        with (
+            no_collection(),
+            torch.cuda.graph(graph, pool=pool, stream=self.stream, capture_error_mode="thread_local"),
+            wp.ScopedCapture(device=self.device, stream=self.device.stream, external=True) as capture,
+        ):
+            self.fn()
         self.graph, self._warp_graph = graph, capture.graph
