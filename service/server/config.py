@@ -77,6 +77,13 @@ class ServiceConfig(BaseSettings):
     """A population steps when every session sent a frame, or when a frame waited this long [s]."""
     substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)
     """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
+    iterations: int | None = Field(None, ge=1)
+    """The constraint solver's iteration cap per substep (None: the solver's own, 20 for Newton).
+    A world that has not converged stops there; the frame waits for its slowest world."""
+    ls_iterations: int | None = Field(None, ge=1)
+    """The solver's line-search iteration cap (None: the solver's own, 10 for Newton)."""
+    tolerance: float = Field(PopulationConfig.tolerance, gt=0, lt=1)
+    """The solver's convergence tolerance on the scaled cost improvement and gradient."""
 
     @field_validator("listen", "connect", "robots", mode="before")
     @classmethod

@@ -33,7 +33,7 @@ from protocol import (
     sensing_field,
 )
 from service.tracker import METHODS, Frame, OptimizerConfig, Tracker, TrackerConfig, setting_types
-from sim_backend import ObjectSpec, Population, PopulationConfig, RobotSpec
+from sim_backend import ObjectSpec, Population, PopulationConfig, RobotSpec, resolve_device
 from sim_backend.kinematics import Kinematics
 
 from .config import ServiceConfig
@@ -148,6 +148,7 @@ class SessionManager:
 
     def __init__(self, config: ServiceConfig, robots: dict[str, RobotSpec], objects: dict[str, ObjectSpec]):
         self.config, self.robots, self.objects = config, robots, objects
+        self.device = resolve_device(config.device)
         self.sessions: dict[str, _Session] = {}
         self.pools: dict[tuple, _Pool] = {}
         self.building: dict[tuple, int] = {}
@@ -242,7 +243,15 @@ class SessionManager:
         pop = Population(
             admission.robot,
             self.objects[request.object],
-            PopulationConfig(groups=cfg.groups, worlds=request.worlds, device=cfg.device, substeps=cfg.substeps),
+            PopulationConfig(
+                groups=cfg.groups,
+                worlds=request.worlds,
+                device=cfg.device,
+                substeps=cfg.substeps,
+                iterations=cfg.iterations,
+                ls_iterations=cfg.ls_iterations,
+                tolerance=cfg.tolerance,
+            ),
             turn=self._turn,
         )
         with self.turn:
@@ -255,7 +264,10 @@ class SessionManager:
             present = {p: np.zeros(g, bool) for p in PRESENCE}
             # Idle groups: the object rests on the table out of the hand's reach, where nothing happens.
             rest = -float(self.objects[request.object].mesh.bounds[0, 2])
-            tracker.start(np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1)), sensing["q"])
+            idle = np.tile(np.array([0.3, 0.0, rest, 0, 0, 0, 1], np.float32), (g, 1))
+            tracker.start(idle, sensing["q"])
+            tracker.capture()  # here, not in the loop's first step of it
+            tracker.start(idle, sensing["q"])
         return _Pool(admission.key, tracker, [None] * g, sensing, present)
 
     def adopt(self, pool: _Pool) -> None:
@@ -345,7 +357,9 @@ class SessionManager:
         robot, obj = next(iter(self.robots)), next(iter(self.objects))
         kin = self._kinematics.setdefault(robot, Kinematics(self.robots[robot]))
         rest = np.array([0.3, 0.0, -float(self.objects[obj].mesh.bounds[0, 2]), 0, 0, 0, 1], np.float32)
-        request = OpenSession(robot=robot, object=obj, p0=rest, q0=kin.layout.default_q, worlds=1)
+        # On CUDA some of Newton's kernels are compiled for the population's size: warm the default one.
+        worlds = OpenSession.model_fields["worlds"].default if self.device.is_cuda else 1
+        request = OpenSession(robot=robot, object=obj, p0=rest, q0=kin.layout.default_q, worlds=worlds)
         self.build(self.admit(request))
 
     # ------------------------------------------------------------------ frames

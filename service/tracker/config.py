@@ -91,4 +91,7 @@ class TrackerConfig:
 def setting_types(config: type, kinds: tuple[type, ...] = (int, float)) -> dict[str, type]:
     """The fields of the settings dataclass ``config`` whose defaults are of ``kinds``, with their
     types: what a session's overrides and ``bench accuracy --set`` may change."""
-    return {f.name: type(f.default) for f in fields(config) if type(f.default) in kinds}
+    out = {f.name: type(f.default) for f in fields(config) if type(f.default) in kinds}
+    # An optional number (None: the library's own default) is set as the number.
+    out |= {f.name: k for f in fields(config) for k in kinds if f.default is None and f.type == f"{k.__name__} | None"}
+    return out

@@ -121,6 +121,15 @@ class Tracker:
         self._seed(mask, p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
                    cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
+    def capture(self) -> None:
+        """Record the frame's and the update's graphs now instead of at the first frame and the
+        first update (a service builds populations beside its loop and wants its first frames on
+        time). It runs a frame and an update: call :meth:`start` after it."""
+        if self._frame_graph.enabled and not self._frame_graph.captured:
+            with self.pop.on_stream():
+                self._frame_graph()
+                self._update_graph()
+
     def set_method(self, group: int, method: str) -> None:
         """Change one group's optimizer (a service reusing a group for another session)."""
         if method not in METHODS:
