@@ -181,6 +181,13 @@ def test_caps_refuse_with_the_numbers_and_an_emptied_population_is_freed(traj):
     assert manager.pools == {}  # its memory and worlds go back
     info = manager.open(_request(traj).model_copy(update={"worlds": 8}))
     assert info.worlds == 8 and len(manager.pools) == 1
+    manager = _manager(max_opens_per_minute=2)
+    for _ in range(2):
+        manager.open(_request(traj))
+    with pytest.raises(ServiceError) as exc:
+        manager.open(_request(traj))
+    assert exc.value.code == ErrorCode.CAPACITY
+    assert "opens: 2 in the last 60 s, this service's limit is 2" in exc.value.message
 
 
 def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
@@ -361,17 +368,33 @@ def test_bench_load_reports_every_session_and_the_memory(service, where):
 
 
 def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
-    """Building a new population holds the loop for longer than this service's watchdog allows: the
-    watchdog withdraws the service's token and `serve` exits non-zero (a live token on a stuck
-    loop would look healthy to every robot)."""
+    """A robot streams while a new population's build holds the device for longer than this
+    service's watchdog allows: the loop, waiting its turn, stops coming round; the watchdog
+    withdraws the service's token and `serve` exits non-zero (a live token on a stuck loop would
+    look healthy to every robot)."""
     svc = ServiceProcess(free_port(), watchdog_s="0.3")
-    with TrackerClient(connect=[svc.endpoint]) as client:
-        svc.wait_ready(client)
-        try:  # answered or not: the service is going down meanwhile
-            client.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=512)
-        except (TimeoutError, TrackerError):
-            pass
-        svc.proc.wait(timeout=30)  # promptly, though the loop may still be building
+    with TrackerClient(connect=[svc.endpoint]) as robot, TrackerClient(connect=[svc.endpoint]) as newcomer:
+        svc.wait_ready(robot)
+        robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
+        stop = threading.Event()
+
+        def stream() -> None:
+            n = 0
+            while not stop.wait(0.05):
+                robot.send(traj.frame(n % traj.frames, robot.info.session, seq=n))
+                n += 1
+
+        worker = threading.Thread(target=stream)
+        worker.start()
+        try:
+            try:  # answered or not: the service is going down meanwhile
+                newcomer.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=1024)
+            except (TimeoutError, TrackerError):
+                pass
+            svc.proc.wait(timeout=30)  # promptly, though the build may still be running
+        finally:
+            stop.set()
+            worker.join()
         log = svc.proc.stdout.read()
     assert svc.proc.returncode == 1 and "has not come round" in log and "withdrawing" in log, log[-2000:]
 
@@ -414,6 +437,28 @@ def test_an_open_that_builds_a_population_does_not_freeze_running_sessions(traj)
             # up to a second; frames it holds up past max_frame_age_s are counted stale, not stepped.
             assert len(during) >= 3, (during, began, ended)
             assert gaps.max() < 0.6 * (ended - began), (gaps, ended - began)
+    finally:
+        svc.stop()
+
+
+def test_a_tls_session_tracks_and_a_plain_peer_is_kept_out(traj, tmp_path):
+    """TLS without client certificates: robots that trust the lab's CA track over it."""
+    certs = _certificates(tmp_path)
+    server = tmp_path / "server.json5"
+    tls = {"listen_certificate": str(certs["router.crt"]), "listen_private_key": str(certs["router.key"])}
+    server.write_text(json.dumps({"transport": {"link": {"tls": tls}}}))
+    client = tmp_path / "client.json5"
+    client.write_text(json.dumps({"transport": {"link": {"tls": {"root_ca_certificate": str(certs["ca.crt"])}}}}))
+    svc = ServiceProcess(free_port(), scheme="tls", zenoh_config=str(server))
+    try:
+        with TrackerClient(connect=[svc.endpoint], zenoh_file=client) as robot:
+            svc.wait_ready(robot)
+            info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
+            robot.send(traj.frame(0, info.session))
+            assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
+        with TrackerClient(connect=[svc.endpoint.replace("tls/", "tcp/")]) as plain:
+            with pytest.raises(TimeoutError):
+                plain.service_info(timeout=3.0)
     finally:
         svc.stop()
 

@@ -50,6 +50,8 @@ class ServiceConfig(BaseSettings):
     """Worlds the service may hold in all."""
     max_sessions: int = Field(64, ge=1)
     """Sessions open at once at most."""
+    max_opens_per_minute: int = Field(120, ge=1)
+    """Sessions opened in any 60 s at most (a peer opening in a loop is refused, not served)."""
     max_populations: int = Field(16, ge=1)
     """Populations at once at most: each distinct robot, object, K and overrides builds one."""
     robots: Endpoints = ("configs/robots/allegro.toml",)

@@ -156,6 +156,8 @@ class SessionManager:
         self.turn = Turn()
         """Held for device work: the loop's steps and opens, and each device stage of a build."""
         self._kinematics: dict[str, Kinematics] = {}
+        self._opened: deque[float] = deque()
+        """When sessions were opened in the last minute [s, monotonic]."""
         self._built = 0
         """Populations built so far: a new one's key never repeats a dropped one's."""
 
@@ -192,6 +194,14 @@ class SessionManager:
         if len(self.sessions) >= self.config.max_sessions:
             open_now, limit = len(self.sessions), self.config.max_sessions
             raise ServiceError(ErrorCode.CAPACITY, f"sessions: {open_now} open, this service's limit is {limit}")
+        now = time.monotonic()
+        while self._opened and now - self._opened[0] > 60.0:
+            self._opened.popleft()
+        if len(self._opened) >= self.config.max_opens_per_minute:
+            limit = self.config.max_opens_per_minute
+            raise ServiceError(
+                ErrorCode.CAPACITY, f"opens: {len(self._opened)} in the last 60 s, this service's limit is {limit}"
+            )
         if request.worlds > self.config.max_worlds:
             raise ServiceError(
                 ErrorCode.CAPACITY, f"worlds: {request.worlds} exceeds this service's limit of {self.config.max_worlds}"
@@ -303,6 +313,7 @@ class SessionManager:
         # Registered only now: an open that failed on the way leaves nothing behind.
         pool.sessions[group] = session
         self.sessions[session.id] = session
+        self._opened.append(time.monotonic())
         return SessionInfo(
             session=session.id,
             token=session.token,
