@@ -272,6 +272,13 @@ def _certificates(folder: Path) -> dict[str, Path]:
     return {p.name: p for p in folder.glob("*.crt")} | {p.name: p for p in folder.glob("*.key")}
 
 
+def _kept_out(endpoint: str, zenoh_file: Path | None = None) -> None:
+    """A peer on ``endpoint`` gets no answer from the service (refused by TLS or by a rule)."""
+    with TrackerClient(connect=[endpoint], zenoh_file=zenoh_file) as peer:
+        with pytest.raises(TimeoutError):
+            peer.service_info(timeout=3.0)
+
+
 def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(traj, tmp_path):
     """Only peers with a certificate from the lab's CA connect; among them, an access-control rule
     keeps the observer's certificate from querying anything under the service's keys."""
@@ -319,12 +326,8 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
                     time.sleep(0.05)
                 watch.undeclare()
                 assert seen
-            with TrackerClient(connect=[svc.endpoint], zenoh_file=stranger_conf) as stranger:
-                with pytest.raises(TimeoutError):
-                    stranger.service_info(timeout=3.0)
-            with TrackerClient(connect=[svc.endpoint.replace("tls/", "tcp/")]) as plain:
-                with pytest.raises(TimeoutError):
-                    plain.service_info(timeout=3.0)
+            _kept_out(svc.endpoint, stranger_conf)
+            _kept_out(svc.endpoint.replace("tls/", "tcp/"))
     finally:
         svc.stop()
 
@@ -456,9 +459,7 @@ def test_a_tls_session_tracks_and_a_plain_peer_is_kept_out(traj, tmp_path):
             info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
             robot.send(traj.frame(0, info.session))
             assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
-        with TrackerClient(connect=[svc.endpoint.replace("tls/", "tcp/")]) as plain:
-            with pytest.raises(TimeoutError):
-                plain.service_info(timeout=3.0)
+        _kept_out(svc.endpoint.replace("tls/", "tcp/"))
     finally:
         svc.stop()
 
