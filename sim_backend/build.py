@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
@@ -57,10 +56,11 @@ def build_model(
     obj: ObjectSpec,
     cfg: PopulationConfig,
     device: wp.context.Device,
-    turn: Callable[[], AbstractContextManager] = contextlib.nullcontext,
+    turn: AbstractContextManager | None = None,
 ) -> BuiltModel:
     """One world of ``robot`` and ``obj``, replicated ``cfg.world_count`` times over a ground plane.
-    The composition runs on the host; ``turn`` is entered only for the upload to ``device``."""
+    The composition runs on the host; ``turn`` (if given) is entered only for the upload to ``device``."""
+    turn = turn or contextlib.nullcontext()
     world = newton.ModelBuilder()
     newton.solvers.SolverMuJoCo.register_custom_attributes(world)
     # Newton's default detection gap (0.1 m) turns every shape pair within 10 cm into contacts;
@@ -73,7 +73,7 @@ def build_model(
     builder.rigid_gap = cfg.contact_gap
     builder.add_ground_plane()
     builder.replicate(world, cfg.world_count)
-    with turn(), wp.ScopedDevice(device):
+    with turn, wp.ScopedDevice(device):
         model = builder.finalize(device=device)
     return BuiltModel(
         model=model,

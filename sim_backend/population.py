@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import AbstractContextManager
 
 import newton
@@ -86,12 +86,13 @@ class Population:
         robot: RobotSpec,
         obj: ObjectSpec,
         config: PopulationConfig | None = None,
-        turn: Callable[[], AbstractContextManager] = contextlib.nullcontext,
+        turn: AbstractContextManager | None = None,
     ):
         """``turn``: entered around each stage of the build that uses the device (upload, solver,
         buffers, capture), so that a population can be built on one thread while another steps
         the others between those stages; Warp's current stream is per device, not per thread, so
         the stages must not interleave with another thread's device work."""
+        turn = turn or contextlib.nullcontext()
         self.config = cfg = config or PopulationConfig()
         self.device = resolve_device(cfg.device)
         self.robot_spec = robot
@@ -109,11 +110,11 @@ class Population:
             built.object_body, built.bodies, built.coords, built.dofs
         )  # fmt: skip
         self.D, self.L = self.layout.dof_count, self.layout.sensor_count
-        with turn():
+        with turn:
             physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
         self._observables = physics.observables
-        with turn(), wp.ScopedDevice(self.device):
+        with turn, wp.ScopedDevice(self.device):
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
             self.control = self.model.control()
@@ -249,13 +250,13 @@ class Population:
             outputs=[b.object_pose, b.health],
         )
 
-    def _capture(self, turn: Callable[[], AbstractContextManager]) -> None:
+    def _capture(self, turn: AbstractContextManager) -> None:
         # Compile every kernel once outside capture, then record; the eager frame is undone.
-        with turn(), wp.ScopedDevice(self.device):
+        with turn, wp.ScopedDevice(self.device):
             saved = self.snapshot()
             self._simulate()
             self.restore(saved)
-        with turn(), wp.ScopedDevice(self.device), no_collection(), wp.ScopedCapture(device=self.device) as capture:
+        with turn, wp.ScopedDevice(self.device), no_collection(), wp.ScopedCapture(device=self.device) as capture:
             self._simulate()
         self._graph = capture.graph
 

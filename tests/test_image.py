@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from client import TrackerClient, TrackerError
+from client import TrackerClient
 from protocol import Trajectory
 from service.paths import DATA_DIR
 
@@ -55,17 +55,10 @@ def test_the_image_serves_a_client_on_the_host_and_stops_on_sigterm(tmp_path, ca
     try:
         traj = Trajectory.load(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
         with TrackerClient(connect=[f"tcp/127.0.0.1:{port}"]) as client:
-            deadline = time.monotonic() + 300
-            while True:
-                try:  # answering while it warms up; ready (and healthy) once its kernels are compiled
-                    info = client.service_info(timeout=2.0)
-                    if info.ready:
-                        break
-                    assert time.monotonic() < deadline, _podman("logs", name, check=False).stdout[-3000:]
-                    time.sleep(1.0)
-                except (TimeoutError, TrackerError):
-                    assert time.monotonic() < deadline, _podman("logs", name, check=False).stdout[-3000:]
-                    time.sleep(1.0)
+            try:  # it answers while it warms up, and is ready (and healthy) once its kernels are compiled
+                info = client.wait_ready(timeout=300)
+            except TimeoutError:
+                pytest.fail(_podman("logs", name, check=False).stdout[-3000:])
             assert info.device == "cpu" and "foam_brick" in info.objects
             health = _podman("healthcheck", "run", name, check=False)
             assert health.returncode == 0, health.stdout + health.stderr

@@ -114,6 +114,27 @@ class Script:
     def hold(self, phase: str, seconds: float) -> None:
         self._add(phase, np.repeat(self.q[None], max(1, round(seconds * self.pace * FRAME_RATE)), axis=0))
 
+    def let_go(self, q_touch: np.ndarray) -> None:
+        """Uncurl the digits just clear of where they touch the object (``q_touch``), then rise
+        straight up. Opening to the rest pose at table height swept the turned fingers and the
+        thumb sideways through the object and flung it (the banana half a metre)."""
+        release = self.q.copy()
+        release[SQUEEZE_JOINTS] = q_touch[SQUEEZE_JOINTS] - _CLEAR
+        self.move("release", release, 0.8)
+        retreat = release.copy()
+        retreat[2] += 0.08
+        self.move("retreat", retreat, 1.0)
+
+    def demo(self, name: str, object_pose: np.ndarray, q: np.ndarray) -> Demo:
+        """The script so far as a demo of the object at ``object_pose`` with the hand starting at ``q``."""
+        return Demo(
+            name=name,
+            controls=np.concatenate(self.rows).astype(np.float32),
+            object_pose=object_pose.astype(np.float32),
+            q=q.astype(np.float32),
+            phases=tuple(self.phases),
+        )
+
     def _add(self, phase: str, rows: np.ndarray) -> None:
         if not self.phases or self.phases[-1][0] != phase:
             self.phases.append((phase, self.count))
@@ -219,22 +240,8 @@ def make_demo(
     down[2] = palm_z - _PLACE_DEPTH
     script.move("place", down, 1.2)
     script.hold("place", 0.3)
-    # Let go by uncurling the digits just clear of the object where they are, then rise straight
-    # up. Opening to the rest pose at table height swept the turned fingers and the thumb
-    # sideways through the object and flung it (the banana half a metre).
-    release = script.q.copy()
-    release[SQUEEZE_JOINTS] = grasp.q_touch[SQUEEZE_JOINTS] - _CLEAR
-    script.move("release", release, 0.8)
-    retreat = release.copy()
-    retreat[2] += 0.08
-    script.move("retreat", retreat, 1.0)
-    return Demo(
-        name=f"{obj.name}_{kind}_{variant}",
-        controls=np.concatenate(script.rows).astype(np.float32),
-        object_pose=grasp.object_pose.astype(np.float32),
-        q=open_hand.astype(np.float32),
-        phases=tuple(script.phases),
-    )
+    script.let_go(grasp.q_touch)
+    return script.demo(f"{obj.name}_{kind}_{variant}", grasp.object_pose, open_hand)
 
 
 @dataclass

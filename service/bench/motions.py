@@ -1,5 +1,5 @@
-"""Scripted motions for the cross-engine suite, written apart from the demos so that the tracker
-is not only measured on the motions it was developed on.
+"""Scripted motions for the cross-engine suite, of their own (only the scripting helpers are the
+demos'), so that the tracker is not only measured on the motions it was developed on.
 
 Every motion picks the object up with a pinch, then does one thing a real hand does with what it
 holds, then sets it down and lets go:
@@ -115,16 +115,5 @@ def make_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, s
     down[2] -= 0.05
     down[_WRIST_ROLL] = down[_WRIST_PITCH] = down[_WRIST_YAW] = 0.0
     path.move("place", down, 1.0)
-    release = path.q.copy()
-    release[SQUEEZE_JOINTS] = grasp.q_touch[SQUEEZE_JOINTS] - 0.2
-    path.move("release", release, 0.8)
-    retreat = release.copy()
-    retreat[2] += 0.08
-    path.move("retreat", retreat, 1.0)
-    return Demo(
-        name=f"{obj.name}_{kind}_{variant}",
-        controls=np.concatenate(path.rows).astype(np.float32),
-        object_pose=grasp.object_pose.astype(np.float32),
-        q=start.astype(np.float32),
-        phases=tuple(path.phases),
-    )
+    path.let_go(grasp.q_touch)
+    return path.demo(f"{obj.name}_{kind}_{variant}", grasp.object_pose, start)

@@ -37,7 +37,7 @@ from service.tracker import METHODS
 from sim_backend import load_catalog, load_robot, resolve_device
 
 from .config import ServiceConfig
-from .sessions import ServiceError, SessionManager
+from .sessions import Admission, ServiceError, SessionManager
 
 __all__ = ["TrackerNode"]
 
@@ -328,7 +328,7 @@ class TrackerNode:
         admission = m.admit(request)
         if admission.pool is None:
             self._waiting.setdefault(admission.key, []).append((request, done))
-            if not admission.building:
+            if admission.key not in m.building:
                 m.reserve(admission)
                 robot, obj, worlds = admission.key[:3]
                 log.info("building a population of %d x %d worlds (%s, %s)", self.config.groups, worlds, robot, obj)
@@ -348,7 +348,7 @@ class TrackerNode:
         )
         _answer(done, info)
 
-    def _adopt(self, admission, build: Future, began: float) -> None:
+    def _adopt(self, admission: Admission, build: Future, began: float) -> None:
         """A build finished: its population joins the loop and the opens that waited for it go on."""
         waiting = self._waiting.pop(admission.key, [])
         try:

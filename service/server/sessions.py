@@ -137,9 +137,8 @@ class Admission:
     robot: RobotSpec
     tracker_config: TrackerConfig
     pool: _Pool | None = None
-    """A population with a free group; None when one must be built first."""
-    building: bool = False
-    """One with this key is being built: wait for it."""
+    """A population with a free group; None when one must be built first (or is being built:
+    its key is in :attr:`SessionManager.building`)."""
 
 
 class SessionManager:
@@ -177,7 +176,7 @@ class SessionManager:
 
     def admit(self, request: OpenSession) -> Admission:
         """Validate an open (ServiceError with the field and the numbers) and find its population:
-        one with a free group, or none when one must be built (``building``: one is on its way)."""
+        one with a free group, or none when one must be built or is on its way."""
         try:
             check_version(request.protocol)
         except ValueError as exc:
@@ -223,7 +222,6 @@ class SessionManager:
                 admission.pool = pool
                 return admission
         if key in self.building:
-            admission.building = True
             return admission
         cfg = self.config
         populations = len(self.pools) + len(self.building)
@@ -262,7 +260,7 @@ class SessionManager:
                 ls_iterations=cfg.ls_iterations,
                 tolerance=cfg.tolerance,
             ),
-            turn=self._turn,
+            turn=self.turn,
         )
         with self.turn:
             tracker = Tracker(pop, admission.tracker_config, methods=[request.method] * cfg.groups)
@@ -351,9 +349,6 @@ class SessionManager:
         if not pool.active:
             del self.pools[pool.key]
 
-    def _turn(self) -> Turn:
-        return self.turn
-
     def authorize(self, session_id: str, token: str) -> _Session:
         """The session, if ``token`` is its secret; else FORBIDDEN (an unknown id answers the same,
         so a wrong token tells a peer nothing about which sessions exist)."""
@@ -363,12 +358,12 @@ class SessionManager:
         return session
 
     def warm(self) -> None:
-        """Build, capture and drop a one-world population of the first robot and object, so that
-        the kernels are compiled (minutes on a cold cache) before any robot waits on an open."""
+        """Build, capture and drop a population of the first robot and object, so that the kernels
+        are compiled (minutes on a cold cache) before any robot waits on an open: one world on the
+        CPU, the default size on CUDA, where some of Newton's kernels are compiled per size."""
         robot, obj = next(iter(self.robots)), next(iter(self.objects))
         kin = self._kinematics.setdefault(robot, Kinematics(self.robots[robot]))
         rest = np.array([0.3, 0.0, -float(self.objects[obj].mesh.bounds[0, 2]), 0, 0, 0, 1], np.float32)
-        # On CUDA some of Newton's kernels are compiled for the population's size: warm the default one.
         worlds = OpenSession.model_fields["worlds"].default if self.device.is_cuda else 1
         request = OpenSession(robot=robot, object=obj, p0=rest, q0=kin.layout.default_q, worlds=worlds)
         self.build(self.admit(request))
