@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -11,8 +12,8 @@ import numpy as np
 import zenoh
 
 from protocol import (
+    AUTO,
     DEFAULT_METHOD,
-    DEFAULT_WORLDS,
     CloseSession,
     DecodeError,
     Error,
@@ -34,11 +35,12 @@ _ENCODING = zenoh.Encoding("application/msgpack")
 
 
 class TrackerError(Exception):
-    """The service refused a request: ``code`` (protocol ErrorCode) and its message."""
+    """The service refused a request: ``code`` (protocol ErrorCode), its message, and on
+    ``capacity`` the other services that may have room."""
 
-    def __init__(self, code: ErrorCode | str, message: str):
-        super().__init__(f"{code}: {message}")
-        self.code, self.message = ErrorCode(code), message
+    def __init__(self, code: ErrorCode | str, message: str, others: list[str] | None = None):
+        super().__init__(f"{code}: {message}" + (f" (other services: {', '.join(others)})" if others else ""))
+        self.code, self.message, self.others = ErrorCode(code), message, list(others or [])
 
 
 class StaleEstimate(RuntimeError):
@@ -67,7 +69,9 @@ def zenoh_config(listen=(), connect=(), scouting: bool = False, file: str | os.P
 
 
 class TrackerClient:
-    """A connection to one tracking service; one session at a time.
+    """A connection to a tracking service; one session at a time. Without a service name, each
+    open goes to the ready service with the most room on the Zenoh network (several services,
+    one per GPU or host, behind one router).
 
     >>> with TrackerClient(connect=["tcp/127.0.0.1:7447"]) as client:
     ...     client.open_session("allegro", "foam_brick", p0)
@@ -78,14 +82,16 @@ class TrackerClient:
     def __init__(
         self,
         connect=("tcp/127.0.0.1:7447",),
-        service: str = "default",
+        service: str | None = "default",
         listen=(),
         scouting: bool = False,
         timeout: float = 120.0,
         zenoh_file: str | os.PathLike | None = None,
     ):
-        """``zenoh_file``: a Zenoh JSON5 config (TLS or mTLS certificates) under the endpoints given."""
-        self.keys = Keys(service)
+        """``service``: its name, or None to choose at each open. ``zenoh_file``: a Zenoh JSON5 config
+        (TLS or mTLS certificates) under the endpoints given."""
+        self._route = service is None
+        self.keys = Keys(service or "default")
         self.timeout = timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file))
         self.info: SessionInfo | None = None
@@ -119,25 +125,50 @@ class TrackerClient:
                 if "timeout" in text.lower():
                     raise TimeoutError(f"{key}: no reply from service '{self.keys.service}': {text}") from None
                 raise TrackerError(ErrorCode.INTERNAL, f"{key}: unreadable error reply: {text!r}") from None
-            raise TrackerError(err.code, err.message)
+            raise TrackerError(err.code, err.message, err.others)
         raise TimeoutError(f"{key}: no reply from service '{self.keys.service}' within {timeout or self.timeout} s")
 
     def service_info(self, timeout: float = 5.0) -> ServiceInfo:
         return self._get(self.keys.info, None, ServiceInfo, timeout)
 
+    def services(self, timeout: float = 2.0) -> list[ServiceInfo]:
+        """Every service that answers on this Zenoh network, the roomiest first (free worlds, then
+        free sessions)."""
+        replies = self._zenoh.get(
+            Keys.services("info"),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout,
+        )
+        found = {}
+        for reply in replies:
+            if reply.ok is not None:
+                with contextlib.suppress(DecodeError):
+                    info = decode(bytes(reply.ok.payload.to_bytes()), ServiceInfo)
+                    found[info.name] = info
+        return sorted(found.values(), key=lambda i: (-i.free_worlds, i.sessions - i.max_sessions, i.name))
+
     def wait_ready(self, timeout: float | None = None) -> ServiceInfo:
-        """Wait until the service answers and has compiled its kernels (minutes on a first start
-        with a cold cache); TimeoutError after ``timeout`` [s] (default the client's)."""
+        """Wait until the service (without a name: any service) answers and has compiled its
+        kernels (minutes on a first start with a cold cache); TimeoutError after ``timeout`` [s]
+        (default the client's)."""
         deadline = time.monotonic() + (timeout or self.timeout)
         while True:
+            left = min(5.0, max(0.1, deadline - time.monotonic()))
             try:
-                info = self.service_info(timeout=min(5.0, max(0.1, deadline - time.monotonic())))
-                if info.ready:
-                    return info
+                if self._route:
+                    ready = [i for i in self.services(timeout=min(left, 2.0)) if i.ready]
+                    if ready:
+                        return ready[0]
+                else:
+                    info = self.service_info(timeout=left)
+                    if info.ready:
+                        return info
             except TimeoutError:
                 pass
             if time.monotonic() >= deadline:
-                raise TimeoutError(f"service '{self.keys.service}' not ready within {timeout or self.timeout} s")
+                which = "no service" if self._route else f"service '{self.keys.service}'"
+                raise TimeoutError(f"{which} ready within {timeout or self.timeout} s")
             time.sleep(0.2)
 
     def open_session(
@@ -150,10 +181,15 @@ class TrackerClient:
         sigma_r: float = 0.1,
         q0=None,
         method: str = DEFAULT_METHOD,
-        worlds: int = DEFAULT_WORLDS,
+        worlds: int | str = AUTO,
+        allow_fewer: bool = False,
         overrides: dict[str, float] | None = None,
     ) -> SessionInfo:
-        """Ask the service to track ``object`` in ``robot``'s hand from the pose estimate ``p0`` (7,)."""
+        """Ask the service to track ``object`` in ``robot``'s hand from the pose estimate ``p0`` (7,).
+
+        ``worlds``: K, or "auto" for the most the service's frame budget allows now;
+        ``allow_fewer``: take fewer than K when the budget has no room for K, instead of a refusal
+        (:attr:`SessionInfo.notice` says why)."""
         if self.info is not None:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
         self.wait_ready()
@@ -166,11 +202,12 @@ class TrackerClient:
             q0=None if q0 is None else np.asarray(q0, np.float32),
             method=method,
             worlds=worlds,
+            allow_fewer=allow_fewer,
             overrides=overrides or {},
         )
-        self.info = info = self._get(self.keys.open, encode(request), SessionInfo)
+        self.info = info = self._open(encode(request))
         self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
-                            method=method, worlds=worlds, overrides=overrides)  # fmt: skip
+                            method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides)  # fmt: skip
         self._seq = 0
         self._latest = None
         self._sent_stamp = None
@@ -186,6 +223,22 @@ class TrackerClient:
         self._token = self._zenoh.liveliness().declare_token(self.keys.robot(info.session))
         self._service_watch = self._zenoh.liveliness().declare_subscriber(self.keys.alive, self._on_service)
         return info
+
+    def _open(self, request: bytes) -> SessionInfo:
+        """Open at the named service; without a name, at the roomiest ready one, going on to the
+        next while they answer ``capacity``."""
+        if not self._route:
+            return self._get(self.keys.open, request, SessionInfo)
+        full: TrackerError | None = None
+        for info in (i for i in self.services() if i.ready):
+            self.keys = Keys(info.name)
+            try:
+                return self._get(self.keys.open, request, SessionInfo)
+            except TrackerError as exc:
+                if exc.code != ErrorCode.CAPACITY:
+                    raise
+                full = exc
+        raise full or TimeoutError("no ready service answered")
 
     def reopen(self, p0=None, q0=None) -> SessionInfo:
         """Open a new session like the last one, from ``p0`` (default: the last estimate, else the

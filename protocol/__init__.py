@@ -7,6 +7,7 @@ Imports only numpy, msgpack and pydantic, so the robot-side client stays light.
 from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, DecodeError, decode, encode
 from .keys import PREFIX, Keys, check_name
 from .messages import (
+    AUTO,
     DEFAULT_METHOD,
     DEFAULT_WORLDS,
     PROTOCOL_VERSION,
@@ -26,6 +27,7 @@ from .sensing import PRESENCE, SENSING, SensingAttributes, SensingField, check_s
 from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 
 __all__ = [
+    "AUTO",
     "DEFAULT_METHOD",
     "DEFAULT_WORLDS",
     "MAX_ARRAY_BYTES",

@@ -1,6 +1,6 @@
 """Every Zenoh key expression of the protocol, in one place.
 
-``inhand/v2/{service}/...``: the version is the protocol's; it changes when a message changes
+``inhand/v3/{service}/...``: the version is the protocol's; it changes when a message changes
 incompatibly.
 """
 
@@ -71,6 +71,21 @@ class Keys:
         if kind not in ("frame", "pose", "status", "robot"):
             raise ValueError(f"key kind: expected frame, pose, status or robot, got {kind!r}")
         return f"{self.root}/s/*/{kind}"
+
+    @staticmethod
+    def services(kind: str) -> str:
+        """The wildcard over every service's ``alive`` token or ``info`` queryable."""
+        if kind not in ("alive", "info"):
+            raise ValueError(f"key kind: expected alive or info, got {kind!r}")
+        return f"{PREFIX}/*/{kind}"
+
+    @staticmethod
+    def service_of(key: str) -> str:
+        """The service chunk of any key of the protocol."""
+        parts = str(key).split("/")
+        if len(parts) < 3 or "/".join(parts[:2]) != PREFIX:
+            raise ValueError(f"key {key!r} is not under {PREFIX}")
+        return parts[2]
 
     def session_of(self, key: str) -> str:
         """The session chunk of a per-session key of this service."""

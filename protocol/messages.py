@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from enum import IntEnum, StrEnum
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, create_model, field_validator
@@ -17,6 +17,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSeriali
 from .sensing import SENSING
 
 __all__ = [
+    "AUTO",
     "DEFAULT_METHOD",
     "DEFAULT_WORLDS",
     "PROTOCOL_VERSION",
@@ -33,10 +34,13 @@ __all__ = [
     "check_version",
 ]
 
-PROTOCOL_VERSION = 2
-"""Bumped, with the key prefix's ``v2``, when a message changes incompatibly."""
+PROTOCOL_VERSION = 3
+"""Bumped, with the key prefix's ``v3``, when a message changes incompatibly."""
 DEFAULT_WORLDS = 40
-"""K, a session's worlds when it does not say: the paper's."""
+"""K, the paper's: a session's worlds where no frame budget decides (``worlds="auto"`` on a
+service without one, benchmarks)."""
+AUTO = "auto"
+"""``OpenSession.worlds``: the most worlds the service's frame budget allows now."""
 DEFAULT_METHOD = "PBO"
 """A session's optimizer when it does not say."""
 
@@ -81,6 +85,8 @@ class ErrorCode(StrEnum):
 class Error(_Message):
     code: ErrorCode
     message: str
+    others: list[str] = Field(default_factory=list)
+    """On ``capacity``: other services on the same Zenoh network that may have room."""
 
 
 def check_version(version: int) -> None:
@@ -103,6 +109,16 @@ class ServiceInfo(_Message):
     max_worlds: int
     sessions: int
     """Sessions open now."""
+    max_sessions: int
+    rate_hz: float
+    """The frame rate the service keeps up with [Hz]; 0: no frame budget."""
+    budget_ms: float
+    """The frame budget: the p99 time all populations' steps together may take [ms]."""
+    load_ms: float
+    """The p99 step time of the populations open or being built now, summed [ms]."""
+    free_worlds: int
+    """The most worlds (K) a session opened now in a new population would get; 0 when the service
+    is full."""
     ready: bool = True
     """False while the service compiles its kernels on start; opens wait until it is ready."""
 
@@ -122,7 +138,10 @@ class OpenSession(_Message):
     q0: Vector | None = None
     """Joint positions at the start, (D,); default the robot's start pose."""
     method: str = DEFAULT_METHOD
-    worlds: int = Field(DEFAULT_WORLDS, ge=1, le=65536)
+    worlds: Annotated[int, Field(ge=1, le=65536)] | Literal["auto"] = AUTO
+    """K, the session's worlds; "auto": the most the service's frame budget allows now."""
+    allow_fewer: bool = False
+    """Take fewer worlds than asked for when the budget has no room for them, instead of a refusal."""
     overrides: dict[str, float] = Field(default_factory=dict)
     """Tracker hyperparameters by name (e.g. update_every, wrench_force)."""
 
@@ -167,7 +186,10 @@ class SessionInfo(_Message):
     joint_names: list[str]
     sensor_names: list[str]
     worlds: int
+    """K, the worlds granted."""
     method: str
+    notice: str | None = None
+    """Why the session got fewer worlds than it asked for, when it did."""
 
 
 class _FrameHeader(_Message):
@@ -273,3 +295,7 @@ class SessionStatus(_Message):
     """RMS position spread of the worlds about the mean pose, sqrt(trace of the position covariance) [m]."""
     last_error: str | None = None
     """The last refused frame's error, naming the field and the numbers."""
+    budget_ms: float = 0.0
+    """The service's frame budget [ms] (0: none)."""
+    load_ms: float = 0.0
+    """The service's populations' p99 step times, summed [ms]."""

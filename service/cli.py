@@ -11,6 +11,7 @@ import contextlib
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -94,7 +95,7 @@ def serve(
     config: Annotated[Path | None, typer.Option(help="service TOML (default configs/service.toml)")] = None,
     listen: Annotated[str | None, typer.Option(help="Zenoh endpoints to listen on, comma-separated")] = None,
     connect: Annotated[str | None, typer.Option(help="Zenoh endpoints to connect to (a router)")] = None,
-    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v2/NAME")] = None,
+    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v3/NAME")] = None,
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
 ) -> None:
     """Run the tracking service."""
@@ -250,7 +251,8 @@ def demo(
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     endpoint = f"tcp/127.0.0.1:{port}"
-    config = ServiceConfig(listen=(endpoint,), device=device, groups=1)  # one session: no idle groups to step
+    # One session: no idle groups to step. No frame budget: the replay goes as fast as it can.
+    config = ServiceConfig(listen=(endpoint,), device=device, groups=1, rate_hz=0)
     log.info("starting the service on %s (device %s)", endpoint, device)
     with TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
         # The embedded service compiles its kernels first: minutes on a cold cache and a small CPU,
@@ -291,14 +293,26 @@ def bench_speed(
     groups: IntList = "1",
     substeps: IntList = None,
     jacobian: Annotated[str | None, typer.Option(help="constraint Jacobians, e.g. dense,sparse")] = None,
+    caps: Annotated[
+        str, typer.Option(help="solver caps ITERATIONSxLINE_SEARCH, comma-separated; default: the solver's own")
+    ] = "default",
     frames: Annotated[int, typer.Option(help="timed frames per size (after 30 warm-up frames)")] = 200,
     device: Device = "auto",
-    json_: Json = False,
+    json_: Annotated[bool, typer.Option("--json", help="print JSON (device, date, command, results)")] = False,
 ) -> None:
     """The whole tracker frame (frame in, estimate out) against the physics alone."""
     _gpu_stack()
     from service.bench.speed import as_dicts, bench_speed, format_table
-    from sim_backend import PopulationConfig
+    from service.server.budget import device_name
+    from sim_backend import PopulationConfig, resolve_device
+
+    try:
+        solver_caps = [(None, None) if c == "default" else tuple(int(v) for v in c.split("x")) for c in _names(caps)]
+        if any(len(c) != 2 for c in solver_caps):
+            raise ValueError
+    except ValueError:
+        text = f"bench speed: caps: expected ITERATIONSxLINE_SEARCH or default, comma-separated, got {caps!r}"
+        raise _fail(text) from None
 
     def show(r) -> None:
         log.info(
@@ -315,12 +329,18 @@ def bench_speed(
                 substeps or [PopulationConfig.substeps],
                 frames=frames,
                 device=device,
+                caps=solver_caps,
                 progress=show,
                 **({"jacobians": jacobian.split(",")} if jacobian else {}),
             )
     except ValueError as exc:
         raise _fail(f"bench speed: {exc}") from None
-    typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
+    if json_:
+        head = {"device": device_name(resolve_device(device)), "date": time.strftime("%Y-%m-%d")}
+        head["command"] = "inhand-tracker " + " ".join(sys.argv[1:])
+        typer.echo(json.dumps({**head, "results": as_dicts(results)}, indent=1))
+    else:
+        typer.echo(format_table(results))
 
 
 @bench.command("load")

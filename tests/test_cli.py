@@ -4,7 +4,9 @@ process tests start it as a real process)."""
 from __future__ import annotations
 
 import json
+import re
 
+import pytest
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -68,14 +70,22 @@ def test_settings_split_into_the_tracker_and_its_physics():
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():
-    out = _run("bench", "speed", "--worlds", "4", "--groups", "1,2", "--frames", "5", "--device", "cpu", "--json")
+    out = _run("bench", "speed", "--worlds", "4", "--groups", "1,2", "--caps", "default,4x3", "--frames", "5",
+               "--device", "cpu", "--json")  # fmt: skip
     assert out.exit_code == 0, out.stderr[-2000:]
-    rows = json.loads(out.stdout)
-    assert [(r["worlds"], r["groups"]) for r in rows] == [(4, 1), (4, 2)]
+    result = json.loads(out.stdout)
+    assert result["command"].startswith("inhand-tracker bench speed") and re.search(r" x\d+$", result["device"])
+    rows = result["results"]
+    assert [(r["worlds"], r["groups"], r["iterations"], r["ls_iterations"]) for r in rows] == [
+        (4, 1, 20, 10), (4, 2, 20, 10), (4, 1, 4, 3), (4, 2, 4, 3)
+    ]  # fmt: skip
     for r in rows:
         assert r["device"] == "cpu" and r["frames"] == 5 and r["substeps"] == 8
         assert 0 < r["tracker_median_ms"] <= r["tracker_p99_ms"] and 0 < r["physics_median_ms"] <= r["physics_p99_ms"]
         assert r["ratio"] == r["tracker_median_ms"] / r["physics_median_ms"]
+        assert r["world_substeps_per_s"] == pytest.approx(4 * 8 / (r["tracker_median_ms"] / 1e3))
         assert r["captured"] is False  # torch has no CPU graphs: plain calls around the physics graph
     bad = _run("bench", "speed", "--worlds", "5", "--groups", "2", "--device", "cpu")
     assert bad.exit_code == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr
+    bad = _run("bench", "speed", "--caps", "4x", "--device", "cpu")
+    assert bad.exit_code == 2 and "caps: expected ITERATIONSxLINE_SEARCH" in bad.stderr

@@ -40,7 +40,8 @@ def traj() -> Trajectory:
 
 def _manager(**settings) -> SessionManager:
     robot = load_robot(ROOT / "configs/robots/allegro.toml")
-    return SessionManager(ServiceConfig(groups=2, device="cpu", **settings), {robot.name: robot}, load_catalog())
+    config = ServiceConfig(**{"groups": 2, "device": "cpu", "rate_hz": 0} | settings)
+    return SessionManager(config, {robot.name: robot}, load_catalog())
 
 
 def _request(traj: Trajectory, **changes) -> OpenSession:
@@ -293,7 +294,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
     acl = {"access_control": {
         "enabled": True, "default_permission": "allow",
         "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                   "key_exprs": ["inhand/v2/default/**"]}],
+                   "key_exprs": ["inhand/v3/default/**"]}],
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip

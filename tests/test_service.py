@@ -62,7 +62,7 @@ def test_tracks_with_the_same_estimates_as_the_in_process_manager(service):
         client.close_session()
 
     robot = load_robot(ROOT / "configs/robots/allegro.toml")
-    manager = SessionManager(ServiceConfig(groups=1, device="cpu"), {robot.name: robot}, load_catalog())
+    manager = SessionManager(ServiceConfig(groups=1, device="cpu", rate_hz=0), {robot.name: robot}, load_catalog())
     local_info = manager.open(Open(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose,
                                    q0=traj.truth.initial_q))  # fmt: skip
     pool = manager.sessions[local_info.session].pool
@@ -234,7 +234,7 @@ def test_touch_presence_is_per_session_in_a_shared_population():
 
     traj = Trajectory.load(TRAJECTORY)
     robot = load_robot(ROOT / "configs/robots/allegro.toml")
-    manager = SessionManager(ServiceConfig(groups=2, device="cpu"), {robot.name: robot}, load_catalog())
+    manager = SessionManager(ServiceConfig(groups=2, device="cpu", rate_hz=0), {robot.name: robot}, load_catalog())
     open_one = lambda: manager.open(Open(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose,  # noqa: E731
                                          q0=traj.truth.initial_q))  # fmt: skip
     touch_info, blind_info = open_one(), open_one()
@@ -264,7 +264,7 @@ def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
 
     traj = Trajectory.load(TRAJECTORY)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1)
+    config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1, rate_hz=0)
     with caplog.at_level(logging.ERROR), TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
         broken = _open(client, traj)
         step = node.manager.step
@@ -302,7 +302,7 @@ def test_an_object_from_a_mesh_file_is_tracked_through_the_service_by_a_setting(
     objects.write_text('[block]\nmesh = "block.stl"\nscale = 0.001\nmass = 0.05\nmass_range = [0.02, 0.1]\n')
     traj = Trajectory.load(TRAJECTORY)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1, objects=str(objects))
+    config = ServiceConfig(listen=(endpoint,), device="cpu", groups=1, objects=str(objects), rate_hz=0)
     with TrackerNode(config), TrackerClient(connect=[endpoint]) as client:
         assert "block" in client.service_info().objects
         p0 = traj.truth.initial_pose.copy()

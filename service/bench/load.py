@@ -75,7 +75,10 @@ def bench_load(
         with socket.socket() as sock:
             sock.bind(("127.0.0.1", 0))
             endpoints = [f"tcp/127.0.0.1:{sock.getsockname()[1]}"]
-        config = ServiceConfig(listen=tuple(endpoints), device=device, groups=sessions, max_sessions=max(64, sessions))
+        # The load is the benchmark's to choose, not the frame budget's: it measures what robots see.
+        config = ServiceConfig(
+            listen=tuple(endpoints), device=device, groups=sessions, max_sessions=max(64, sessions), rate_hz=0
+        )
         service = TrackerNode(config)
     with service:
         clients = [TrackerClient(connect=endpoints) for _ in range(sessions)]

@@ -19,7 +19,7 @@ from sim_backend import HandSpec, Population, PopulationConfig, catalog_object, 
 
 from .sim import release_memory, used_bytes
 
-__all__ = ["REAL_TIME_MS", "SpeedResult", "as_dicts", "bench_speed", "format_table"]
+__all__ = ["COLUMNS", "REAL_TIME_MS", "SpeedResult", "as_dicts", "bench_speed", "format_table", "table_rows"]
 
 REAL_TIME_MS = 1e3 / 30.0
 """A 30 Hz robot sends a frame every 33.3 ms."""
@@ -35,6 +35,10 @@ class SpeedResult:
     """G, sessions sharing the population; each tracks with K = W / G worlds."""
     substeps: int
     solver: str
+    iterations: int
+    """The solver's iteration cap per substep."""
+    ls_iterations: int
+    """Its line-search cap."""
     frames: int
     """Timed frames (after the warm-up, which includes the graph captures)."""
     tracker_median_ms: float
@@ -49,6 +53,11 @@ class SpeedResult:
     def ratio(self) -> float:
         """Tracker over physics, medians."""
         return self.tracker_median_ms / self.physics_median_ms
+
+    @property
+    def world_substeps_per_s(self) -> float:
+        """Physics throughput of the whole tracker frame: worlds x substeps per second (median)."""
+        return self.worlds * self.substeps / (self.tracker_median_ms / 1e3)
 
     @property
     def real_time(self) -> bool:
@@ -81,10 +90,12 @@ def bench_speed(
     warmup: int = 30,
     device: str = "auto",
     jacobians: Sequence[str] = (PopulationConfig.jacobian,),
+    caps: Sequence[tuple[int | None, int | None]] = ((None, None),),
     progress=None,
 ) -> list[SpeedResult]:
     """Time ``frames`` tracker steps and as many bare physics frames for every (substeps,
-    Jacobian layout, G, W)."""
+    solver caps (iterations, line-search iterations; None: the solver's own), Jacobian layout,
+    G, W)."""
     dev = resolve_device(device)
     traj = Trajectory.load(DATA_DIR / TRAJECTORY)
     obj = catalog_object(traj.object)
@@ -98,14 +109,17 @@ def bench_speed(
         PopulationConfig(jacobian=jacobian)  # a bad name fails before anything is measured
     sync = (lambda: wp.synchronize_device(dev)) if dev.is_cuda else (lambda: None)
     results = []
-    for n, jacobian, g in itertools.product(substeps, jacobians, groups):
+    for n, (iterations, ls_iterations), jacobian, g in itertools.product(substeps, caps, jacobians, groups):
         recorded = _frames(traj, g)
         p0 = np.repeat(traj.truth.initial_pose[None], g, axis=0)
         q0 = np.repeat(traj.truth.initial_q[None], g, axis=0)
         for w in worlds:
             sync()
             before = used_bytes(dev)
-            config = PopulationConfig(groups=g, worlds=w // g, substeps=n, device=dev.alias, jacobian=jacobian)
+            config = PopulationConfig(
+                groups=g, worlds=w // g, substeps=n, device=dev.alias, jacobian=jacobian,
+                iterations=iterations, ls_iterations=ls_iterations,
+            )  # fmt: skip
             pop = Population(HandSpec(), obj, config)
             tracker = Tracker(pop, TrackerConfig())
             tracker.start(p0, q0)
@@ -135,6 +149,8 @@ def bench_speed(
                     groups=g,
                     substeps=n,
                     solver=config.solver_settings.name,
+                    iterations=config.solver_settings.iterations,
+                    ls_iterations=config.solver_settings.ls_iterations,
                     frames=len(timed),
                     tracker_median_ms=float(np.median(track)),
                     tracker_p99_ms=float(np.percentile(track, 99)),
@@ -151,21 +167,33 @@ def bench_speed(
     return results
 
 
+COLUMNS = [
+    "W", "G", "substeps", "solver (iterations / line search)", "tracker median ms", "tracker p99 ms",
+    "physics median ms", "physics p99 ms", "M world-substeps/s", "30 Hz (p99)", "memory/world",
+]  # fmt: skip
+
+
+def table_rows(results: list[dict]) -> list[list]:
+    """One row per result (as in :func:`as_dicts`) under :data:`COLUMNS`."""
+    return [
+        [
+            r["worlds"], r["groups"], r["substeps"], f"{r['solver']} ({r['iterations']} / {r['ls_iterations']})",
+            f"{r['tracker_median_ms']:.2f}", f"{r['tracker_p99_ms']:.2f}", f"{r['physics_median_ms']:.2f}",
+            f"{r['physics_p99_ms']:.2f}", f"{r['world_substeps_per_s'] / 1e6:.2f}", "yes" if r["real_time"] else "no",
+            f"{r['bytes_per_world'] / 1024:.0f} KiB",
+        ]
+        for r in results
+    ]  # fmt: skip
+
+
 def format_table(results: list[SpeedResult]) -> str:
-    lines = [
-        "| device | W | G | K per group | substeps | solver | tracker median ms | tracker p99 ms | physics median ms "
-        "| physics p99 ms | ratio | 30 Hz (p99) | memory/world |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in results:
-        lines.append(
-            f"| {r.device} | {r.worlds} | {r.groups} | {r.worlds // r.groups} | {r.substeps} | {r.solver} | "
-            f"{r.tracker_median_ms:.2f} | {r.tracker_p99_ms:.2f} | {r.physics_median_ms:.2f} | "
-            f"{r.physics_p99_ms:.2f} | {r.ratio:.2f} | {'yes' if r.real_time else 'no'} | "
-            f"{r.bytes_per_world / 1024:.0f} KiB |"
-        )
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(str(v) for v in row) + " |" for row in table_rows(as_dicts(results))]
     return "\n".join(lines)
 
 
 def as_dicts(results: list[SpeedResult]) -> list[dict]:
-    return [{**asdict(r), "ratio": r.ratio, "real_time": r.real_time} for r in results]
+    return [
+        {**asdict(r), "ratio": r.ratio, "world_substeps_per_s": r.world_substeps_per_s, "real_time": r.real_time}
+        for r in results
+    ]

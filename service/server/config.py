@@ -32,7 +32,7 @@ class ServiceConfig(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="INHAND_", extra="forbid", frozen=True, toml_file=DEFAULT_CONFIG)
 
     name: str = "default"
-    """The service's name: its keys live under inhand/v2/{name}."""
+    """The service's name: its keys live under inhand/v3/{name}."""
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, cuda or cuda:N."""
     listen: Endpoints = ("tcp/127.0.0.1:7447",)
@@ -86,6 +86,18 @@ class ServiceConfig(BaseSettings):
     """The solver's line-search iteration cap (None: the solver's own, 10 for Newton)."""
     tolerance: float = Field(PopulationConfig.tolerance, gt=0, lt=1)
     """The solver's convergence tolerance on the scaled cost improvement and gradient."""
+    rate_hz: float = Field(30.0, ge=0)
+    """The robots' frame rate the service keeps up with [Hz]: a new population is admitted only
+    while the p99 steps of all populations together fit in ``budget_share`` of one frame period.
+    0: no budget (offline replay as fast as it goes; ``worlds="auto"`` is then the paper's 40)."""
+    budget_share: float = Field(0.8, gt=0, le=1)
+    """The share of a frame period the populations' steps may take; the rest is headroom for
+    decoding, publishing and jitter."""
+    min_worlds: int = Field(8, ge=1)
+    """The fewest worlds a budget grants a session (``worlds="auto"``, or ``allow_fewer``); below
+    it the open is refused: too few hypotheses do not track."""
+    frame_time_cache: str = "~/.cache/inhand-tracker"
+    """Where the step times measured on this device are kept between starts."""
 
     @field_validator("listen", "connect", "robots", mode="before")
     @classmethod

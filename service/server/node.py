@@ -74,10 +74,16 @@ class TrackerNode:
         """The request the loop is handling now."""
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
         """Builds populations off the loop thread."""
-        self._waiting: dict[tuple, list[tuple[OpenSession, Future | None]]] = {}
-        """Opens waiting for their population's build, by population key."""
+        self._waiting: dict[tuple, list[tuple[OpenSession, Future | None, str | None]]] = {}
+        """Opens waiting for their population's build, by population key: the request with the
+        worlds granted, and why fewer than asked (when so)."""
         self._token = None
         self.session: zenoh.Session | None = None
+        self._others: set[str] = set()
+        """The other services on this Zenoh network (their liveliness tokens): named to a robot
+        this one has no room for."""
+        self._room = (0.0, 0)
+        """The loop's latest (load_ms, free_worlds), for the info queryable."""
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> TrackerNode:
@@ -92,6 +98,7 @@ class TrackerNode:
             s.declare_queryable(keys.every("status"), self._on_status),
             s.declare_subscriber(keys.every("frame"), self._on_frame),
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
+            s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
         self._loop.start()  # it warms up, then declares the service's liveliness token
         self._watchdog = threading.Thread(target=self._watch, name="inhand-watchdog", daemon=True)
@@ -106,7 +113,7 @@ class TrackerNode:
         # A loop still busy (a population build) or dead leaves requests unanswered, and Zenoh's
         # close waits for the handlers that wait on them: answer them, so the service can go.
         self._builder.shutdown(wait=False, cancel_futures=True)
-        pending = [self._in_flight, *(done for waits in self._waiting.values() for _, done in waits)]
+        pending = [self._in_flight, *(done for waits in self._waiting.values() for _, done, _ in waits)]
         while not self._inbox.empty():
             pending.append(self._inbox.get_nowait()[2])
         for done in pending:
@@ -146,6 +153,11 @@ class TrackerNode:
             groups=self.config.groups,
             max_worlds=self.config.max_worlds,
             sessions=len(m.sessions),
+            max_sessions=self.config.max_sessions,
+            rate_hz=self.config.rate_hz,
+            budget_ms=m.budget_ms if self.config.rate_hz else 0.0,
+            load_ms=self._room[0],
+            free_worlds=self._room[1] if self.ready else 0,
             ready=self.ready,
         )
         self._reply(query, info)
@@ -155,7 +167,7 @@ class TrackerNode:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
         except DecodeError as exc:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._call("open", request))
+        self._reply(query, self._call("open", (request, None)))
 
     def _on_close(self, query: zenoh.Query) -> None:
         try:
@@ -211,6 +223,14 @@ class TrackerNode:
             return
         self._inbox.put(("frame", (frame, received), None))
 
+    def _on_service(self, sample: zenoh.Sample) -> None:
+        name = Keys.service_of(sample.key_expr)
+        if name != self.keys.service:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._others.discard(name)
+            else:
+                self._others.add(name)
+
     def _on_robot(self, sample: zenoh.Sample) -> None:
         session = self.keys.session_of(sample.key_expr)
         gone = sample.kind == zenoh.SampleKind.DELETE
@@ -247,10 +267,12 @@ class TrackerNode:
         m, cfg = self.manager, self.config
         log.info("service '%s' warming up on %s: compiling kernels", cfg.name, self.device)
         m.warm()
+        self._room = (m.load_ms(), m.free_worlds())
         self._beat = time.monotonic()
         self.ready = True
         self._token = self.session.liveliness().declare_token(self.keys.alive)  # only now do robots see us
         log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
+        refreshed = time.monotonic()
         while not self._stop.is_set():
             self._beat = time.monotonic()
             idle = not any(s.pending for s in m.sessions.values())
@@ -287,8 +309,12 @@ class TrackerNode:
             for session in [s.id for s in m.sessions.values() if now - s.heard > cfg.idle_timeout_s]:
                 log.info("closing session %s: no frame for %.0f s", session, cfg.idle_timeout_s)
                 self._drop(session)
+            if now - refreshed > 0.2:  # what info answers: read here, where the populations change
+                self._room, refreshed = (m.load_ms(), m.free_worlds()), now
         for session in list(m.sessions):
             self._drop(session)
+        if m.frame_times.points:
+            m.frame_times.save(cfg.frame_time_cache)
 
     def _handle(self, kind: str, payload, done: Future | None) -> None:
         m = self.manager
@@ -306,7 +332,7 @@ class TrackerNode:
                 else:
                     self._robot_gone.pop(session, None)
             elif kind == "open":
-                self._open(payload, done)
+                self._open(*payload, done)
             elif kind == "built":
                 self._adopt(*payload)
             elif kind == "close":
@@ -316,18 +342,19 @@ class TrackerNode:
             elif kind == "status":
                 _answer(done, m.status(payload.session, payload.token))
         except ServiceError as exc:
-            _answer(done, exc.to_message())
+            _answer(done, exc.to_message(sorted(self._others) if exc.code == ErrorCode.CAPACITY else None))
         except Exception as exc:  # the loop never dies of a request; the caller gets the reason
             log.exception("request '%s' failed", kind)
             _answer(done, Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
 
-    def _open(self, request: OpenSession, done: Future | None) -> None:
+    def _open(self, request: OpenSession, notice: str | None, done: Future | None) -> None:
         """Open in a population with room, or queue the open behind the build of its population
         on the builder thread, so that the running sessions keep stepping meanwhile."""
         m = self.manager
         admission = m.admit(request)
+        admission.notice = admission.notice or notice
         if admission.pool is None:
-            self._waiting.setdefault(admission.key, []).append((request, done))
+            self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice))
             if admission.key not in m.building:
                 m.reserve(admission)
                 robot, obj, worlds = admission.key[:3]
@@ -356,13 +383,13 @@ class TrackerNode:
         except Exception as exc:
             self.manager.building.pop(admission.key, None)
             log.error("building a population for %s failed", admission.key[:3], exc_info=exc)
-            for _, done in waiting:
+            for _, done, _ in waiting:
                 _answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
             return
         self.manager.adopt(pool)
         log.info("population built in %.1f s", time.monotonic() - began)
-        for request, done in waiting:
-            self._handle("open", request, done)
+        for request, done, notice in waiting:
+            self._handle("open", (request, notice), done)
 
     def _drop(self, session: str) -> None:
         if session not in self.manager.sessions:

@@ -9,6 +9,7 @@ steps every population that has work and returns the estimates to publish.
 
 from __future__ import annotations
 
+import logging
 import secrets
 import threading
 import time
@@ -19,6 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol import (
+    AUTO,
+    DEFAULT_WORLDS,
     PRESENCE,
     SENSING,
     Error,
@@ -29,19 +32,30 @@ from protocol import (
     SessionInfo,
     SessionStatus,
     TrackState,
+    Trajectory,
     check_version,
     sensing_field,
 )
+from service.paths import DATA_DIR
 from service.tracker import METHODS, Frame, OptimizerConfig, Tracker, TrackerConfig, setting_types
 from sim_backend import ObjectSpec, Population, PopulationConfig, RobotSpec, resolve_device
 from sim_backend.kinematics import Kinematics
 
+from .budget import FrameTimes, affordable_worlds, device_name, ladder
 from .config import ServiceConfig
 
 __all__ = ["Admission", "ServiceError", "SessionManager"]
 
+log = logging.getLogger(__name__)
+
 _TUNABLE = setting_types(TrackerConfig)
 """Tracker hyperparameters a session may override, with their types."""
+
+
+_CALIBRATION = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+"""What the frame times are calibrated on: a pick and place, the hand in contact for most of it."""
+_MEASURED_STEPS = 100
+"""A population's own p99 replaces the prediction for it once it stepped this often."""
 
 
 class ServiceError(Exception):
@@ -51,8 +65,8 @@ class ServiceError(Exception):
         super().__init__(message)
         self.code, self.message = code, message
 
-    def to_message(self) -> Error:
-        return Error(code=self.code, message=self.message)
+    def to_message(self, others: list[str] | None = None) -> Error:
+        return Error(code=self.code, message=self.message, others=others or [])
 
 
 @dataclass
@@ -102,10 +116,17 @@ class _Pool:
 
     failed: bool = False
     """Its step raised: it steps no more and takes no new sessions."""
+    step_ms: deque = field(default_factory=lambda: deque(maxlen=3 * _MEASURED_STEPS))
+    """Its latest steps' times [ms]."""
+    steps: int = 0
 
     @property
     def active(self) -> list[_Session]:
         return [s for s in self.sessions if s is not None]
+
+    @property
+    def worlds(self) -> int:
+        return self.tracker.G * self.tracker.K
 
 
 class Turn:
@@ -132,10 +153,13 @@ class Admission:
     """A validated open: the request, the population it belongs in, and its settings."""
 
     request: OpenSession
+    """As asked, but for ``worlds``: the K granted."""
     key: tuple
     """(robot, object, worlds, overrides): sessions with the same key share a population."""
     robot: RobotSpec
     tracker_config: TrackerConfig
+    notice: str | None = None
+    """Why fewer worlds were granted than asked for."""
     pool: _Pool | None = None
     """A population with a free group; None when one must be built first (or is being built:
     its key is in :attr:`SessionManager.building`)."""
@@ -159,6 +183,85 @@ class SessionManager:
         """When sessions were opened in the last minute [s, monotonic]."""
         self._built = 0
         """Populations built so far: a new one's key never repeats a dropped one's."""
+        physics = {k: getattr(config, k) for k in ("substeps", "iterations", "ls_iterations", "tolerance")}
+        self.frame_times = FrameTimes.load(config.frame_time_cache, {"device": device_name(self.device), **physics})
+        """p99 step time of a population by its worlds, on this device and physics setting."""
+
+    # ------------------------------------------------------------------ the frame budget
+    @property
+    def budget_ms(self) -> float:
+        """The p99 time all populations' steps may take together [ms]; inf without a budget."""
+        cfg = self.config
+        return 1e3 / cfg.rate_hz * cfg.budget_share if cfg.rate_hz else float("inf")
+
+    def step_ms(self, pool: _Pool) -> float:
+        """A population's p99 step time [ms]: its own once it stepped enough, else the prediction."""
+        if len(pool.step_ms) >= _MEASURED_STEPS:
+            return float(np.percentile(pool.step_ms, 99))
+        return self.frame_times.predict(pool.worlds)
+
+    def load_ms(self) -> float:
+        """The p99 step times of every population stepping or being built, summed [ms]."""
+        building = sum(self.frame_times.predict(w) for w in self.building.values())
+        return sum(self.step_ms(p) for p in self.pools.values() if not p.failed) + building
+
+    def free_worlds(self) -> int:
+        """The most worlds (K) a session opened now in a new population would get; 0 when full."""
+        cfg = self.config
+        if len(self.sessions) >= cfg.max_sessions or len(self.pools) + len(self.building) >= cfg.max_populations:
+            return 0
+        room = (cfg.max_worlds - self._worlds_in_use()) // cfg.groups
+        if not cfg.rate_hz:
+            return min(DEFAULT_WORLDS, room) if room >= 1 else 0
+        sizes = ladder(cfg.min_worlds, cfg.max_worlds)
+        return affordable_worlds(self.frame_times, self.load_ms(), self.budget_ms, cfg.groups, sizes, room)
+
+    def _worlds_in_use(self) -> int:
+        return sum(p.worlds for p in self.pools.values()) + sum(self.building.values())
+
+    def _grant(self, request: OpenSession, kind: tuple) -> tuple[int, str | None]:
+        """The K an open gets, and why it is fewer than asked for (when it is): what was asked,
+        if it fits the frame budget; a population of the same ``kind`` (robot, object,
+        overrides) with a free group costs nothing more; else the most that fits, for "auto" or
+        ``allow_fewer``; else a refusal naming the numbers."""
+        cfg, asked = self.config, request.worlds
+        if asked != AUTO and asked > cfg.max_worlds:
+            raise ServiceError(ErrorCode.CAPACITY, f"worlds: {asked} exceeds this service's limit of {cfg.max_worlds}")
+        if not cfg.rate_hz:
+            return (DEFAULT_WORLDS if asked == AUTO else asked), None
+        joinable = [k[2] for k, p in self.pools.items() if (k[0], k[1], k[3]) == kind and None in p.sessions]
+        joinable += [k[2] for k in self.building if (k[0], k[1], k[3]) == kind]
+        if asked != AUTO and asked in joinable:
+            return asked, None
+        load, budget, g = self.load_ms(), self.budget_ms, cfg.groups
+        room = (cfg.max_worlds - self._worlds_in_use()) // g
+        if asked != AUTO and asked <= room and load + self.frame_times.predict(g * asked) <= budget:
+            return asked, None
+        cap = room if asked == AUTO else min(asked, room)
+        new = affordable_worlds(self.frame_times, load, budget, g, ladder(cfg.min_worlds, cfg.max_worlds), cap)
+        best = max([new, *(k for k in joinable if k <= cap)])
+        per = f"{cfg.rate_hz:g} Hz x {cfg.budget_share:g}"
+        if asked == AUTO:
+            if best:
+                return best, None
+            t = self.frame_times.predict(g * cfg.min_worlds)
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"worlds: no room in the frame budget of {budget:.1f} ms ({per}) on {self.device}: "
+                f"{load:.1f} ms in use, and a population of {g} x {cfg.min_worlds} worlds (min_worlds) would "
+                f"add about {t:.1f} ms (p99)",
+            )
+        t = self.frame_times.predict(g * asked)
+        why = (
+            f"a population of {g} x {asked} worlds would step in about {t:.1f} ms (p99) on {self.device}; "
+            f"with {load:.1f} ms in use that passes the frame budget of {budget:.1f} ms ({per})"
+        )
+        if asked > room:
+            why = f"{g} x {asked} worlds pass the service's limit of {cfg.max_worlds} ({g * room} free)"
+        if request.allow_fewer and best >= cfg.min_worlds:
+            return best, f"worlds: {asked} asked, {best} granted: {why}"
+        fit = f"at most {best} fit now (allow_fewer to take them)" if best else "none fit now"
+        raise ServiceError(ErrorCode.CAPACITY, f"worlds: {why}; {fit}")
 
     # ------------------------------------------------------------------ open / close
     def open(self, request: OpenSession) -> SessionInfo:
@@ -171,7 +274,8 @@ class SessionManager:
                 self.adopt(self.build(admission))
             finally:
                 self.building.pop(admission.key, None)
-            admission = self.admit(request)
+            notice, admission = admission.notice, self.admit(admission.request)
+            admission.notice = admission.notice or notice
         return self.attach(admission)
 
     def admit(self, request: OpenSession) -> Admission:
@@ -201,10 +305,6 @@ class SessionManager:
             raise ServiceError(
                 ErrorCode.CAPACITY, f"opens: {len(self._opened)} in the last 60 s, this service's limit is {limit}"
             )
-        if request.worlds > self.config.max_worlds:
-            raise ServiceError(
-                ErrorCode.CAPACITY, f"worlds: {request.worlds} exceeds this service's limit of {self.config.max_worlds}"
-            )
         unknown = sorted(set(request.overrides) - set(_TUNABLE))
         if unknown:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: unknown {unknown} (tunable: {sorted(_TUNABLE)})")
@@ -215,8 +315,11 @@ class SessionManager:
         if request.q0 is not None and np.shape(request.q0) != (d,):
             got = np.shape(request.q0)[0]
             raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {got}")
-        key = (request.robot, request.object, request.worlds, tuple(sorted(request.overrides.items())))
-        admission = Admission(request, key, robot, tconf)
+        overrides = tuple(sorted(request.overrides.items()))
+        worlds, notice = self._grant(request, (request.robot, request.object, overrides))
+        request = request.model_copy(update={"worlds": worlds})
+        key = (request.robot, request.object, worlds, overrides)
+        admission = Admission(request, key, robot, tconf, notice)
         for k, pool in self.pools.items():
             if k[:4] == key and None in pool.sessions and not pool.failed:
                 admission.pool = pool
@@ -231,12 +334,11 @@ class SessionManager:
                 f"populations: {populations} built, this service's limit is {cfg.max_populations}"
                 " (sessions share one when robot, object, worlds and overrides match)",
             )
-        worlds = sum(p.tracker.G * p.tracker.K for p in self.pools.values()) + sum(self.building.values())
-        if worlds + cfg.groups * request.worlds > cfg.max_worlds:
+        in_use = self._worlds_in_use()
+        if in_use + cfg.groups * worlds > cfg.max_worlds:
             raise ServiceError(
                 ErrorCode.CAPACITY,
-                f"worlds: no room for {cfg.groups} x {request.worlds} more worlds"
-                f" ({worlds} in use, limit {cfg.max_worlds})",
+                f"worlds: no room for {cfg.groups} x {worlds} more worlds ({in_use} in use, limit {cfg.max_worlds})",
             )
         return admission
 
@@ -321,6 +423,7 @@ class SessionManager:
             sensor_names=list(kin.layout.sensor_names),
             worlds=tracker.K,
             method=request.method,
+            notice=admission.notice,
         )
 
     @staticmethod
@@ -358,15 +461,59 @@ class SessionManager:
         return session
 
     def warm(self) -> None:
-        """Build, capture and drop a population of the first robot and object, so that the kernels
-        are compiled (minutes on a cold cache) before any robot waits on an open: one world on the
-        CPU, the default size on CUDA, where some of Newton's kernels are compiled per size."""
-        robot, obj = next(iter(self.robots)), next(iter(self.objects))
+        """Compile the kernels before any robot waits on an open (minutes on a cold cache), and,
+        with a frame budget, measure the step time at a few population sizes unless this device's
+        are cached. One world per group on the CPU without a budget; the sizes ``auto`` grants
+        first on CUDA, where some of Newton's kernels are compiled per size."""
+        traj = Trajectory.load(_CALIBRATION)
+        replay = traj.robot in self.robots and traj.object in self.objects
+        robot, obj = (traj.robot, traj.object) if replay else (next(iter(self.robots)), next(iter(self.objects)))
         kin = self._kinematics.setdefault(robot, Kinematics(self.robots[robot]))
-        rest = np.array([0.3, 0.0, -float(self.objects[obj].mesh.bounds[0, 2]), 0, 0, 0, 1], np.float32)
-        worlds = OpenSession.model_fields["worlds"].default if self.device.is_cuda else 1
-        request = OpenSession(robot=robot, object=obj, p0=rest, q0=kin.layout.default_q, worlds=worlds)
-        self.build(self.admit(request))
+        cfg, cuda = self.config, self.device.is_cuda
+        if not cfg.rate_hz:
+            sizes = [DEFAULT_WORLDS if cuda else 1]
+        else:
+            sizes = [k for k in ((8, 128, 1024) if cuda else (1, 8)) if cfg.groups * k <= cfg.max_worlds]
+        measure = cfg.rate_hz and any(cfg.groups * k not in self.frame_times.points for k in sizes)
+        if not replay and measure:
+            log.warning(
+                "frame times: calibrating with robot '%s' holding still (the bundled motion is the '%s' robot's);"
+                " the populations' own steps will correct them", robot, traj.robot,
+            )  # fmt: skip
+        for k in sizes if measure else sizes[:1]:
+            request = OpenSession(robot=robot, object=obj, p0=traj.truth.initial_pose, worlds=k)
+            tracker = self.build(Admission(request, (robot, obj, k, ()), self.robots[robot], TrackerConfig())).tracker
+            if measure:
+                rest = np.array([0.3, 0.0, -float(self.objects[obj].mesh.bounds[0, 2]), 0, 0, 0, 1], np.float32)
+                ms = self._time_steps(tracker, traj if replay else None, kin.layout.default_q, rest)
+                self.frame_times.observe(tracker.G * tracker.K, ms, weight=1.0)
+                log.info("frame times: %d worlds step in %.1f ms (p99) on %s", tracker.G * tracker.K, ms, self.device)
+            del tracker
+        if measure:
+            self.frame_times.save(cfg.frame_time_cache)
+
+    @staticmethod
+    def _time_steps(
+        tracker: Tracker, traj: Trajectory | None, q0: np.ndarray, rest: np.ndarray, frames: int = 120
+    ) -> float:
+        """The p99 of a tracker's steps [ms] over ``frames`` of ``traj`` replayed in every group (the
+        first third untimed: the hand reaches the object), or, without one, holding ``q0`` with the
+        object at ``rest``."""
+        g = tracker.G
+        tile = lambda a: np.repeat(np.asarray(a, np.float32)[None], g, axis=0)  # noqa: E731
+        if traj is None:
+            pose = rest
+            sensing = [{"controls": tile(q0), "q": tile(q0)}] * frames
+        else:
+            pose, frames = traj.truth.initial_pose, min(frames, traj.frames)
+            sensing = [{n: tile(v[f]) for n, v in traj.sensing.items() if v is not None} for f in range(frames)]
+        tracker.start(tile(pose), sensing[0]["q"])
+        times = []
+        for fields in sensing:
+            began = time.perf_counter()
+            tracker.step(Frame(**fields))
+            times.append((time.perf_counter() - began) * 1e3)
+        return float(np.percentile(times[frames // 3 :], 99))
 
     # ------------------------------------------------------------------ frames
     def submit(self, frame: RobotFrame, received: float | None = None) -> None:
@@ -450,8 +597,13 @@ class SessionManager:
             s.next_seq = frame.seq + 1
             stepped.append((s, frame, received))
         with self.turn:
+            began = time.perf_counter()
             est = pool.tracker.step(Frame(present=pool.present, **pool.sensing))
-        done = time.perf_counter()
+            done = time.perf_counter()
+        pool.step_ms.append((done - began) * 1e3)
+        pool.steps += 1
+        if pool.steps % _MEASURED_STEPS == 0:  # the device's curve learns from every population
+            self.frame_times.observe(pool.worlds, self.step_ms(pool))
         out = []
         for s, frame, received in stepped:
             g = s.group
@@ -508,6 +660,8 @@ class SessionManager:
             cost=float(s.latest.cost) if s.latest else 0.0,
             spread_m=float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
             last_error=s.last_error,
+            budget_ms=self.budget_ms if self.config.rate_hz else 0.0,
+            load_ms=self.load_ms(),
         )
 
     def count_error(self, session_id: str, message: str) -> None:

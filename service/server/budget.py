@@ -1,0 +1,126 @@
+"""The service's frame budget: how long one step of a population takes on this device, as a
+function of its worlds, and so how many worlds a new session may have while the service still
+keeps up with its robots.
+
+A step's time is learnt, not assumed: calibrated at start-up (a population replaying the bundled
+pick and place, the hand in contact, at two sizes), cached per device and physics setting, and
+corrected online from every population's own steps.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["FrameTimes", "affordable_worlds", "device_name", "ladder"]
+
+log = logging.getLogger(__name__)
+
+
+def ladder(smallest: int, largest: int) -> list[int]:
+    """The K a budget grants, powers of two from ``smallest`` to ``largest``: few sizes, because on
+    CUDA every new population size compiles its own collision kernels the first time (tens of
+    seconds), and a doubling is the finest step that changes accuracy measurably."""
+    out, k = [], 1
+    while k <= largest:
+        if k >= smallest:
+            out.append(k)
+        k *= 2
+    return out
+
+
+def device_name(device) -> str:
+    """What the frame times are cached by: the GPU's model, or the CPU's model and core count."""
+    if device.is_cuda:
+        import warp as wp
+
+        return wp.get_device(device.alias).name
+    cpu = platform.processor() or platform.machine()
+    try:  # Linux names its CPU here; platform.processor() is often empty there
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return f"{cpu} x{os.cpu_count()}"
+
+
+@dataclass
+class FrameTimes:
+    """The p99 time of one step of a population [ms] by its worlds W, on one device and physics
+    setting: measured points, linear between them, flat below the smallest (a GPU's launch cost
+    does not shrink with fewer worlds) and extrapolated along the last segment above the largest
+    (through the origin with one point)."""
+
+    key: dict
+    """The device and the physics settings the points hold for."""
+    points: dict[int, float] = field(default_factory=dict)
+    """W -> p99 step time [ms]."""
+    measured: str = ""
+    """When the points were last changed (ISO date, UTC)."""
+
+    def predict(self, worlds: int) -> float:
+        if not self.points:
+            return 0.0
+        w = np.array(sorted(self.points), dtype=np.float64)
+        t = np.array([self.points[int(x)] for x in w])
+        if worlds <= w[-1]:
+            return float(np.interp(worlds, w, t))
+        if len(w) == 1:
+            return float(t[0] * worlds / w[0])
+        slope = max((t[-1] - t[-2]) / (w[-1] - w[-2]), 0.0)
+        return float(t[-1] + slope * (worlds - w[-1]))
+
+    def observe(self, worlds: int, p99_ms: float, weight: float = 0.25) -> None:
+        """A population of ``worlds`` measured at ``p99_ms``: a new point, or an old one moved by
+        ``weight`` of the way there (one busy second should not swing admission)."""
+        old = self.points.get(worlds)
+        self.points[worlds] = p99_ms if old is None else old + weight * (p99_ms - old)
+        self.measured = time.strftime("%Y-%m-%d", time.gmtime())
+
+    # ------------------------------------------------------------------ the cache
+    @staticmethod
+    def path(directory: Path, key: dict) -> Path:
+        digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+        return Path(directory).expanduser() / f"frame-times-{digest}.json"
+
+    @classmethod
+    def load(cls, directory: Path, key: dict) -> FrameTimes:
+        """The cached points for ``key``, or none (a missing or unreadable file is a cold start)."""
+        path = cls.path(directory, key)
+        try:
+            data = json.loads(path.read_text())
+            if data["key"] == key:
+                return cls(key, {int(w): float(t) for w, t in data["points"].items()}, data.get("measured", ""))
+        except FileNotFoundError:
+            pass
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("frame times: ignoring the unreadable cache %s (%s)", path, exc)
+        return cls(key)
+
+    def save(self, directory: Path) -> None:
+        path = self.path(directory, self.key)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            points = {str(w): round(t, 3) for w, t in sorted(self.points.items())}
+            tmp.write_text(json.dumps({"key": self.key, "points": points, "measured": self.measured}, indent=1))
+            tmp.replace(path)
+        except OSError as exc:  # a read-only home costs a calibration per start, not the service
+            log.warning("frame times: cannot write the cache %s (%s)", path, exc)
+
+
+def affordable_worlds(
+    times: FrameTimes, load_ms: float, budget_ms: float, groups: int, sizes: list[int], at_most: int
+) -> int:
+    """The largest K of ``sizes`` (at most ``at_most``) whose population of ``groups`` x K worlds
+    fits in the budget beside ``load_ms`` of populations already stepping; 0 when none does."""
+    fits = [k for k in sizes if k <= at_most and load_ms + times.predict(groups * k) <= budget_ms]
+    return max(fits, default=0)
