@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -75,6 +76,26 @@ def _gpu_stack() -> None:
     forward_only_kernels()
     quiet_warp()
     watch_kernel_compiles()
+
+
+def _command_line(ctx: typer.Context) -> str:
+    """The running command as a user would type it, for a result file: its options that differ
+    from their defaults, read from the parsed command (sys.argv is not the command's when it is
+    invoked from Python)."""
+    words = ["inhand-tracker", *ctx.command_path.split(" ")[1:]]
+    for param in ctx.command.params:
+        value = ctx.params.get(param.name)
+        if value is None or value == () or param.name == "json_":
+            continue
+        if isinstance(value, bool):
+            if value != param.default:
+                words.append(param.opts[0] if value else param.secondary_opts[0])
+            continue
+        for v in value if isinstance(value, tuple) else (value,):  # a repeated option, e.g. --set
+            shown = ",".join(map(str, v)) if isinstance(v, list) else str(v)
+            if shown != str(param.default):
+                words += [param.opts[0], shlex.quote(shown)]
+    return " ".join(words)
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:
@@ -289,6 +310,7 @@ def bench_sim(
 
 @bench.command("speed")
 def bench_speed(
+    ctx: typer.Context,
     worlds: IntList = "40,256,1024,4096,8192",
     groups: IntList = "1",
     substeps: IntList = None,
@@ -337,7 +359,7 @@ def bench_speed(
         raise _fail(f"bench speed: {exc}") from None
     if json_:
         head = {"device": device_name(resolve_device(device)), "date": time.strftime("%Y-%m-%d")}
-        head["command"] = "inhand-tracker " + " ".join(sys.argv[1:])
+        head["command"] = _command_line(ctx)
         typer.echo(json.dumps({**head, "results": as_dicts(results)}, indent=1))
     else:
         typer.echo(format_table(results))
@@ -410,6 +432,7 @@ def _settings(settings: list[str]):
 
 @bench.command("accuracy")
 def bench_accuracy(
+    ctx: typer.Context,
     suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap or cross-engine")] = "smoke",
     short: Annotated[bool, typer.Option(help="the suite in short form: one object, two kinds, 10 s tracks")] = False,
     methods: Annotated[str, typer.Option(help="comma-separated: OLP, EYE, WRS, REPS, PBO")] = "OLP,EYE,WRS,REPS,PBO",
@@ -440,7 +463,7 @@ def bench_accuracy(
     except ValueError as exc:
         raise _fail(f"--set: {exc}") from None
     out = out or Path(f"bench-results/accuracy-{suite}")
-    command = "inhand-tracker " + " ".join(sys.argv[1:])
+    command = _command_line(ctx)
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps, "k_ablation": ablation_worlds}.items() if v}
     try:
         with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the report or JSON

@@ -74,7 +74,9 @@ def test_bench_speed_times_the_tracker_against_the_physics():
                "--device", "cpu", "--json")  # fmt: skip
     assert out.exit_code == 0, out.stderr[-2000:]
     result = json.loads(out.stdout)
-    assert result["command"].startswith("inhand-tracker bench speed") and re.search(r" x\d+$", result["device"])
+    command = "inhand-tracker bench speed --worlds 4 --groups 1,2 --caps default,4x3 --frames 5 --device cpu"
+    assert result["command"] == command
+    assert re.search(r" x\d+$", result["device"])
     rows = result["results"]
     assert [(r["worlds"], r["groups"], r["iterations"], r["ls_iterations"]) for r in rows] == [
         (4, 1, 20, 10), (4, 2, 20, 10), (4, 1, 4, 3), (4, 2, 4, 3)
