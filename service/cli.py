@@ -82,7 +82,8 @@ def _command_line(ctx: typer.Context) -> str:
     """The running command as a user would type it, for a result file: its options that differ
     from their defaults, read from the parsed command (sys.argv is not the command's when it is
     invoked from Python)."""
-    words = ["inhand-tracker", *ctx.command_path.split(" ")[1:]]
+    root = ctx.find_root().command_path  # "inhand-tracker", or "python -m service.cli"
+    words = ["inhand-tracker", *ctx.command_path[len(root) :].split()]
     for param in ctx.command.params:
         value = ctx.params.get(param.name)
         if value is None or value == () or param.name == "json_":
@@ -153,7 +154,9 @@ def replay(
     connect: Annotated[str, typer.Option(help="the service's endpoints, comma-separated")] = "tcp/127.0.0.1:7447",
     name: Annotated[str, typer.Option(help="service name")] = "default",
     method: Annotated[str | None, typer.Option(help="OLP, EYE, WRS, REPS or PBO (default: the protocol's)")] = None,
-    worlds: Annotated[int | None, typer.Option(help="K (default: the protocol's)")] = None,
+    worlds: Annotated[
+        int | None, typer.Option(help="K (default: auto, the most the service's frame budget allows)")
+    ] = None,
     rate: Annotated[float, typer.Option(help="frames per second; 0: each frame after the last estimate")] = 0.0,
     noise: Annotated[str, typer.Option(help="initial pose noise from the truth: low, med, high")] = "med",
 ) -> None:
@@ -256,7 +259,7 @@ def _summary(traj, estimates) -> None:
 @app.command()
 def demo(
     device: Device = "auto",
-    worlds: Annotated[int | None, typer.Option(help="K (default: the protocol's)")] = None,
+    worlds: Annotated[int | None, typer.Option(help="K (default: the paper's 40)")] = None,
     method: Annotated[str | None, typer.Option(help="OLP, EYE, WRS, REPS or PBO (default: the protocol's)")] = None,
     file: Annotated[Path | None, typer.Option(help="trajectory (default: a bundled foam-brick pick and place)")] = None,
 ) -> None:

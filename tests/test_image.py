@@ -49,7 +49,8 @@ def test_the_image_serves_a_client_on_the_host_and_stops_on_sigterm(tmp_path, ca
     cache.mkdir(exist_ok=True)
     subprocess.run(["chmod", "-R", "a+rwX", str(cache)], check=True)
     name = f"inhand-test-{port}"
-    env = [f"INHAND_LISTEN=tcp/127.0.0.1:{port}", "INHAND_DEVICE=cpu", "INHAND_GROUPS=1"]
+    # No frame budget: on a busy CI machine the CPU's step times could refuse the open.
+    env = [f"INHAND_LISTEN=tcp/127.0.0.1:{port}", "INHAND_DEVICE=cpu", "INHAND_GROUPS=1", "INHAND_RATE_HZ=0"]
     volume = f"{cache}:/home/tracker/.cache/warp"
     _podman("run", "-d", "--name", name, "--network", "host", *(f"--env={e}" for e in env), "-v", volume, TAG)
     try:

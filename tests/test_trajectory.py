@@ -93,8 +93,10 @@ def test_the_benchmarks_page_is_generated_from_the_committed_results(tmp_path):
     root = Path(__file__).resolve().parents[1]
     results = tmp_path / "results"
     results.mkdir()
-    for f in (root / "docs" / "results").glob("*.json"):
-        (results / f.name).write_text(f.read_text())
+    for f in (root / "docs" / "results").glob("**/*.json"):
+        copy = results / f.relative_to(root / "docs" / "results")
+        copy.parent.mkdir(exist_ok=True)
+        copy.write_text(f.read_text())
     page = render(results, tmp_path / "benchmarks.md")
     assert page.read_text() == (root / "docs" / "benchmarks.md").read_text(), "run `inhand-tracker bench publish`"
     assert (results / "01-accuracy-paper.png").stat().st_size > 1000

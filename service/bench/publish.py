@@ -2,7 +2,8 @@
 file-name order, with its device, command and date, and a chart where the file asks for one.
 
 A result file: {"title", "device", "date", "command", "about", "columns", "rows"[, "chart"]};
-"chart" is {"kind": "bar", "groups", "series", "mean", "err", "ylabel"}.
+"chart" is {"kind": "bar", "groups", "series", "mean", "err", "ylabel"}. Then one section per
+device from docs/results/speed/: the files `inhand-tracker bench speed --json` writes.
 """
 
 from __future__ import annotations
@@ -12,7 +13,31 @@ from pathlib import Path
 
 from .plots import bar_chart
 
-__all__ = ["render"]
+__all__ = ["SPEED_COLUMNS", "render", "speed_rows"]
+
+SPEED_COLUMNS = [
+    "W", "G", "substeps", "solver (iterations / line search)", "tracker median ms", "tracker p99 ms",
+    "physics median ms", "physics p99 ms", "M world-substeps/s", "30 Hz (p99)", "memory/world",
+]  # fmt: skip
+_SPEED_ABOUT = (
+    "The whole tracker frame (frame in, estimate out) against the physics alone, replaying the bundled"
+    " pick and place (the hand in motion); each of G sessions tracks with K = W / G worlds. World-substeps"
+    " per second: W x substeps over the tracker's median. Real time: a p99 within a 30 Hz frame (33.3 ms)."
+)
+
+
+def speed_rows(results: list[dict]) -> list[list]:
+    """One row per `bench speed` result under :data:`SPEED_COLUMNS`."""
+    return [
+        [
+            r["worlds"], r["groups"], r["substeps"], f"{r['solver']} ({r['iterations']} / {r['ls_iterations']})",
+            f"{r['tracker_median_ms']:.2f}", f"{r['tracker_p99_ms']:.2f}", f"{r['physics_median_ms']:.2f}",
+            f"{r['physics_p99_ms']:.2f}", f"{r['world_substeps_per_s'] / 1e6:.2f}", "yes" if r["real_time"] else "no",
+            f"{r['bytes_per_world'] / 1024:.0f} KiB",
+        ]
+        for r in results
+    ]  # fmt: skip
+
 
 _HEAD = """# Benchmarks
 
@@ -33,7 +58,8 @@ _TAIL = """## Reproduce
   tracker's own simulator (the reality gap with its physics and sensors off); the cross-engine
   suite's from MuJoCo C (the hand's MJCF, a 1 ms step, other motions, sensor noise). `--short`
   runs a suite's first object and two kinds of 10 s tracks, as CI does.
-- Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8] --json`.
+- Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8]
+  [--caps default,4x4] --json > docs/results/speed/DEVICE.json`, one file per device.
 - The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
 - The service under load: `inhand-tracker bench load --sessions 4 --worlds 40 --rate 30 --seconds 10`
   (robots streaming through real clients to a service embedded on loopback).
@@ -57,6 +83,12 @@ def render(results: Path, out: Path) -> Path:
             png = bar_chart(results / f"{path.stem}.png", r["title"], chart["groups"], chart["series"],
                             chart["mean"], chart.get("err"), ylabel=chart["ylabel"])  # fmt: skip
             lines += ["", f"![{r['title']}]({png.relative_to(out.parent).as_posix()})"]
+        lines.append("")
+    for path in sorted((results / "speed").glob("*.json")):
+        r = json.loads(path.read_text())
+        lines += [f"## Speed: {r['device']}", "", f"{r['date']}: `{r['command']}`", "", _SPEED_ABOUT, ""]
+        lines += ["| " + " | ".join(SPEED_COLUMNS) + " |", "|" + "---|" * len(SPEED_COLUMNS)]
+        lines += ["| " + " | ".join(map(str, row)) + " |" for row in speed_rows(r["results"])]
         lines.append("")
     lines.append(_TAIL)
     out.write_text("\n".join(lines))

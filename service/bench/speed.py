@@ -17,9 +17,10 @@ from service.paths import DATA_DIR
 from service.tracker import Frame, Tracker, TrackerConfig
 from sim_backend import HandSpec, Population, PopulationConfig, catalog_object, resolve_device
 
+from .publish import SPEED_COLUMNS, speed_rows
 from .sim import release_memory, used_bytes
 
-__all__ = ["COLUMNS", "REAL_TIME_MS", "SpeedResult", "as_dicts", "bench_speed", "format_table", "table_rows"]
+__all__ = ["REAL_TIME_MS", "SpeedResult", "as_dicts", "bench_speed", "format_table"]
 
 REAL_TIME_MS = 1e3 / 30.0
 """A 30 Hz robot sends a frame every 33.3 ms."""
@@ -167,28 +168,9 @@ def bench_speed(
     return results
 
 
-COLUMNS = [
-    "W", "G", "substeps", "solver (iterations / line search)", "tracker median ms", "tracker p99 ms",
-    "physics median ms", "physics p99 ms", "M world-substeps/s", "30 Hz (p99)", "memory/world",
-]  # fmt: skip
-
-
-def table_rows(results: list[dict]) -> list[list]:
-    """One row per result (as in :func:`as_dicts`) under :data:`COLUMNS`."""
-    return [
-        [
-            r["worlds"], r["groups"], r["substeps"], f"{r['solver']} ({r['iterations']} / {r['ls_iterations']})",
-            f"{r['tracker_median_ms']:.2f}", f"{r['tracker_p99_ms']:.2f}", f"{r['physics_median_ms']:.2f}",
-            f"{r['physics_p99_ms']:.2f}", f"{r['world_substeps_per_s'] / 1e6:.2f}", "yes" if r["real_time"] else "no",
-            f"{r['bytes_per_world'] / 1024:.0f} KiB",
-        ]
-        for r in results
-    ]  # fmt: skip
-
-
 def format_table(results: list[SpeedResult]) -> str:
-    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(str(v) for v in row) + " |" for row in table_rows(as_dicts(results))]
+    lines = ["| " + " | ".join(SPEED_COLUMNS) + " |", "|" + "---|" * len(SPEED_COLUMNS)]
+    lines += ["| " + " | ".join(str(v) for v in row) + " |" for row in speed_rows(as_dicts(results))]
     return "\n".join(lines)
 
 
