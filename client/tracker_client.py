@@ -21,6 +21,7 @@ from protocol import (
     Estimate,
     Keys,
     OpenSession,
+    PoseObservation,
     RobotFrame,
     ServiceInfo,
     SessionInfo,
@@ -107,6 +108,7 @@ class TrackerClient:
         self._opened: dict | None = None
         """The last open_session's arguments, for :meth:`reopen`."""
         self._service_watch = None
+        self._observer: zenoh.Publisher | None = None
         self.service_lost = False
         """Set when the service's liveliness token went away while a session was open."""
 
@@ -283,6 +285,27 @@ class TrackerClient:
         self._sent_stamp = frame.stamp
         return seq
 
+    def observe_pose(self, pose, covariance, stamp: float | None = None) -> None:
+        """Send the object's pose as another sensor saw it (a vision pose estimator): ``pose`` (7,)
+        position [m] and quaternion (x, y, z, w) in the robot's world frame, ``covariance`` (6, 6)
+        of position [m^2] and rotation vector [rad^2]; ``stamp``: the robot clock when it was seen
+        [s] (default: the newest frame's). At any rate; late by up to the service's
+        ``max_observation_age_s``. Raises pydantic's ValidationError on a malformed one."""
+        if self.info is None:
+            raise RuntimeError("no session: call open_session first")
+        observation = PoseObservation(
+            session=self.info.session,
+            token=self.info.token,
+            stamp=float(stamp if stamp is not None else (self._sent_stamp or 0.0)),
+            pose=pose,
+            covariance=covariance,
+        )
+        if self._observer is None:
+            self._observer = self._zenoh.declare_publisher(
+                self.keys.observation(self.info.session), encoding=_ENCODING, express=True
+            )
+        self._observer.put(encode(observation))
+
     def send(self, frame: RobotFrame) -> None:
         """Send a prepared frame (its session and token are replaced by this client's)."""
         self._publisher.put(encode(frame.model_copy(update={"session": self.info.session, "token": self.info.token})))
@@ -355,10 +378,10 @@ class TrackerClient:
 
     def _release(self) -> None:
         """Forget the session on this side: its token, subscribers and publisher."""
-        for entity in (self._token, self._subscriber, self._publisher, self._service_watch):
+        for entity in (self._token, self._subscriber, self._publisher, self._service_watch, self._observer):
             if entity is not None:
                 entity.undeclare()
-        self._token = self._subscriber = self._publisher = self._service_watch = None
+        self._token = self._subscriber = self._publisher = self._service_watch = self._observer = None
         self.info = None
 
     def close(self) -> None:

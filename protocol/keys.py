@@ -58,6 +58,10 @@ class Keys:
         """Publisher of every estimate, and a queryable answering the latest."""
         return f"{self.root}/s/{check_name('session', session)}/pose"
 
+    def observation(self, session: str) -> str:
+        """Subscriber: pose observations of the session's object (vision), at any rate."""
+        return f"{self.root}/s/{check_name('session', session)}/observation"
+
     def status(self, session: str) -> str:
         """Queryable: counters, latency, health."""
         return f"{self.root}/s/{check_name('session', session)}/status"
@@ -67,9 +71,9 @@ class Keys:
         return f"{self.root}/s/{check_name('session', session)}/robot"
 
     def every(self, kind: str) -> str:
-        """The wildcard over all sessions' ``kind`` keys (frame, pose, status, robot)."""
-        if kind not in ("frame", "pose", "status", "robot"):
-            raise ValueError(f"key kind: expected frame, pose, status or robot, got {kind!r}")
+        """The wildcard over all sessions' ``kind`` keys (frame, observation, pose, status, robot)."""
+        if kind not in ("frame", "observation", "pose", "status", "robot"):
+            raise ValueError(f"key kind: expected frame, observation, pose, status or robot, got {kind!r}")
         return f"{self.root}/s/*/{kind}"
 
     @staticmethod

@@ -26,6 +26,7 @@ __all__ = [
     "ErrorCode",
     "Estimate",
     "OpenSession",
+    "PoseObservation",
     "RobotFrame",
     "ServiceInfo",
     "SessionInfo",
@@ -220,6 +221,44 @@ RobotFrame = create_model(
 )
 
 
+class PoseObservation(_Message):
+    """The object's pose as another sensor saw it (a camera's pose estimator: FoundationPose,
+    PoseRBPF), sent at any rate on the session's ``observation`` key. The tracker scores its worlds
+    against it, and re-seeds them around it when none agrees with a confident one."""
+
+    session: str
+    token: str = ""
+    """The session's secret (:attr:`SessionInfo.token`)."""
+    stamp: float
+    """Robot clock when the sensor saw the pose [s]: an observation more than the service's
+    ``max_observation_age_s`` older than the newest frame is counted stale and dropped."""
+    pose: Pose
+    """The observed pose in the robot's world frame, (7,): position [m], unit quaternion (x, y, z, w)."""
+    covariance: Matrix6
+    """Its uncertainty, (6, 6): position [m^2] and rotation vector [rad^2] about ``pose``, world
+    frame; symmetric positive-definite."""
+
+    @field_validator("pose")
+    @classmethod
+    def _unit_quaternion(cls, pose: np.ndarray) -> np.ndarray:
+        norm = float(np.linalg.norm(pose[3:].astype(np.float64)))
+        if abs(norm - 1.0) > 1e-2:
+            raise ValueError(f"quaternion (x, y, z, w) = {pose[3:].tolist()} has length {norm:.4g}, expected 1 +- 0.01")
+        return pose
+
+    @field_validator("covariance")
+    @classmethod
+    def _positive_definite(cls, cov: np.ndarray) -> np.ndarray:
+        c = cov.astype(np.float64)
+        asymmetry = float(np.abs(c - c.T).max())
+        if asymmetry > 1e-6 * max(float(np.abs(c).max()), 1e-12):
+            raise ValueError(f"expected a symmetric matrix, largest |C - C^T| = {asymmetry:.3g}")
+        smallest = float(np.linalg.eigvalsh(c).min())
+        if smallest <= 0:
+            raise ValueError(f"expected positive-definite, smallest eigenvalue {smallest:.3g}")
+        return cov
+
+
 class TrackState(IntEnum):
     """How far an estimate is to be trusted; :attr:`Estimate.status` carries its lower-case name."""
 
@@ -295,6 +334,12 @@ class SessionStatus(_Message):
     """RMS position spread of the worlds about the mean pose, sqrt(trace of the position covariance) [m]."""
     last_error: str | None = None
     """The last refused frame's error, naming the field and the numbers."""
+    observations: int = 0
+    """Pose observations used."""
+    observations_stale: int = 0
+    """Pose observations dropped: older than the service's ``max_observation_age_s``."""
+    reseeds_by_observation: int = 0
+    """Times no world agreed with a confident pose observation and the worlds were re-seeded around it."""
     budget_ms: float = 0.0
     """The service's frame budget [ms] (0: none)."""
     load_ms: float = 0.0

@@ -75,6 +75,9 @@ class ServiceConfig(BaseSettings):
     """Once ready, the tracking loop must come round at least this often [s]; one stuck longer (in
     a step, or a population build: keep this above the slowest) takes the service down: it
     withdraws its liveliness token and `serve` exits non-zero."""
+    max_observation_age_s: float = Field(0.5, gt=0)
+    """A pose observation older than the newest frame by more than this (robot clock) is dropped
+    and counted stale; a younger one is scored against the worlds at the next step [s]."""
     max_wait_s: float = Field(0.05, ge=0)
     """A population steps when every session sent a frame, or when a frame waited this long [s]."""
     substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)

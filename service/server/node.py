@@ -27,6 +27,7 @@ from protocol import (
     ErrorCode,
     Keys,
     OpenSession,
+    PoseObservation,
     RobotFrame,
     ServiceInfo,
     decode,
@@ -97,6 +98,7 @@ class TrackerNode:
             s.declare_queryable(keys.every("pose"), self._on_pose),
             s.declare_queryable(keys.every("status"), self._on_status),
             s.declare_subscriber(keys.every("frame"), self._on_frame),
+            s.declare_subscriber(keys.every("observation"), self._on_observation),
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
@@ -223,6 +225,19 @@ class TrackerNode:
             return
         self._inbox.put(("frame", (frame, received), None))
 
+    def _on_observation(self, sample: zenoh.Sample) -> None:
+        session = self.keys.session_of(sample.key_expr)
+        try:
+            observation = decode(bytes(sample.payload.to_bytes()), PoseObservation)
+        except DecodeError as exc:
+            self._inbox.put(("bad_frame", (session, str(exc)), None))
+            return
+        if observation.session != session:
+            text = f"PoseObservation.session: '{observation.session}' sent on the key of session '{session}'"
+            self._inbox.put(("bad_frame", (session, text), None))
+            return
+        self._inbox.put(("observation", observation, None))
+
     def _on_service(self, sample: zenoh.Sample) -> None:
         name = Keys.service_of(sample.key_expr)
         if name != self.keys.service:
@@ -323,6 +338,8 @@ class TrackerNode:
             if kind == "frame":
                 frame, received = payload
                 m.submit(frame, received)
+            elif kind == "observation":
+                m.observe(payload)
             elif kind == "bad_frame":
                 m.count_error(*payload)
             elif kind == "robot":

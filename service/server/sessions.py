@@ -28,6 +28,7 @@ from protocol import (
     ErrorCode,
     Estimate,
     OpenSession,
+    PoseObservation,
     RobotFrame,
     SessionInfo,
     SessionStatus,
@@ -90,6 +91,13 @@ class _Session:
     resyncs: int = 0
     errors: int = 0
     last_error: str | None = None
+    observations: int = 0
+    observations_stale: int = 0
+    reseeds_by_observation: int = 0
+    observed: deque = field(default_factory=lambda: deque(maxlen=8))
+    """Pose observations accepted and not yet applied (the newest few)."""
+    newest_stamp: float | None = None
+    """The robot clock of the newest frame accepted [s]."""
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     latest: Estimate | None = None
     failed: str | None = None
@@ -557,11 +565,28 @@ class SessionManager:
                 session.late += 1
             return
         session.heard = time.monotonic()
+        session.newest_stamp = max(frame.stamp, session.newest_stamp or frame.stamp)
         session.gaps += frame.seq - last - 1
         if len(session.pending) >= self.config.max_pending:
             session.pending.popleft()
             session.stale += 1
         session.pending.append((frame, time.perf_counter() if received is None else received))
+
+    def observe(self, observation: PoseObservation) -> None:
+        """Queue a pose observation for the session's next step; one older than the newest frame by
+        more than ``max_observation_age_s`` (robot clock) is counted stale and dropped."""
+        session = self.authorize(observation.session, observation.token)
+        if session.failed is not None:
+            raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
+        limit = self.config.max_observation_age_s
+        if session.newest_stamp is not None and session.newest_stamp - observation.stamp > limit:
+            session.observations_stale += 1
+            session.last_error = (
+                f"PoseObservation.stamp: {observation.stamp:.3f} s is {session.newest_stamp - observation.stamp:.3f} s"
+                f" older than the newest frame ({session.newest_stamp:.3f} s), the limit is {limit} s: dropped"
+            )
+            return
+        session.observed.append(observation)
 
     def ready(self, max_wait: float) -> list[_Pool]:
         """Populations to step now: every session has a frame, or the oldest has waited ``max_wait`` [s]."""
@@ -600,6 +625,11 @@ class SessionManager:
             began = time.perf_counter()
             est = pool.tracker.step(Frame(present=pool.present, **pool.sensing))
             done = time.perf_counter()
+            for s in pool.active:
+                while s.observed:  # scored against the worlds as they stand after this frame
+                    seen = s.observed.popleft()
+                    s.reseeds_by_observation += pool.tracker.observe(s.group, seen.pose, seen.covariance)
+                    s.observations += 1
         pool.step_ms.append((done - began) * 1e3)
         pool.steps += 1
         if pool.steps % _MEASURED_STEPS == 0:  # the device's curve learns from every population
@@ -660,6 +690,9 @@ class SessionManager:
             cost=float(s.latest.cost) if s.latest else 0.0,
             spread_m=float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
             last_error=s.last_error,
+            observations=s.observations,
+            observations_stale=s.observations_stale,
+            reseeds_by_observation=s.reseeds_by_observation,
             budget_ms=self.budget_ms if self.config.rate_hz else 0.0,
             load_ms=self.load_ms(),
         )

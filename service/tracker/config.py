@@ -71,6 +71,15 @@ class TrackerConfig:
     object bounces and rolls; the rotation spread is the re-seeding one)."""
     recover_frames: int = 20
     """Frames a re-seeded group reports RECOVERING before it is trusted again."""
+    observation_weight: float = 1.0
+    """A pose observation's weight in the window cost: a world at the observation's 95 % bound
+    (Mahalanobis distance squared 12.6, 6 dof) scores as much worse as the spread of the group's
+    contact costs. Scaled by that spread, the cost's units do not matter."""
+    observation_gate: float = 22.5
+    """No world within this Mahalanobis distance squared of a confident observation (6 dof, 0.999)
+    re-seeds the group around the observation."""
+    observation_confident: float = 0.02
+    """An observation is confident when its largest position standard deviation is below this [m]."""
     seed: int = 0
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     cost: CostConfig = field(default_factory=CostConfig)

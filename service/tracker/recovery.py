@@ -65,6 +65,14 @@ class Recovery:
         self._recovering[mask] = 0
         self._contact_loss[mask] = 0
 
+    def reseeded(self, anchor: np.ndarray, mask: np.ndarray) -> None:
+        """Groups ``mask`` (G,) were re-seeded around ``anchor`` (G, 7) from a pose observation."""
+        self.trusted[mask] = anchor[mask]
+        self._trusted_held[mask] = False
+        self.status[mask] = TrackState.RECOVERING
+        self._recovering[mask] = self.config.recover_frames
+        self._contact_loss[mask] = 0
+
     def watch(self, est: GroupEstimates, force: np.ndarray | None, felt: np.ndarray, hand: np.ndarray) -> list[Reseed]:
         """Update the state from the estimate just copied back and say which groups to re-seed.
         ``force``: the real fingertip forces this frame, (G, L, 3) [N], or None; ``felt``: which

@@ -81,6 +81,9 @@ class Tracker:
         """Sum of each world's cost since the last update, (G, K)."""
         self._window_frames = torch.zeros((), device=dev)
         """Frames in the window, on the device (the captured frame counts them)."""
+        self._evidence = torch.zeros(self.G, self.K, device=dev)
+        """Each world's disagreement with the pose observations of this window, (G, K), in units of
+        the spread of the group's contact costs (:meth:`observe`)."""
         self.window_frames = 0
         """The same count on the host, which schedules the update."""
         self.frame = 0
@@ -172,6 +175,47 @@ class Tracker:
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
         self.pop._write_params(mass, friction)  # drawn inside the object's ranges
         self.window.masked_fill_(sel, 0.0)
+        self._evidence.masked_fill_(sel, 0.0)
+
+    # ------------------------------------------------------------------ pose observations
+    def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
+        """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``
+        (6, 6; position [m^2], rotation vector [rad^2]): each world's Mahalanobis distance joins
+        the window's cost until the next update. When no world lies within ``observation_gate`` of
+        a confident observation, the group is re-seeded around it instead (the worlds lost the
+        object; contact alone would not bring them back). Returns whether it re-seeded.
+
+        A few torch ops over the group's K worlds, outside the captured frame, on the population's
+        stream (behind the update the last frame may have queued); the gate reads one number back,
+        on the frames an observation arrives only."""
+        with self.pop.on_stream():
+            return self._observe(group, pose, covariance)
+
+    def _observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
+        cfg, dev = self.config, self.device
+        poses = self.pop.obs.object_pose[group]  # (K, 7)
+        observed = torch.as_tensor(np.asarray(pose, np.float32), device=dev)
+        cov = torch.as_tensor(np.asarray(covariance, np.float64), device=dev)
+        q_obs = observed[3:].expand_as(poses[:, 3:])
+        delta = torch.cat(
+            [poses[:, :3] - observed[:3], quat_log(quat_multiply(quat_conjugate(q_obs), poses[:, 3:]))], -1
+        )
+        delta = torch.nan_to_num(delta.double(), nan=1e3)  # a NaN world agrees with nothing
+        chol = torch.linalg.cholesky(cov)
+        d2 = torch.cholesky_solve(delta.T, chol).T.mul(delta).sum(-1)  # (K,)
+        position_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[:3, :3]).max()))
+        if float(d2.min()) > cfg.observation_gate and position_sigma < cfg.observation_confident:
+            mask = np.zeros(self.G, bool)
+            mask[group] = True
+            anchor = np.tile(np.asarray(pose, np.float32), (self.G, 1))
+            rotation_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[3:, 3:]).max()))
+            q = self.real.q.detach().cpu().numpy()
+            self._seed(mask, anchor, q, position_sigma, rotation_sigma)
+            self.recovery.reseeded(anchor, mask)
+            return True
+        chi2_95 = 12.59  # 6 dof
+        self._evidence[group] += (cfg.observation_weight / chi2_95) * d2.float()
+        return False
 
     # ------------------------------------------------------------------ frame
     def _allocate_io(self) -> None:
@@ -233,7 +277,20 @@ class Tracker:
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
         self._window_frames += 1
-        self._packed.copy_(self._summary(self.window / self._window_frames))
+        self._packed.copy_(self._summary(self._scored()))
+
+    def _scored(self) -> torch.Tensor:
+        """The window's mean cost per world with the pose observations' evidence added, (G, K).
+        The evidence is scaled by the spread of the contact costs of the worlds that still hold
+        the object (a lost world's 1e9 would swamp it): the optimizers rank by cost relative to its
+        spread, so an observation weighs the same whatever the cost's units; where the contact
+        costs do not separate the worlds at all (before the grasp), the observation decides."""
+        window = self.window / self._window_frames
+        held = window < 1e8
+        top = torch.where(held, window, -torch.inf).amax(-1, keepdim=True)
+        bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
+        spread = torch.nan_to_num(top - bottom, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(1e-12)
+        return window + self._evidence * spread
 
     def _summary(self, window: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host copy."""
@@ -277,8 +334,7 @@ class Tracker:
     def _update_ops(self) -> None:
         """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
-        window = self.window / self._window_frames
-        upd = update(window, cfg.optimizer, self.gen, self.methods, self._rows)
+        upd = update(self._scored(), cfg.optimizer, self.gen, self.methods, self._rows)
         self.pop._resample(upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
@@ -295,6 +351,7 @@ class Tracker:
                 moved = explore & duplicates(upd.index)
                 self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         self.window.zero_()
+        self._evidence.zero_()
         self._window_frames.zero_()
 
     def _jitter_sigma(self, index: torch.Tensor) -> torch.Tensor:
