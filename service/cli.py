@@ -449,6 +449,12 @@ def bench_accuracy(
         list[str] | None,
         typer.Option("--set", metavar="NAME=VALUE", help="a tracker or physics setting, e.g. population.impratio=30"),
     ] = None,
+    observations: Annotated[
+        str, typer.Option(help="a camera's pose estimates: none, ends (first and last frame), 1hz, visible")
+    ] = "none",
+    vision_sigma: Annotated[
+        str, typer.Option(help="their noise, position [m] and rotation [rad], comma-separated")
+    ] = "0.005,0.05",
     device: Device = "auto",
     out: Annotated[Path | None, typer.Option(help="output folder (default bench-results/accuracy-SUITE)")] = None,
     cache: Annotated[Path | None, typer.Option(help="where generated trajectories are kept")] = None,
@@ -465,6 +471,10 @@ def bench_accuracy(
         config, population = _settings(set_ or [])
     except ValueError as exc:
         raise _fail(f"--set: {exc}") from None
+    try:
+        sigma_t, sigma_r = (float(v) for v in vision_sigma.split(","))
+    except ValueError:
+        raise _fail(f"bench accuracy: vision-sigma: expected POSITION,ROTATION, got {vision_sigma!r}") from None
     out = out or Path(f"bench-results/accuracy-{suite}")
     command = _command_line(ctx)
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps, "k_ablation": ablation_worlds}.items() if v}
@@ -481,6 +491,8 @@ def bench_accuracy(
                 repeats=repeats,
                 config=config,
                 population=population,
+                observations=observations,
+                vision_sigma=(sigma_t, sigma_r),
                 **chosen,
             )
     except ValueError as exc:

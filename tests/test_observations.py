@@ -128,3 +128,38 @@ def test_observations_over_zenoh_are_used_and_a_malformed_one_is_counted(traj):
             assert "PoseObservation.covariance" in status.last_error and "smallest eigenvalue -1" in status.last_error
     finally:
         svc.stop()
+
+
+def test_the_accuracy_benchmark_scores_with_camera_observations_adds_and_coverage():
+    from service.bench import run_suite
+    from service.bench.suites import SUITES
+
+    run = lambda schedule: run_suite(  # noqa: E731
+        SUITES["smoke"], methods=("PBO",), noises=("high",), device="cpu", cache=None, quiet=True,
+        observations=schedule, vision_sigma=(0.003, 0.03),
+    )  # fmt: skip
+    blind, seen = run("none"), run("1hz")
+    assert blind["observations"] == {"schedule": "none"}
+    assert seen["observations"] == {"schedule": "1hz", "vision_sigma": [0.003, 0.03]}
+    a, b = blind["summary"]["PBO"]["high"], seen["summary"]["PBO"]["high"]
+    print(
+        "high noise, PBO, mean ADD [mm]: blind", round(a["mean_mm"], 2), "with a camera at 1 Hz", round(b["mean_mm"], 2)
+    )
+    assert b["mean_mm"] < a["mean_mm"], (a, b)
+    for s in (a, b):
+        assert 0 < s["add_s_mean_mm"] < 2 * s["mean_mm"] and 0.0 <= s["coverage_95"] <= 1.0, s
+    with pytest.raises(ValueError, match=r"observations: expected one of \('none', 'ends', '1hz', 'visible'\)"):
+        run("2hz")
+
+
+def test_adds_forgives_what_a_symmetry_hides_and_coverage_reads_the_covariance():
+    from service.evaluation import add_error, adds_error, covered
+
+    circle = np.stack([np.cos(a := np.linspace(0, 2 * np.pi, 360, endpoint=False)), np.sin(a), 0 * a], -1) * 0.03
+    truth = np.array([0.1, 0.0, 0.05, 0, 0, 0, 1.0])
+    turned = np.array([0.1, 0.0, 0.05, 0, 0, np.sin(0.4), np.cos(0.4)])  # about the ring's own axis
+    assert add_error(circle, truth, turned) > 0.02 and adds_error(circle, truth, turned) < 1e-3
+    shifted = truth + np.array([0.004, 0, 0, 0, 0, 0, 0])
+    assert adds_error(circle, truth, shifted) <= add_error(circle, truth, shifted) + 1e-12
+    sure, loose = np.eye(6) * 1e-6, np.eye(6) * 1e-4  # 1 mm and 10 mm
+    assert covered(truth, shifted, loose) and not covered(truth, shifted, sure)

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from protocol import DEFAULT_WORLDS, Trajectory
-from service.evaluation import add_error
+from service.evaluation import add_error, adds_error, covered
 from service.paths import CACHE_DIR
 from service.tracker import METHODS, Frame, Tracker, TrackerConfig
 from service.tracker.sampling import sample_poses
@@ -31,9 +31,16 @@ from .progress import progress_bar
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, Suite
 from .truth import ground_truth, open_loop_disagreement
 
-__all__ = ["TrackResult", "TrackSetting", "run_suite", "run_tracks", "settings"]
+__all__ = ["OBSERVATIONS", "TrackResult", "TrackSetting", "run_suite", "run_tracks", "settings"]
 
 log = logging.getLogger(__name__)
+
+OBSERVATIONS = ("none", "ends", "1hz", "visible")
+"""When a camera's pose estimate reaches the tracker: never (the paper), on the first and last
+frame (the paper's real-world protocol), once a second, or once a second while the fingers touch
+nothing (a closed hand hides the object)."""
+_ADDS_EVERY = 10
+"""ADD-S is scored on every tenth frame (a nearest-point search per surface point)."""
 
 _CONTACT_TERMS = (3, 4, 5)  # contact disagreement, force magnitude, force direction
 _SLIP_TERMS = (6, 7, 8, 9)
@@ -69,6 +76,10 @@ class TrackResult:
     """ADD of the lowest-cost world's pose (the paper's estimate) per frame, (F,) [m]."""
     diverged: int = 0
     """Frames on which the tracker re-seeded the group."""
+    add_s: np.ndarray | None = field(default=None, repr=False)
+    """ADD-S of the estimate on every tenth frame, [m]."""
+    covered: np.ndarray | None = field(default=None, repr=False)
+    """Whether the truth lay in the estimate's reported 95 % region, per frame, (F,) bool."""
     open_loop: np.ndarray | None = field(default=None, repr=False)
     """ADD of the tracker's physics run open loop from the true start with the true mass and
     friction, per frame, (F,) [m]: how far the engines disagree about this track's motion."""
@@ -82,6 +93,8 @@ class TrackResult:
             "add_max_mm": float(self.add.max() * 1e3),
             "best_world_add_mean_mm": float(self.add_best.mean() * 1e3),
             "diverged_frames": self.diverged,
+            **({} if self.add_s is None else {"add_s_mean_mm": float(self.add_s.mean() * 1e3)}),
+            **({} if self.covered is None else {"coverage_95": float(self.covered.mean())}),
             **(
                 {}
                 if self.open_loop is None
@@ -135,11 +148,17 @@ def run_tracks(
     substeps: int = PopulationConfig.substeps,
     config: TrackerConfig | None = None,
     population: dict[str, int | float | bool] | None = None,
+    observations: str = "none",
+    vision_sigma: tuple[float, float] = (0.005, 0.05),
 ) -> list[TrackResult]:
     """Run ``tracks`` on ``trajectories`` of one object: one population per world count, every
     track a group of it. The noisy initial pose of a (trajectory, noise) pair is the same for
     every method, so methods are compared on equal footing; each repeat draws its own.
-    ``population``: the tracker's physics settings other than PopulationConfig's defaults."""
+    ``population``: the tracker's physics settings other than PopulationConfig's defaults.
+    ``observations``: when a camera's pose reaches the tracker (:data:`OBSERVATIONS`), the true
+    pose with ``vision_sigma`` (position [m], rotation [rad]) of noise, reported as its covariance."""
+    if observations not in OBSERVATIONS:
+        raise ValueError(f"observations: expected one of {OBSERVATIONS}, got {observations!r}")
     obj = catalog_object(trajectories[0].object)
     spec = HandSpec()
     rec = Recording.stack(trajectories)
@@ -174,21 +193,49 @@ def run_tracks(
         )
         poses = np.empty((rec.frames, len(group), 7), np.float32)
         bests = np.empty_like(poses)
+        covariances = np.empty((rec.frames, len(group), 6, 6), np.float32)
         diverged = np.zeros(len(group), np.int64)
+        seen = _observed(rec, observations)[:, rows]  # (F, G)
+        vision_torch = torch.Generator().manual_seed(seed + 1)
+        cov = np.diag([vision_sigma[0] ** 2] * 3 + [vision_sigma[1] ** 2] * 3)
         for f in range(rec.frames):
             est = tracker.step(Frame(**{name: v[f, rows] for name, v in rec.sensing.items()}))
             poses[f] = est.pose
             bests[f] = est.best_pose
+            covariances[f] = est.covariance
             diverged += est.status == 2
+            for g in np.flatnonzero(seen[f]):
+                noisy = _noisy(torch.tensor(rec.object_pose[f, rows[g]][None]), *vision_sigma, vision_torch)[0]
+                tracker.observe(int(g), noisy, cov)
             if progress:
                 progress(len(group) * k)
-        add = add_error(points, rec.object_pose[:, rows], poses)  # (F, G)
-        add_best = add_error(points, rec.object_pose[:, rows], bests)
+        truth = rec.object_pose[:, rows]
+        add = add_error(points, truth, poses)  # (F, G)
+        add_best = add_error(points, truth, bests)
+        add_s = adds_error(points[:200], truth[::_ADDS_EVERY], poses[::_ADDS_EVERY])
+        inside = covered(truth, poses, covariances)
         for g, t in enumerate(group):
             n = int(rec.lengths[t.trajectory])
             name = rec.names[t.trajectory]
-            results.append(TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g])))
+            results.append(
+                TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g]),
+                            add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g])
+            )  # fmt: skip
     return results
+
+
+def _observed(rec: Recording, schedule: str, rate: int = 30) -> np.ndarray:
+    """Which frames a camera's pose reaches the tracker on, per trajectory, (F, T) bool."""
+    frames, tracks = rec.frames, len(rec.names)
+    out = np.zeros((frames, tracks), bool)
+    if schedule == "ends":
+        out[0] = True
+        out[np.minimum(rec.lengths, frames) - 1, np.arange(tracks)] = True
+    elif schedule in ("1hz", "visible"):
+        out[::rate] = True
+        if schedule == "visible" and rec.sensing.get("force") is not None:
+            out &= ~(np.linalg.norm(rec.sensing["force"], axis=-1) > 0.05).any(-1)  # the fingers hide it
+    return out & (np.arange(frames)[:, None] < rec.lengths[None])
 
 
 def _noisy(mean: torch.Tensor, sigma_t: float, sigma_r: float, gen: torch.Generator) -> np.ndarray:
@@ -212,6 +259,8 @@ def run_suite(
     repeats: int = 1,
     config: TrackerConfig | None = None,
     population: dict[str, int | float | bool] | None = None,
+    observations: str = "none",
+    vision_sigma: tuple[float, float] = (0.005, 0.05),
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
@@ -220,7 +269,10 @@ def run_suite(
     batched as more groups; the summary then also gives each run's mean. ``config``: the tracker's
     settings (default ``TrackerConfig()``; its seed is the suite's). ``population``: the tracker's
     physics settings other than PopulationConfig's defaults, e.g. ``{"impratio": 30.0}`` (the
-    ground truth keeps the defaults and its suite's gap)."""
+    ground truth keeps the defaults and its suite's gap). ``observations``, ``vision_sigma``: a
+    camera's pose estimates reaching the tracker (:func:`run_tracks`)."""
+    if observations not in OBSERVATIONS:
+        raise ValueError(f"observations: expected one of {OBSERVATIONS}, got {observations!r}")
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"methods: expected some of {METHODS}, got {m!r}")
@@ -234,6 +286,7 @@ def run_suite(
         raise ValueError(f"ablations: unknown {unknown}; expected exploration, worlds, contact, slip or all")
     if substeps < 2 or substeps % 2:
         raise ValueError(f"substeps: expected a positive even number, got {substeps}")
+    vision = {"schedule": observations, "vision_sigma": list(vision_sigma)} if observations != "none" else None
     t0 = time.perf_counter()
     trajectories = ground_truth(suite, device, cache)
     t_truth = time.perf_counter() - t0
@@ -255,7 +308,8 @@ def run_suite(
             by_k.setdefault(s.worlds, []).append(s)
         for k, k_tracks in by_k.items():  # the frames of one population advance all its groups at once
             t1 = time.perf_counter()
-            results += run_tracks(ts, k_tracks, device, suite.seed, bar.update, substeps, config, population)
+            results += run_tracks(ts, k_tracks, device, suite.seed, bar.update, substeps, config, population,
+                                  observations, vision_sigma)  # fmt: skip
             for r in results[first:]:
                 r.open_loop = drift[: r.add.shape[0], r.setting.trajectory]
             frames = max(t.frames for t in ts)
@@ -277,11 +331,12 @@ def run_suite(
                         substeps,
                         config,
                         population,
+                        vision,
                     )
                 )
     bar.close()
     t_track = time.perf_counter() - t0 - t_truth
-    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config, population)
+    return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config, population, vision)
 
 
 def _stats(results: Sequence[TrackResult], of: str = "add") -> dict:
@@ -307,6 +362,7 @@ def _collect(
     substeps: int = PopulationConfig.substeps,
     config: TrackerConfig | None = None,
     population: dict[str, int | float | bool] | None = None,
+    vision: dict | None = None,
 ) -> dict:
     """ADD statistics over tracks: mean of per-track mean ADD, its std over tracks, and the max
     over all frames, per method and noise level (Fig. 2) and per ablation setting (Fig. 3)."""
@@ -325,6 +381,10 @@ def _collect(
         }
         for of in ("add", "add_best")
     )
+    for m, by_noise in summary.items():  # what contact cannot see, and how honest the uncertainty is
+        for n, rs in by_noise.items():
+            fig2[m][n]["add_s_mean_mm"] = float(np.mean([r.add_s.mean() for r in rs]) * 1e3)
+            fig2[m][n]["coverage_95"] = float(np.mean([r.covered.mean() for r in rs]))
     ablation: dict[str, dict[str, dict]] = {}
 
     def add_row(study: str, label: str, rs: list[TrackResult]) -> None:
@@ -357,6 +417,7 @@ def _collect(
         "tracker": _changed(asdict(config or TrackerConfig()), asdict(TrackerConfig())),
         "substeps": substeps,
         "population": dict(population or {}),
+        "observations": vision or {"schedule": "none"},
         "seconds": {"ground_truth": t_truth, "tracking": t_track},
         "summary": fig2,
         "summary_best_world": best_world,
