@@ -17,7 +17,7 @@ CHI2_6DOF_95 = 12.592
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Object-frame ``points`` (N, 3) at ``pose`` (..., 7) -> (..., N, 3) [m]."""
-    pose_t = torch.as_tensor(np.asarray(pose, dtype=np.float64))
+    pose_t = torch.as_tensor(np.array(pose, dtype=np.float64))  # a copy: broadcast views are read-only
     points_t = torch.as_tensor(np.asarray(points, dtype=np.float64))
     q = pose_t[..., None, 3:].expand(*pose_t.shape[:-1], points_t.shape[0], 4)
     return (pose_t[..., None, :3] + quat_rotate(q, points_t.expand_as(q[..., :3]))).numpy()
