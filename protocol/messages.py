@@ -65,6 +65,7 @@ def _array(rank: int, last: int | None = None):
 Vector = _array(1)
 Pose = _array(1, 7)
 Vec3s = _array(2, 3)
+Poses = _array(2, 7)
 Vec2s = _array(2, 2)
 Matrix6 = _array(2, 6)
 
@@ -271,6 +272,9 @@ class TrackState(IntEnum):
     hypotheses were re-seeded this frame around the last trusted estimate."""
     RECOVERING = 3
     """Re-seeded recently; not trusted until ``recover_frames`` have passed."""
+    AMBIGUOUS = 4
+    """The worlds that agree with the robot fall into two pose modes (``Estimate.modes``) that
+    contact cannot tell apart, e.g. a brick turned end for end: the estimate may be either."""
 
 
 class Estimate(_Message):
@@ -289,7 +293,8 @@ class Estimate(_Message):
     """The cost-weighted mean object pose over the session's worlds, (7,)."""
     covariance: Matrix6
     """Cost-weighted covariance of (position [m^2], rotation vector [rad^2], world frame) about
-    ``mean_pose``, (6, 6)."""
+    ``mean_pose``, (6, 6), plus the tracker's floor for what the physics cannot resolve (2 mm and
+    0.05 rad by default): the truth should lie in its 95 % region on about 95 % of frames."""
     cost: float
     """The best world's mean cost since the last optimizer update (eq. 3, dimensionless)."""
     mass: float
@@ -297,7 +302,12 @@ class Estimate(_Message):
     friction: float
     """The best world's object friction coefficient (dimensionless)."""
     status: str
-    """A :class:`TrackState` name in lower case: tracking, uncertain, diverged or recovering."""
+    """A :class:`TrackState` name in lower case: tracking, uncertain, diverged, recovering or ambiguous."""
+    modes: Poses | None = None
+    """The two heaviest pose modes of the worlds, (2, 7): the lowest-cost world's pose, then the
+    heaviest world's away from it (within 0.5 rad and 2 cm of it is the same mode)."""
+    mode_weights: Vector | None = None
+    """The share of the cost weights in each mode, (2,): ambiguous when the second's is 0.25 or more."""
     latency_ms: float
     """From the frame's arrival at the service to this estimate [ms]."""
     notice: str | None = None
@@ -331,7 +341,8 @@ class SessionStatus(_Message):
     cost: float
     """The latest estimate's cost (dimensionless)."""
     spread_m: float
-    """RMS position spread of the worlds about the mean pose, sqrt(trace of the position covariance) [m]."""
+    """sqrt(trace) of the latest estimate's position covariance (the worlds' spread about the mean
+    pose, with the reported floor) [m]."""
     last_error: str | None = None
     """The last refused frame's error, naming the field and the numbers."""
     observations: int = 0

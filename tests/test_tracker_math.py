@@ -211,3 +211,19 @@ def test_roughening_follows_the_spread_between_its_floor_and_ceiling():
     assert sigma[1, 0, :3].tolist() == pytest.approx([0.5 * 0.002] * 3, rel=0.05)  # half the spread
     assert sigma[1, 0, 3:].tolist() == pytest.approx([0.5 * 0.04] * 3, rel=0.05)
     assert sigma[2, 0].tolist() == pytest.approx([0.005] * 3 + [0.1] * 3)  # wide: the ceiling
+
+
+def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():
+    from service.tracker.tracker import pose_modes
+
+    upright = torch.tensor([0.1, 0.0, 0.05, 0.0, 0.0, 0.0, 1.0])
+    turned = torch.tensor([0.1, 0.0, 0.05, 0.0, 0.0, 1.0, 0.0])  # half a turn about z: contact cannot tell
+    poses = torch.stack([upright] * 6 + [turned] * 4)[None].clone()
+    poses[0, :, 0] += torch.linspace(0, 0.004, 10)  # a few millimetres of spread within each mode
+    poses[0, 1, 3:] = -upright[3:]  # the same rotation, the other sign
+    weights = torch.full((1, 10), 0.1)
+    seeds, shares = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
+    assert torch.allclose(shares, torch.tensor([[0.6, 0.4]])) and torch.allclose(seeds[0, 1, 3:], turned[3:])
+    weights = torch.tensor([[0.16] * 6 + [0.01] * 4])  # the turned worlds disagree with the robot
+    _, shares = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
+    assert shares[0, 1] == pytest.approx(0.04)

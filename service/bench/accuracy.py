@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from protocol import DEFAULT_WORLDS, Trajectory
+from protocol import DEFAULT_WORLDS, TrackState, Trajectory
 from service.evaluation import add_error, adds_error, covered
 from service.paths import CACHE_DIR
 from service.tracker import METHODS, Frame, Tracker, TrackerConfig
@@ -80,6 +80,19 @@ class TrackResult:
     """ADD-S of the estimate on every tenth frame, [m]."""
     covered: np.ndarray | None = field(default=None, repr=False)
     """Whether the truth lay in the estimate's reported 95 % region, per frame, (F,) bool."""
+    status: np.ndarray | None = field(default=None, repr=False)
+    """The estimate's track state per frame, (F,) int (:class:`protocol.TrackState`)."""
+
+    def flagged(self, error: float = 0.02, within: int = 30) -> tuple[int, int]:
+        """How often the estimate's error rose past ``error`` [m], and how many of those times its
+        status said it was not to be trusted (anything but tracking) within ``within`` frames."""
+        over = self.add > error
+        onsets = np.flatnonzero(over & ~np.r_[False, over[:-1]])
+        if self.status is None:
+            return len(onsets), 0
+        said = [(self.status[f : f + within + 1] != TrackState.TRACKING).any() for f in onsets]
+        return len(onsets), int(np.sum(said))
+
     open_loop: np.ndarray | None = field(default=None, repr=False)
     """ADD of the tracker's physics run open loop from the true start with the true mass and
     friction, per frame, (F,) [m]: how far the engines disagree about this track's motion."""
@@ -95,6 +108,15 @@ class TrackResult:
             "diverged_frames": self.diverged,
             **({} if self.add_s is None else {"add_s_mean_mm": float(self.add_s.mean() * 1e3)}),
             **({} if self.covered is None else {"coverage_95": float(self.covered.mean())}),
+            **(
+                {}
+                if self.status is None
+                else {
+                    "error_onsets": self.flagged()[0],
+                    "flagged_within_1s": self.flagged()[1],
+                    "ambiguous_frames": int((self.status == TrackState.AMBIGUOUS).sum()),
+                }
+            ),
             **(
                 {}
                 if self.open_loop is None
@@ -194,6 +216,7 @@ def run_tracks(
         poses = np.empty((rec.frames, len(group), 7), np.float32)
         bests = np.empty_like(poses)
         covariances = np.empty((rec.frames, len(group), 6, 6), np.float32)
+        statuses = np.empty((rec.frames, len(group)), np.int64)
         diverged = np.zeros(len(group), np.int64)
         seen = _observed(rec, observations)[:, rows]  # (F, G)
         vision_torch = torch.Generator().manual_seed(seed + 1)
@@ -203,7 +226,8 @@ def run_tracks(
             poses[f] = est.pose
             bests[f] = est.best_pose
             covariances[f] = est.covariance
-            diverged += est.status == 2
+            statuses[f] = est.status
+            diverged += est.status == TrackState.DIVERGED
             for g in np.flatnonzero(seen[f]):
                 noisy = _noisy(torch.tensor(rec.object_pose[f, rows[g]][None]), *vision_sigma, vision_torch)[0]
                 tracker.observe(int(g), noisy, cov)
@@ -219,7 +243,7 @@ def run_tracks(
             name = rec.names[t.trajectory]
             results.append(
                 TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g]),
-                            add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g])
+                            add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g], statuses[:n, g])
             )  # fmt: skip
     return results
 
@@ -385,6 +409,8 @@ def _collect(
         for n, rs in by_noise.items():
             fig2[m][n]["add_s_mean_mm"] = float(np.mean([r.add_s.mean() for r in rs]) * 1e3)
             fig2[m][n]["coverage_95"] = float(np.mean([r.covered.mean() for r in rs]))
+            onsets, said = np.sum([r.flagged() for r in rs], axis=0)
+            fig2[m][n]["error_onsets"], fig2[m][n]["flagged_within_1s"] = int(onsets), int(said)
     ablation: dict[str, dict[str, dict]] = {}
 
     def add_row(study: str, label: str, rs: list[TrackResult]) -> None:

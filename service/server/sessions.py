@@ -651,6 +651,8 @@ class SessionManager:
                 mass=float(est.mass[g]),
                 friction=float(est.friction[g]),
                 status=TrackState(int(est.status[g])).name.lower(),
+                modes=est.modes[g],
+                mode_weights=est.mode_weights[g],
                 latency_ms=latency,
                 notice=s.notice,
             )

@@ -6,7 +6,7 @@ from .cost import TERM_NAMES, WEIGHTS, Cost, CostConfig, RealObservation
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .optimizers import METHODS, OptimizerConfig
 from .recovery import Recovery
-from .tracker import Tracker
+from .tracker import Tracker, pose_modes
 
 __all__ = [
     "ESTIMATE",
@@ -23,5 +23,6 @@ __all__ = [
     "Recovery",
     "Tracker",
     "TrackerConfig",
+    "pose_modes",
     "setting_types",
 ]

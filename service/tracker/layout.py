@@ -84,6 +84,8 @@ ESTIMATE = Columns.of(
         "lost": (),
         "contact_disagreement": (),
         "hand": (3,),
+        "modes": (2, 7),
+        "mode_weights": (2,),
     }
 )
 """The packed estimate: what one device-to-host copy per frame carries for every group."""
@@ -165,6 +167,11 @@ class GroupEstimates:
     """Sensors on which the best world and the real robot disagree about contact, (G,)."""
     status: np.ndarray
     """Track state per group, (G,) int (:class:`protocol.TrackState`)."""
+    modes: np.ndarray | None = None
+    """The two heaviest pose modes' seeds, (G, 2, 7): the lowest-cost world's, then the heaviest
+    world's away from it."""
+    mode_weights: np.ndarray | None = None
+    """The share of the cost weights in each mode, (G, 2)."""
 
     @classmethod
     def unpack(cls, rows: np.ndarray, frame: int, status: np.ndarray) -> GroupEstimates:
@@ -182,4 +189,6 @@ class GroupEstimates:
             lost=v("lost"),
             contact_disagreement=v("contact_disagreement"),
             status=status,
+            modes=v("modes"),
+            mode_weights=v("mode_weights"),
         )

@@ -85,6 +85,7 @@ class Recovery:
         diverged = (est.lost > cfg.lost_fraction) | (self._contact_loss >= cfg.contact_loss_frames)
         spread = np.sqrt(np.trace(est.covariance[:, :3, :3], axis1=1, axis2=2))
         status = np.where(spread > cfg.uncertain_spread, TrackState.UNCERTAIN, TrackState.TRACKING)
+        status = np.where(est.mode_weights[:, 1] >= cfg.ambiguous_weight, TrackState.AMBIGUOUS, status)
         status = np.where(recovering, TrackState.RECOVERING, status)
         status = np.where(diverged, TrackState.DIVERGED, status)
         touching = np.zeros(self.G, bool)

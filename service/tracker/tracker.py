@@ -32,13 +32,35 @@ from .optimizers import METHODS, duplicates, method_rows, update, wrs_pmf
 from .recovery import Recovery
 from .sampling import clipped_normal, roughening_sigma, sample_poses, sample_wrenches, silverman_bandwidth
 
-__all__ = ["Tracker"]
+__all__ = ["Tracker", "pose_modes"]
 
 
 def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
     shape = (*quat.shape[:-1], len(vertices))
     return quat_rotate(quat[..., None, :].expand(*shape, 4), vertices.expand(*shape, 3))[..., 2].amin(-1)
+
+
+def pose_modes(
+    poses: torch.Tensor, best: torch.Tensor, weights: torch.Tensor, angle: float, distance: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two heaviest pose modes of each group's worlds ``poses`` (G, K, 7) under ``weights``
+    (G, K): the one around the lowest-cost world's pose ``best`` (G, 7), and the one around the
+    heaviest world outside it. A mode is the worlds within ``angle`` [rad] and ``distance`` [m]
+    of its seed (a quaternion and its negative are one rotation). Returns the seeds (G, 2, 7) and
+    the modes' shares of the weights (G, 2)."""
+
+    def near(seed: torch.Tensor) -> torch.Tensor:  # (G, 7) -> (G, K) bool
+        dot = (poses[..., 3:] * seed[:, None, 3:]).sum(-1).abs().clamp(max=1.0)
+        close = (poses[..., :3] - seed[:, None, :3]).norm(dim=-1) < distance
+        return close & (2 * torch.acos(dot) < angle)
+
+    first = near(best)
+    heaviest_away = weights.masked_fill(first, -1.0).argmax(-1)
+    second_seed = poses.gather(1, heaviest_away[:, None, None].expand(-1, 1, 7))[:, 0]
+    second = near(second_seed) & ~first
+    shares = torch.stack([(weights * first).sum(-1), (weights * second).sum(-1)], -1)
+    return torch.stack([best, second_seed], 1), shares
 
 
 class Tracker:
@@ -92,6 +114,8 @@ class Tracker:
         self._jitter_floor = torch.tensor([cfg.jitter_t] * 3 + [cfg.jitter_r] * 3, device=dev).view(1, 1, 6)
         ceiling = [max(cfg.sigma_t, cfg.jitter_t), max(cfg.sigma_r, cfg.jitter_r)]
         self._jitter_ceiling = torch.tensor(ceiling, device=dev)
+        self._diagonal = np.arange(6)
+        self._floor = np.array([cfg.covariance_floor_t**2] * 3 + [cfg.covariance_floor_r**2] * 3, np.float32)
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._bandwidth = cfg.jitter_bandwidth * silverman_bandwidth(self.K)
@@ -261,6 +285,7 @@ class Tracker:
         for r in reseeds:
             self._seed(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
         estimate.status = self.recovery.status.copy()
+        estimate.covariance[:, self._diagonal, self._diagonal] += self._floor  # in place: reported, not judged
         return estimate
 
     def _frame_ops(self) -> None:
@@ -316,6 +341,7 @@ class Tracker:
         )
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         mean_pose = torch.cat([mean_p, mean_q], dim=-1)
+        modes, mode_weights = pose_modes(poses, pose, weights, self.config.mode_angle, self.config.mode_distance)
         return ESTIMATE.pack(
             {
                 "pose": mean_pose if self.config.mean_estimate else pose,
@@ -328,6 +354,8 @@ class Tracker:
                 "lost": (obs.health != HEALTH_OK).float().mean(-1),
                 "contact_disagreement": at_best(self.cost.last_terms[..., 3]),  # sensors in disagreement
                 "hand": self.real.sensor_pos.mean(1),
+                "modes": modes,
+                "mode_weights": mode_weights,
             }
         )
 
