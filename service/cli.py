@@ -104,8 +104,25 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
+def _version(show: bool) -> None:
+    if show:
+        from importlib.metadata import PackageNotFoundError, version
+
+        from protocol import PROTOCOL_VERSION
+
+        try:
+            typer.echo(f"inhand-tracker {version('inhand-tracker')} (protocol v{PROTOCOL_VERSION})")
+        except PackageNotFoundError:  # run from a source tree that was never installed
+            typer.echo(f"inhand-tracker (not installed; protocol v{PROTOCOL_VERSION})")
+        raise typer.Exit()
+
+
 @app.callback()
-def _main() -> None:
+def _main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="print the version and exit")
+    ] = False,
+) -> None:
     from service.logs import setup_logging
 
     setup_logging()

@@ -91,3 +91,11 @@ def test_bench_speed_times_the_tracker_against_the_physics():
     assert bad.exit_code == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr
     bad = _run("bench", "speed", "--caps", "4x", "--device", "cpu")
     assert bad.exit_code == 2 and "caps: expected ITERATIONSxLINE_SEARCH" in bad.stderr
+
+
+def test_version_names_the_package_and_the_protocol():
+    from protocol import PROTOCOL_VERSION
+
+    out = _run("--version")
+    assert out.exit_code == 0 and out.stdout.startswith("inhand-tracker ")
+    assert f"protocol v{PROTOCOL_VERSION}" in out.stdout
