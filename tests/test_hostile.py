@@ -376,7 +376,9 @@ def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
     service's watchdog allows: the loop, waiting its turn, stops coming round; the watchdog
     withdraws the service's token and `serve` exits non-zero (a live token on a stuck loop would
     look healthy to every robot)."""
-    svc = ServiceProcess(free_port(), watchdog_s="0.3")
+    # 1 s: the first open's small build (a device stage well under a second, even on a busy CI
+    # machine) must pass; the second's, of 2048 worlds (a stage of 1.5 s or more on a CPU), not.
+    svc = ServiceProcess(free_port(), watchdog_s="1.0")
     with TrackerClient(connect=[svc.endpoint]) as robot, TrackerClient(connect=[svc.endpoint]) as newcomer:
         svc.wait_ready(robot)
         robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
@@ -392,7 +394,7 @@ def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
         worker.start()
         try:
             try:  # answered or not: the service is going down meanwhile
-                newcomer.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=1024)
+                newcomer.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=2048)
             except (TimeoutError, TrackerError):
                 pass
             svc.proc.wait(timeout=30)  # promptly, though the build may still be running

@@ -165,3 +165,22 @@ def test_adds_forgives_what_a_symmetry_hides_and_coverage_reads_the_covariance()
     assert adds_error(circle, truth, shifted) <= add_error(circle, truth, shifted) + 1e-12
     sure, loose = np.eye(6) * 1e-6, np.eye(6) * 1e-4  # 1 mm and 10 mm
     assert covered(truth, shifted, loose) and not covered(truth, shifted, sure)
+
+
+@pytest.mark.slow
+def test_a_dropped_object_is_flagged_and_a_camera_brings_the_estimate_back():
+    """The loss suite (short): the object slips out of the hand mid-carry, which neither the robot's
+    commands nor the tracker's physics foresee."""
+    from service.bench import run_suite
+    from service.cli import _suite
+
+    run = lambda schedule: run_suite(  # noqa: E731
+        _suite("loss", True), methods=("REPS",), noises=("med",), device="cpu", cache=None, quiet=True,
+        observations=schedule,
+    )["summary"]["REPS"]["med"]  # fmt: skip
+    blind, seen = run("none"), run("1hz")
+    print("loss, REPS:", {k: v for k, v in seen.items() if "after" in k or "never" in k})
+    for s in (blind, seen):
+        assert s["flag_never"] == 0 and s["flag_after_s"] <= 1.0, s  # the status says so within 1 s
+    assert blind["back_within_10mm_never"] == 1  # touch alone does not find it on the table
+    assert seen["back_within_10mm_never"] == 0 and seen["back_within_10mm_after_s"] <= 3.0, seen

@@ -82,6 +82,23 @@ class TrackResult:
     """Whether the truth lay in the estimate's reported 95 % region, per frame, (F,) bool."""
     status: np.ndarray | None = field(default=None, repr=False)
     """The estimate's track state per frame, (F,) int (:class:`protocol.TrackState`)."""
+    event: int | None = None
+    """The frame the object was lost (slipped out of the hand) in the truth, on a loss suite."""
+
+    def after_event(self, within: float = 0.01, hold: int = 15) -> tuple[float | None, float | None]:
+        """Seconds from the loss to the status first saying anything but tracking, and to the
+        estimate coming back within ``within`` [m] for ``hold`` frames; None: never."""
+        if self.event is None or self.status is None:
+            return None, None
+        rate = 30.0
+        said = np.flatnonzero(self.status[self.event :] != TrackState.TRACKING)
+        near = self.add[self.event :] <= within
+        stays = np.convolve(near, np.ones(hold), "valid") == hold
+        back = np.flatnonzero(stays)
+        return (
+            float(said[0] / rate) if said.size else None,
+            float(back[0] / rate) if back.size else None,
+        )
 
     def flagged(self, error: float = 0.02, within: int = 30) -> tuple[int, int]:
         """How often the estimate's error rose past ``error`` [m], and how many of those times its
@@ -115,6 +132,15 @@ class TrackResult:
                     "error_onsets": self.flagged()[0],
                     "flagged_within_1s": self.flagged()[1],
                     "ambiguous_frames": int((self.status == TrackState.AMBIGUOUS).sum()),
+                }
+            ),
+            **(
+                {}
+                if self.event is None
+                else {
+                    "event_frame": self.event,
+                    "flag_after_s": self.after_event()[0],
+                    "back_within_10mm_after_s": self.after_event()[1],
                 }
             ),
             **(
@@ -219,6 +245,7 @@ def run_tracks(
         statuses = np.empty((rec.frames, len(group)), np.int64)
         diverged = np.zeros(len(group), np.int64)
         seen = _observed(rec, observations)[:, rows]  # (F, G)
+        events = [int(x) if (x := t.meta.get("drop_frame")) is not None else None for t in trajectories]
         vision_torch = torch.Generator().manual_seed(seed + 1)
         cov = np.diag([vision_sigma[0] ** 2] * 3 + [vision_sigma[1] ** 2] * 3)
         for f in range(rec.frames):
@@ -243,7 +270,8 @@ def run_tracks(
             name = rec.names[t.trajectory]
             results.append(
                 TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g]),
-                            add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g], statuses[:n, g])
+                            add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g], statuses[:n, g],
+                            events[t.trajectory])
             )  # fmt: skip
     return results
 
@@ -411,6 +439,11 @@ def _collect(
             fig2[m][n]["coverage_95"] = float(np.mean([r.covered.mean() for r in rs]))
             onsets, said = np.sum([r.flagged() for r in rs], axis=0)
             fig2[m][n]["error_onsets"], fig2[m][n]["flagged_within_1s"] = int(onsets), int(said)
+            if events := [r.after_event() for r in rs if r.event is not None]:  # a loss suite
+                for key, i in (("flag_after_s", 0), ("back_within_10mm_after_s", 1)):
+                    times = [e[i] for e in events if e[i] is not None]
+                    fig2[m][n][key] = float(np.mean(times)) if times else None
+                    fig2[m][n][key.replace("_after_s", "_never")] = len(events) - len(times)
     ablation: dict[str, dict[str, dict]] = {}
 
     def add_row(study: str, label: str, rs: list[TrackResult]) -> None:

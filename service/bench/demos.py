@@ -343,9 +343,21 @@ class Recording(SensingAttributes):
         )
 
 
-def record(truth: Population, demos: Demo | Sequence[Demo], mass: np.ndarray, friction: np.ndarray) -> Recording:
+_SLIPPERY = 0.02
+"""The friction of an object that slips out of the hand (:func:`record`)."""
+
+
+def record(
+    truth: Population,
+    demos: Demo | Sequence[Demo],
+    mass: np.ndarray,
+    friction: np.ndarray,
+    slip_from: np.ndarray | None = None,
+) -> Recording:
     """Run ``demos`` (one per group, or one for all) in ``truth`` (K=1 per group) with hidden
-    ``mass``, ``friction`` (G,). Shorter demos hold their last targets until the longest ends."""
+    ``mass``, ``friction`` (G,). Shorter demos hold their last targets until the longest ends.
+    ``slip_from``: per group, the frame from which its object turns slippery (friction 0.02) and
+    slides out of the grasp, a drop no robot commanded (-1: never), (G,)."""
     if truth.K != 1:
         raise ValueError(f"truth population: expected 1 world per group, got {truth.K}")
     G = truth.G
@@ -365,8 +377,13 @@ def record(truth: Population, demos: Demo | Sequence[Demo], mass: np.ndarray, fr
     # What a robot senses is what a world observes, field for field; the controls are the demo's.
     fields = [f.name for f in SENSING if f.name != "controls"] + ["object_pose"]
     rows: dict[str, list[torch.Tensor]] = {f: [] for f in fields}
-    for u in controls:
+    for i, u in enumerate(controls):
         truth.set_targets(u)
+        if slip_from is not None and (slip_from == i).any():
+            slippery = torch.as_tensor(np.where(slip_from <= i, _SLIPPERY, friction), dtype=torch.float32)
+            # Below the object's friction range on purpose (set_params would refuse it): the real
+            # object has turned slippery, as no prior of the tracker's allows.
+            truth._write_params(truth.mass, slippery[:, None].to(truth.mass.device))
         truth.step()
         for name in fields:
             rows[name].append(getattr(truth.obs, name)[:, 0].clone())

@@ -93,6 +93,26 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         ]  # fmt: skip
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     lines.append("")
+    if any("flag_after_s" in c for m in methods for c in summary[m].values()):
+        lines += [
+            "## Loss and recovery",
+            "",
+            "The object slips out of the hand mid-carry, unseen: seconds from the loss to the status"
+            " saying anything but tracking, and to the estimate back within 10 mm for 0.5 s (mean over"
+            " the tracks that got there; how many never did in brackets).",
+            "",
+            "| method | noise | status says so after s | back within 10 mm after s |",
+            "|---|---|---|---|",
+        ]
+        for m in methods:
+            for n, c in summary[m].items():
+                if "flag_after_s" in c:
+                    cells = [
+                        ("-" if c[k] is None else f"{c[k]:.2f}") + f" [{c[k.replace('_after_s', '_never')]}]"
+                        for k in ("flag_after_s", "back_within_10mm_after_s")
+                    ]
+                    lines.append(f"| {m} | {n} | " + " | ".join(cells) + " |")
+        lines.append("")
     if best_world := results.get("summary_best_world"):
         lines += [
             "## ADD of the lowest-cost world",

@@ -64,6 +64,10 @@ class Suite:
     engine: str = "newton"
     """What records the truth: "newton" (the tracker's own simulator, the demos) or "mujoco"
     (MuJoCo C from the robot's MJCF, the motions of :mod:`.motions`)."""
+    drop: bool = False
+    """The object slips out of the hand in the middle of the first carry, a drop that the robot
+    did not command and the tracker is not told of (its friction falls to 0.02 in the truth). Its
+    frame is in each trajectory's ``meta["drop_frame"]``."""
 
     def short(self) -> Suite:
         """The suite in short form (one object, two kinds, 10 s tracks): a check that runs on a CPU."""
@@ -88,6 +92,7 @@ SUITES: dict[str, Suite] = {
         gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
         sensors=_REAL_SENSORS,
     ),
+    "loss": Suite("loss", ("spam_can", "foam_brick", "toy_banana"), ("pick_place",), 2, seconds=20.0, drop=True),
     "cross-engine": Suite(
         "cross-engine",
         ("spam_can", "foam_brick", "toy_banana"),

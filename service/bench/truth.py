@@ -78,6 +78,8 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
         else:
             held, rounds = _held_newton(suite, spec, obj, demos, rng, device)
+            if suite.drop:
+                held, drops = _dropped(suite, spec, obj, demos, held, device)
             held = _add_sensor_noise(held, suite.sensors, rng)
             tracks = [(held, g) for g in range(len(demos))]
         seconds = time.perf_counter() - t0
@@ -88,8 +90,9 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             "gap": str(asdict(suite.gap)),
             "sensors": str(asdict(suite.sensors)),
         }
-        for (rec, g), d, file in zip(tracks, demos, names, strict=True):
-            traj = rec.trajectory(g, HandSpec().name, name, meta | {"demo": d.name})
+        for i, ((rec, g), d, file) in enumerate(zip(tracks, demos, names, strict=True)):
+            event = {"drop_frame": int(drops[i])} if suite.drop and suite.engine == "newton" else {}
+            traj = rec.trajectory(g, HandSpec().name, name, meta | {"demo": d.name} | event)
             if cache is not None:
                 traj.save(cache / file)
             out.append(traj)
@@ -115,6 +118,24 @@ def _held_newton(
     )
     truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
     return _held_recording(truth, demos, rng)
+
+
+def _dropped(
+    suite: Suite, spec: HandSpec, obj: ObjectSpec, demos: list[Demo], held: Recording, device: str
+) -> tuple[Recording, np.ndarray]:
+    """The demos recorded again with the physics drawn for ``held``, the object slipping out of the
+    hand from the middle of the first carry. Returns the recording and each demo's drop frame."""
+    at = np.empty(len(demos), np.int64)
+    for g, d in enumerate(demos):
+        starts = dict(reversed(d.phases))
+        carry_end = next(i for name, i in d.phases if i > starts["carry"] and name != "carry")
+        at[g] = (starts["carry"] + carry_end) // 2
+    config = PopulationConfig(
+        groups=len(demos), worlds=1, device=device, substeps=suite.gap.substeps, impratio=suite.gap.impratio,
+        ramp_targets=suite.gap.ramp_targets,
+    )  # fmt: skip
+    truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
+    return record(truth, demos, held.mass, held.friction, slip_from=at), at
 
 
 def _held_mujoco(
