@@ -70,7 +70,18 @@ def forward_only_kernels() -> None:
 
 
 def _gpu_stack() -> None:
-    """What every command that simulates needs first."""
+    """What every command that simulates needs first; on the robot side's light install, a clear
+    word on what to install instead of an import traceback."""
+    import importlib.util
+
+    # Looked up, not imported: newton must not be imported before forward_only_kernels.
+    missing = [name for name in ("torch", "warp", "newton") if importlib.util.find_spec(name) is None]
+    if missing:
+        raise _fail(
+            f"this command simulates, and the GPU stack is not installed (missing: {', '.join(missing)}):"
+            " install torch first (pip install torch==2.13.0 for the CPU build, or your CUDA build), then"
+            " pip install 'inhand-tracker[service]'. The robot side (replay, the client) needs neither."
+        )
     from service.logs import quiet_warp, watch_kernel_compiles
 
     forward_only_kernels()

@@ -99,3 +99,13 @@ def test_version_names_the_package_and_the_protocol():
     out = _run("--version")
     assert out.exit_code == 0 and out.stdout.startswith("inhand-tracker ")
     assert f"protocol v{PROTOCOL_VERSION}" in out.stdout
+
+
+def test_a_simulating_command_without_the_gpu_stack_says_what_to_install(monkeypatch):
+    import importlib.util
+
+    found = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "newton" else found(name, *a))
+    out = _run("bench", "sim", "--worlds", "2", "--device", "cpu")  # as on the robot side's light install
+    assert out.exit_code == 2 and "(missing: newton)" in out.stderr, out.stderr
+    assert "pip install 'inhand-tracker[service]'" in out.stderr
