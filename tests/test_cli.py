@@ -50,7 +50,10 @@ def test_bad_tracker_settings_are_refused_with_the_name_and_value():
 
 def test_bad_suite_options_are_refused_before_anything_runs():
     for args, message in [
-        (("--suite", "huge"), "--suite: expected one of ['cross-engine', 'paper', 'reality-gap', 'smoke'], got 'huge'"),
+        (
+            ("--suite", "huge"),
+            "--suite: expected one of ['cross-engine', 'loss', 'paper', 'reality-gap', 'smoke'], got 'huge'",
+        ),
         (("--methods", "PBO,XYZ"), "methods: expected some of"),
         (("--ablations", "wrist"), "ablations: unknown ['wrist']"),
         (("--substeps", "3"), "substeps: expected a positive even number, got 3"),
