@@ -2,7 +2,7 @@
 pydantic only; never torch, warp or newton)."""
 
 from .replay import NOISE_LEVELS, ReplayResult, noisy_start, replay
-from .tracker_client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config
+from .tracker_client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config, zenoh_encoding
 
 __all__ = [
     "NOISE_LEVELS",
@@ -14,4 +14,5 @@ __all__ = [
     "noisy_start",
     "replay",
     "zenoh_config",
+    "zenoh_encoding",
 ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import threading
 import time
@@ -10,6 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 import zenoh
+from pydantic import BaseModel
 
 from protocol import (
     AUTO,
@@ -28,11 +30,16 @@ from protocol import (
     SessionStatus,
     decode,
     encode,
+    encoding_of,
 )
 
-__all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError", "zenoh_config"]
+__all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError", "zenoh_config", "zenoh_encoding"]
 
-_ENCODING = zenoh.Encoding("application/msgpack")
+
+@functools.cache
+def zenoh_encoding(model: type) -> zenoh.Encoding:
+    """The Zenoh encoding of a message: msgpack, with the message's name and version as schema."""
+    return zenoh.Encoding(encoding_of(model))
 
 
 class TrackerError(Exception):
@@ -113,8 +120,9 @@ class TrackerClient:
         """Set when the service's liveliness token went away while a session was open."""
 
     # ------------------------------------------------------------------ requests
-    def _get(self, key: str, payload: bytes | None, model, timeout: float | None = None):
-        replies = self._zenoh.get(key, payload=payload, timeout=timeout or self.timeout)
+    def _get(self, key: str, request: BaseModel | None, model, timeout: float | None = None):
+        payload = {} if request is None else {"payload": encode(request), "encoding": zenoh_encoding(type(request))}
+        replies = self._zenoh.get(key, timeout=timeout or self.timeout, **payload)
         for reply in replies:
             if reply.ok is not None:
                 return decode(bytes(reply.ok.payload.to_bytes()), model)
@@ -207,7 +215,7 @@ class TrackerClient:
             allow_fewer=allow_fewer,
             overrides=overrides or {},
         )
-        self.info = info = self._open(encode(request))
+        self.info = info = self._open(request)
         self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
                             method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides)  # fmt: skip
         self._seq = 0
@@ -216,7 +224,7 @@ class TrackerClient:
         self.service_lost = False
         self._publisher = self._zenoh.declare_publisher(
             self.keys.frame(info.session),
-            encoding=_ENCODING,
+            encoding=zenoh_encoding(RobotFrame),
             express=True,
             priority=zenoh.Priority.REAL_TIME,
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -226,7 +234,7 @@ class TrackerClient:
         self._service_watch = self._zenoh.liveliness().declare_subscriber(self.keys.alive, self._on_service)
         return info
 
-    def _open(self, request: bytes) -> SessionInfo:
+    def _open(self, request: OpenSession) -> SessionInfo:
         """Open at the named service; without a name, at the roomiest ready one, going on to the
         next while they answer ``capacity``."""
         if not self._route:
@@ -302,7 +310,7 @@ class TrackerClient:
         )
         if self._observer is None:
             self._observer = self._zenoh.declare_publisher(
-                self.keys.observation(self.info.session), encoding=_ENCODING, express=True
+                self.keys.observation(self.info.session), encoding=zenoh_encoding(PoseObservation), express=True
             )
         self._observer.put(encode(observation))
 
@@ -347,7 +355,7 @@ class TrackerClient:
         if estimate is None:
             if self.info is None:
                 raise RuntimeError("no session: call open_session first")
-            estimate = self._get(self.keys.pose(self.info.session), self._credentials(), Estimate, timeout)
+            estimate = self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
         if max_age is not None and self._sent_stamp is not None and self._sent_stamp - estimate.stamp > max_age:
             raise StaleEstimate(
                 f"the newest estimate answers seq {estimate.seq} (stamp {estimate.stamp:.3f} s), "
@@ -355,6 +363,16 @@ class TrackerClient:
                 f"allowed {max_age} s"
             )
         return estimate
+
+    def poses(self, timeout: float = 2.0) -> dict[str, Estimate]:
+        """The latest estimate of every session of the service that has one, by session (a
+        watcher's view; no session of its own needed)."""
+        out = {}
+        for reply in self._zenoh.get(self.keys.every("pose"), target=zenoh.QueryTarget.ALL, timeout=timeout):
+            if reply.ok is not None:
+                estimate = decode(bytes(reply.ok.payload.to_bytes()), Estimate)
+                out[estimate.session] = estimate
+        return out
 
     def _session_id(self) -> str | None:
         return self.info.session if self.info is not None else None
@@ -364,9 +382,9 @@ class TrackerClient:
             raise RuntimeError("no session: call open_session first")
         return self._get(self.keys.status(self.info.session), self._credentials(), SessionStatus, timeout)
 
-    def _credentials(self) -> bytes:
+    def _credentials(self) -> CloseSession:
         """The payload that proves a request comes from this session's robot."""
-        return encode(CloseSession(session=self.info.session, token=self.info.token))
+        return CloseSession(session=self.info.session, token=self.info.token)
 
     def close_session(self) -> None:
         if self.info is None:

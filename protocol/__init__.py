@@ -1,10 +1,11 @@
 """The wire protocol: typed messages, a msgpack codec (no pickle), every key expression,
-and the trajectory file format.
+the trajectory file format and session recordings (MCAP).
 
-Imports only numpy, msgpack and pydantic, so the robot-side client stays light.
+Imports only numpy, msgpack and pydantic (and mcap, to read a recording), so the robot-side client
+stays light.
 """
 
-from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, DecodeError, decode, encode
+from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, MEDIA_TYPE, DecodeError, decode, encode, encoding_of
 from .keys import PREFIX, Keys, check_name
 from .messages import (
     AUTO,
@@ -24,15 +25,18 @@ from .messages import (
     TrackState,
     check_version,
 )
+from .recording import CHANNELS, SessionRecording
 from .sensing import PRESENCE, SENSING, SensingAttributes, SensingField, check_sensing, sensing_field
 from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 
 __all__ = [
     "AUTO",
+    "CHANNELS",
     "DEFAULT_METHOD",
     "DEFAULT_WORLDS",
     "MAX_ARRAY_BYTES",
     "MAX_PAYLOAD_BYTES",
+    "MEDIA_TYPE",
     "PREFIX",
     "PRESENCE",
     "PROTOCOL_VERSION",
@@ -53,6 +57,7 @@ __all__ = [
     "SensingField",
     "ServiceInfo",
     "SessionInfo",
+    "SessionRecording",
     "SessionStatus",
     "TrackState",
     "Trajectory",
@@ -61,5 +66,6 @@ __all__ = [
     "check_version",
     "decode",
     "encode",
+    "encoding_of",
     "sensing_field",
 ]

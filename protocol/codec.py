@@ -9,7 +9,19 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["MAX_ARRAY_BYTES", "MAX_PAYLOAD_BYTES", "DecodeError", "decode", "encode", "pack_value", "unpack_array"]
+from .messages import PROTOCOL_VERSION
+
+__all__ = [
+    "MAX_ARRAY_BYTES",
+    "MAX_PAYLOAD_BYTES",
+    "MEDIA_TYPE",
+    "DecodeError",
+    "decode",
+    "encode",
+    "encoding_of",
+    "pack_value",
+    "unpack_array",
+]
 
 MAX_PAYLOAD_BYTES = 1 << 20
 """Largest message accepted [bytes]."""
@@ -19,6 +31,13 @@ _ARRAY_TAG = "__nd__"
 _DTYPES = {"<f4", "<f8", "<i4", "<i8", "|u1", "|b1"}
 
 M = TypeVar("M", bound=BaseModel)
+MEDIA_TYPE = "application/msgpack"
+
+
+def encoding_of(model: type[BaseModel]) -> str:
+    """The Zenoh encoding every sample and reply of ``model`` carries: msgpack, with the message's
+    name and protocol version as its schema (``application/msgpack;inhand.v3.Estimate``)."""
+    return f"{MEDIA_TYPE};inhand.v{PROTOCOL_VERSION}.{model.__name__}"
 
 
 class DecodeError(ValueError):

@@ -12,7 +12,16 @@ from enum import IntEnum, StrEnum
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, create_model, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    WithJsonSchema,
+    create_model,
+    field_validator,
+)
 
 from .sensing import SENSING
 
@@ -59,7 +68,26 @@ def _array(rank: int, last: int | None = None):
             raise ValueError(f"{int(bad.sum())} non-finite values, first at {index} = {arr[index]}")
         return arr
 
-    return Annotated[np.ndarray, BeforeValidator(convert), PlainSerializer(lambda a: a, return_type=np.ndarray)]
+    shape = ["N"] * (rank - (last is not None)) + ([last] if last is not None else [])
+    # On the wire an array is the codec's map (protocol/codec.py); msgpack's bin has no JSON type.
+    schema = {
+        "type": "object",
+        "description": f"float32 array of shape ({', '.join(map(str, shape))}): the codec's array map",
+        "x-shape": shape,
+        "properties": {
+            "__nd__": {"const": True},
+            "dtype": {"const": "<f4"},
+            "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": rank, "maxItems": rank},
+            "data": {"description": "msgpack bin: the values, little-endian float32, C order"},
+        },
+        "required": ["__nd__", "dtype", "shape", "data"],
+    }
+    return Annotated[
+        np.ndarray,
+        BeforeValidator(convert),
+        PlainSerializer(lambda a: a, return_type=np.ndarray),
+        WithJsonSchema(schema),
+    ]
 
 
 Vector = _array(1)
@@ -71,7 +99,8 @@ Matrix6 = _array(2, 6)
 
 
 class _Message(BaseModel):
-    model_config = ConfigDict(arbitrary_types_allowed=True, frozen=True, extra="forbid")
+    # Field docstrings become the JSON Schema's descriptions (docs/protocol).
+    model_config = ConfigDict(arbitrary_types_allowed=True, frozen=True, extra="forbid", use_attribute_docstrings=True)
 
 
 class ErrorCode(StrEnum):
@@ -86,7 +115,9 @@ class ErrorCode(StrEnum):
 
 class Error(_Message):
     code: ErrorCode
+    """What kind of refusal (:class:`ErrorCode`)."""
     message: str
+    """What was wrong, naming the field and the numbers."""
     others: list[str] = Field(default_factory=list)
     """On ``capacity``: other services on the same Zenoh network that may have room."""
 
@@ -101,17 +132,25 @@ class ServiceInfo(_Message):
     """What the service's info queryable answers."""
 
     protocol: int = PROTOCOL_VERSION
+    """The service's protocol version."""
     name: str
+    """The service's name: its keys live under ``inhand/v3/{name}``."""
     device: str
+    """Where its simulations run (``cuda:0``, ``cpu``)."""
     robots: list[str]
+    """The robots a session may open with."""
     objects: list[str]
+    """The objects a session may track."""
     methods: list[str]
+    """The optimizers a session may choose."""
     groups: int
     """Sessions per population."""
     max_worlds: int
+    """Worlds the service may hold in all."""
     sessions: int
     """Sessions open now."""
     max_sessions: int
+    """Sessions open at once at most."""
     rate_hz: float
     """The frame rate the service keeps up with [Hz]; 0: no frame budget."""
     budget_ms: float
@@ -129,8 +168,11 @@ class OpenSession(_Message):
     """Ask the service to track one object in one robot's hand."""
 
     protocol: int = PROTOCOL_VERSION
+    """The client's protocol version: a service of another refuses the open with ``version_mismatch``."""
     robot: str
+    """One of ``ServiceInfo.robots``."""
     object: str
+    """One of ``ServiceInfo.objects``."""
     p0: Pose
     """Initial object pose estimate: position [m], quaternion (x, y, z, w)."""
     sigma_t: float = Field(0.005, ge=0.0, le=0.1)
@@ -140,6 +182,7 @@ class OpenSession(_Message):
     q0: Vector | None = None
     """Joint positions at the start, (D,); default the robot's start pose."""
     method: str = DEFAULT_METHOD
+    """The optimizer: OLP, EYE, WRS, REPS or PBO."""
     worlds: Annotated[int, Field(ge=1, le=65536)] | Literal["auto"] = AUTO
     """K, the session's worlds; "auto": the most the service's frame budget allows now."""
     allow_fewer: bool = False
@@ -167,9 +210,10 @@ class OpenSession(_Message):
 
 
 class CloseSession(_Message):
-    """Close a session; also the payload of a session's status and pose queries."""
+    """Close a session; also the payload of a session's status query."""
 
     session: str
+    """The session's id (:attr:`SessionInfo.session`)."""
     token: str = ""
     """The session's secret from :class:`SessionInfo`: only its robot may close or query it."""
 
@@ -178,18 +222,25 @@ class SessionInfo(_Message):
     """The service's answer to OpenSession."""
 
     protocol: int = PROTOCOL_VERSION
+    """The service's protocol version."""
     session: str
+    """The session's id: its keys are ``inhand/v3/{service}/s/{session}/...``."""
     token: str
     """The session's secret: every frame, close, status and pose query must carry it. Zenoh's
     access control (or mTLS) decides who may connect and read; the token keeps peers that may
     from steering or closing another robot's session."""
     robot: str
+    """The session's robot."""
     object: str
+    """The session's object."""
     joint_names: list[str]
+    """The robot's joints in the order of every (D,) array: ``q``, ``controls``, ``q0``."""
     sensor_names: list[str]
+    """The robot's touch sensors in the order of every (L, ...) array: ``force``, ``slip``, ..."""
     worlds: int
     """K, the worlds granted."""
     method: str
+    """The session's optimizer."""
     notice: str | None = None
     """Why the session got fewer worlds than it asked for, when it did."""
 
@@ -282,6 +333,7 @@ class Estimate(_Message):
     robot config's base), position [m] and unit quaternion (x, y, z, w)."""
 
     session: str
+    """The session this estimate belongs to."""
     seq: int
     """The seq of the frame this estimate answers."""
     stamp: float
@@ -319,6 +371,7 @@ class SessionStatus(_Message):
     """A session's counters since it opened."""
 
     session: str
+    """The session."""
     frames: int
     """Frames tracked."""
     gaps: int

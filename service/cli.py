@@ -147,6 +147,8 @@ def serve(
     connect: Annotated[str | None, typer.Option(help="Zenoh endpoints to connect to (a router)")] = None,
     name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v3/NAME")] = None,
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
+    ros2: Annotated[bool | None, typer.Option("--ros2/--no-ros2", help="publish the estimates as ROS 2 topics")] = None,
+    record: Annotated[Path | None, typer.Option(help="record every session to MCAP files in this folder")] = None,
 ) -> None:
     """Run the tracking service."""
     import gc
@@ -157,7 +159,10 @@ def serve(
     from service.server import TrackerNode, load_config
 
     try:
-        settings = load_config(config, listen=_names(listen), connect=_names(connect), name=name, device=device)
+        settings = load_config(
+            config, listen=_names(listen), connect=_names(connect), name=name, device=device, ros2=ros2,
+            record=str(record) if record else None,
+        )  # fmt: skip
     except ValueError as exc:
         raise _fail(f"serve: {exc}") from None
     stop = threading.Event()
@@ -178,7 +183,7 @@ def serve(
 # ---------------------------------------------------------------------- the robot side
 @app.command()
 def replay(
-    file: Annotated[Path, typer.Argument(help="trajectory file (.traj)")],
+    file: Annotated[Path, typer.Argument(help="a trajectory file (.traj) or a session recording (.mcap)")],
     connect: Annotated[str, typer.Option(help="the service's endpoints, comma-separated")] = "tcp/127.0.0.1:7447",
     name: Annotated[str, typer.Option(help="service name")] = "default",
     method: Annotated[str | None, typer.Option(help="OLP, EYE, WRS, REPS or PBO (default: the protocol's)")] = None,
@@ -201,26 +206,30 @@ def _replay(client, file: Path, method: str | None, worlds: int | None, rate: fl
 
     from client import NOISE_LEVELS, noisy_start
     from client import replay as stream
-    from protocol import Trajectory
+    from protocol import SessionRecording, Trajectory
 
     if noise not in NOISE_LEVELS:
         raise _fail(f"--noise: expected low, med or high, got '{noise}'")
+    recording = None
     try:
-        traj = Trajectory.load(file)
+        if file.suffix == ".mcap":
+            recording = SessionRecording.load(file)
+            traj = recording.trajectory
+        else:
+            traj = Trajectory.load(file)
     except (OSError, ValueError) as exc:
         raise _fail(f"replay: {exc}") from None
-    sigma_t, sigma_r = NOISE_LEVELS[noise]
     chosen = {k: v for k, v in {"method": method, "worlds": worlds}.items() if v is not None}
+    if recording is not None:  # the session as it was opened, unless told otherwise
+        o = recording.opened
+        start = {"p0": o["p0"], "sigma_t": o["sigma_t"], "sigma_r": o["sigma_r"], "q0": o["q0"]}
+        chosen = {"method": o["method"], "worlds": o["worlds"], "overrides": o["overrides"], **chosen}
+    else:
+        sigma_t, sigma_r = NOISE_LEVELS[noise]
+        start = {"p0": noisy_start(traj, sigma_t, sigma_r), "sigma_t": sigma_t, "sigma_r": sigma_r}
+        start["q0"] = traj.truth.initial_q if traj.truth else None
     try:
-        info = client.open_session(
-            traj.robot,
-            traj.object,
-            noisy_start(traj, sigma_t, sigma_r),
-            sigma_t=sigma_t,
-            sigma_r=sigma_r,
-            q0=traj.truth.initial_q if traj.truth else None,
-            **chosen,
-        )
+        info = client.open_session(traj.robot, traj.object, **start, **chosen)
         typer.echo(
             f"session {info.session}: {traj.object} in {traj.robot}, {info.worlds} worlds, {info.method}; "
             f"{traj.frames} frames of '{traj.name}'"
@@ -256,6 +265,11 @@ def _replay(client, file: Path, method: str | None, worlds: int | None, rate: fl
             )
         if traj.truth is not None:
             _summary(traj, result.estimates)
+        if recording is not None and recording.estimates:
+            was = {e.seq: e.pose[:3] for e in recording.estimates}
+            moved = [float(np.linalg.norm(e.pose[:3] - was[e.seq])) for e in result.estimates if e.seq in was]
+            most = max(moved, default=0.0) * 1e3
+            typer.echo(f"against the recording: {len(moved)} estimates, position differs by at most {most:.3f} mm")
         client.close_session()
     except Exception as exc:  # a user's command: say what went wrong, no traceback
         typer.echo(f"replay: {type(exc).__name__}: {exc}", err=True)
@@ -285,11 +299,24 @@ def _summary(traj, estimates) -> None:
 
 
 @app.command()
+def spec(
+    out: Annotated[Path, typer.Option(help="folder to write to")] = Path("docs/protocol"),
+) -> None:
+    """The wire spec for other languages: every message's JSON Schema and field table, and golden
+    payloads (msgpack beside the values they carry)."""
+    from protocol.spec import write_spec
+
+    written = write_spec(out)
+    typer.echo(f"wrote {len(written)} files under {out}")
+
+
+@app.command()
 def demo(
     device: Device = "auto",
     worlds: Annotated[int | None, typer.Option(help="K (default: the paper's 40)")] = None,
     method: Annotated[str | None, typer.Option(help="OLP, EYE, WRS, REPS or PBO (default: the protocol's)")] = None,
     file: Annotated[Path | None, typer.Option(help="trajectory (default: a bundled foam-brick pick and place)")] = None,
+    record: Annotated[Path | None, typer.Option(help="record the session to an MCAP file in this folder")] = None,
 ) -> None:
     """The service embedded on loopback, a bundled trajectory replayed through a client."""
     import socket
@@ -304,7 +331,9 @@ def demo(
         port = sock.getsockname()[1]
     endpoint = f"tcp/127.0.0.1:{port}"
     # One session: no idle groups to step. No frame budget: the replay goes as fast as it can.
-    config = ServiceConfig(listen=(endpoint,), device=device, groups=1, rate_hz=0)
+    config = ServiceConfig(
+        listen=(endpoint,), device=device, groups=1, rate_hz=0, record=str(record) if record else None
+    )
     log.info("starting the service on %s (device %s)", endpoint, device)
     with TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
         # The embedded service compiles its kernels first: minutes on a cold cache and a small CPU,

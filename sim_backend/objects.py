@@ -27,7 +27,10 @@ __all__ = [
     "make_banana",
 ]
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "objects.toml"
+_ROOT = Path(__file__).resolve().parents[1]
+if not (_ROOT / "configs").is_dir():  # an installed wheel carries configs/ in the service package
+    _ROOT = _ROOT / "service" / "bundled"
+DEFAULT_CONFIG = _ROOT / "configs" / "objects.toml"
 """Where the objects' physics (mass, friction and their ranges) are configured."""
 _DENSITY = (5.0, 25000.0)
 """Plausible densities of a held object [kg/m^3]: expanded polystyrene to the densest metals."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -96,3 +97,36 @@ def test_protocol_imports_stay_light():
     code = "import sys, protocol; bad = {'torch', 'warp', 'newton', 'trimesh'} & set(sys.modules); print(sorted(bad))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_the_committed_wire_spec_is_current(tmp_path):
+    """docs/protocol is what `inhand-tracker spec` writes from the messages today."""
+    from protocol.spec import write_spec
+
+    docs = Path(__file__).resolve().parents[1] / "docs" / "protocol"
+    for path in write_spec(tmp_path):
+        committed = docs / path.relative_to(tmp_path)
+        assert committed.exists() and committed.read_bytes() == path.read_bytes(), (
+            f"{committed} is stale: run `inhand-tracker spec`"
+        )
+
+
+def test_golden_payloads_decode_to_their_values_and_encode_to_their_bytes():
+    """What an implementer in another language checks theirs against."""
+    import json
+
+    import protocol
+    from protocol.spec import MESSAGES, plain
+
+    golden = Path(__file__).resolve().parents[1] / "docs" / "protocol" / "golden"
+    assert sorted(p.stem for p in golden.glob("*.msgpack")) == sorted(m.__name__ for m in MESSAGES)
+    for model in MESSAGES:
+        payload = (golden / f"{model.__name__}.msgpack").read_bytes()
+        values = json.loads((golden / f"{model.__name__}.json").read_text())
+        message = decode(payload, getattr(protocol, model.__name__))
+        assert plain(message) == values, model.__name__
+        rebuilt = {
+            k: np.asarray(v["values"], v["dtype"]).reshape(v["shape"]) if isinstance(v, dict) and "dtype" in v else v
+            for k, v in values.items()
+        }
+        assert encode(model(**rebuilt)) == payload, model.__name__

@@ -102,11 +102,11 @@ def test_bad_input_is_refused_with_the_field_and_the_service_goes_on(service):
         assert err.code == ErrorCode.BAD_REQUEST and "OpenSession.p0" in err.message and "nan" in err.message
         err = rpc(keys.open, b"\x80" + b"x" * (2 << 20))
         assert err.code == ErrorCode.BAD_REQUEST and "exceeds the limit" in err.message
-        (reply,) = list(z.get(keys.pose("nosuchsession"), timeout=10))  # no token at all
+        (reply,) = list(z.get(keys.pose("nosuchsession"), timeout=10))
         err = decode(bytes(reply.err.payload.to_bytes()), Error)
-        assert err.code == ErrorCode.BAD_REQUEST and "token" in err.message
+        assert err.code == ErrorCode.BAD_REQUEST and "'nosuchsession': is not open" in err.message
         ask = encode(CloseSession(session="nosuchsession", token="0" * 32))
-        (reply,) = list(z.get(keys.pose("nosuchsession"), payload=ask, timeout=10))
+        (reply,) = list(z.get(keys.status("nosuchsession"), payload=ask, timeout=10))
         assert decode(bytes(reply.err.payload.to_bytes()), Error).code == ErrorCode.FORBIDDEN
 
         info = _open(client, traj)
@@ -209,6 +209,31 @@ def test_eight_sessions_at_once_all_get_their_estimates():
         svc.stop()
 
 
+def test_a_wildcard_pose_query_answers_once_per_open_session(service):
+    traj = Trajectory.load(TRAJECTORY)
+    with (
+        TrackerClient(connect=[service.endpoint]) as a,
+        TrackerClient(connect=[service.endpoint]) as b,
+        TrackerClient(connect=[service.endpoint]) as watcher,
+    ):
+        sessions = {}
+        for robot in (a, b):
+            info = _open(robot, traj, worlds=4)
+            robot.send(traj.frame(0, info.session))
+            sessions[info.session] = robot.latest_pose(timeout=60, after_seq=0)
+        seen = watcher.poses()
+        assert seen.keys() == sessions.keys()
+        for session, estimate in sessions.items():
+            np.testing.assert_array_equal(seen[session].pose, estimate.pose)
+        for selector in (Keys("default").every("pose"), "inhand/**/pose"):
+            replies = list(watcher._zenoh.get(selector, timeout=10))
+            keys = sorted(str(r.ok.key_expr) for r in replies)
+            assert keys == sorted(Keys("default").pose(s) for s in sessions), (selector, keys)
+        a.close_session()
+        assert watcher.poses().keys() == {b.info.session}
+        b.close_session()
+
+
 def test_examples_run_as_processes(service):
     watcher = subprocess.Popen(
         [sys.executable, "examples/pose_watcher.py", "--connect", service.endpoint, "--count", "5"],
@@ -286,6 +311,12 @@ def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
         assert any("device lost" in r.getMessage() or (r.exc_info and "device lost" in str(r.exc_info[1]))
                    for r in caplog.records)  # fmt: skip
         assert not node.failed.is_set()
+        node.keys.session_of = lambda key: 1 / 0  # a fault in a Zenoh handler itself
+        (reply,) = list(client._zenoh.get(Keys("default").pose(broken.session), timeout=10))
+        del node.keys.session_of
+        err = decode(bytes(reply.err.payload.to_bytes()), Error)
+        assert err.code == ErrorCode.INTERNAL and "ZeroDivisionError" in err.message, err
+        assert any("_on_pose" in r.getMessage() and r.exc_info for r in caplog.records)
         client.close_session()
         healthy = _open(client, traj, worlds=2)
         for i in range(3):

@@ -101,6 +101,19 @@ class ServiceConfig(BaseSettings):
     it the open is refused: too few hypotheses do not track."""
     frame_time_cache: str = "~/.cache/inhand-tracker"
     """Where the step times measured on this device are kept between starts."""
+    ros2: bool = False
+    """Publish every session's estimate as a ROS 2 topic the way rmw_zenoh does
+    (``/inhand/session_<id>/pose``, ``geometry_msgs/msg/PoseWithCovarianceStamped``): a ROS 2 stack
+    on rmw_zenoh connected to the same Zenoh network sees it without a bridge."""
+    ros2_domain_id: int = Field(0, ge=0, le=232)
+    """The ROS 2 domain (``ROS_DOMAIN_ID``) the topics are published in."""
+    ros2_frame_id: str = "world"
+    """The ROS frame the poses are in: the robot's world frame (its config's base) as your TF tree names it."""
+    ros2_tf: bool = False
+    """Also broadcast each session's object frame (``<object>_<session>``) on ``/tf`` under ``ros2_frame_id``."""
+    record: str | None = None
+    """A folder to record every session to, one MCAP file each (``<session>.mcap``): what the robot
+    sent, every estimate and a summary of the population, for Foxglove and ``inhand-tracker replay``."""
 
     @field_validator("listen", "connect", "robots", mode="before")
     @classmethod

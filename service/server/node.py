@@ -11,6 +11,7 @@ timeout.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import queue
 import threading
@@ -19,12 +20,13 @@ from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
 
 import zenoh
 
-from client import zenoh_config
+from client import zenoh_config, zenoh_encoding
 from protocol import (
     CloseSession,
     DecodeError,
     Error,
     ErrorCode,
+    Estimate,
     Keys,
     OpenSession,
     PoseObservation,
@@ -33,18 +35,40 @@ from protocol import (
     decode,
     encode,
 )
-from service.paths import PROJECT_ROOT
+from service.paths import resolve
 from service.tracker import METHODS
 from sim_backend import load_catalog, load_robot, resolve_device
 
 from .config import ServiceConfig
+from .recording import SessionRecorder
+from .ros2 import RosTopics
 from .sessions import Admission, ServiceError, SessionManager
 
 __all__ = ["TrackerNode"]
 
 log = logging.getLogger(__name__)
 
-_ENCODING = zenoh.Encoding("application/msgpack")
+_ESTIMATE = zenoh_encoding(Estimate)
+
+
+def _guarded(handler):
+    """A Zenoh callback that raises is printed to stderr by Zenoh, past the service's log, and its
+    query is left unanswered until the client times out: log it, and answer with the reason."""
+
+    @functools.wraps(handler)
+    def run(self, arg) -> None:
+        try:
+            handler(self, arg)
+        except Exception as exc:
+            log.exception("%s on %s failed", handler.__name__, getattr(arg, "key_expr", "?"))
+            if isinstance(arg, zenoh.Query):
+                error = encode(Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
+                # A query answered before it raised takes no more; `with` finalises it now (the
+                # traceback holds it, so the client would wait for its timeout).
+                with contextlib.suppress(Exception), arg:
+                    arg.reply_err(error, encoding=zenoh_encoding(Error))
+
+    return run
 
 
 class TrackerNode:
@@ -55,10 +79,10 @@ class TrackerNode:
         self.keys = Keys(config.name)
         robots = {}
         for path in config.robots:
-            spec = load_robot(PROJECT_ROOT / path)  # an absolute path stays what it is
+            spec = load_robot(resolve(path))
             robots[spec.name] = spec
         self.device = str(resolve_device(config.device))
-        self.manager = SessionManager(config, robots, load_catalog(PROJECT_ROOT / config.objects))
+        self.manager = SessionManager(config, robots, load_catalog(resolve(config.objects)))
         self._inbox: queue.Queue = queue.Queue()
         self._latest: dict[str, bytes] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -85,11 +109,15 @@ class TrackerNode:
         this one has no room for."""
         self._room = (0.0, 0)
         """The loop's latest (load_ms, free_worlds), for the info queryable."""
+        self._ros: RosTopics | None = None
+        """The sessions' estimates as ROS 2 topics (setting ``ros2``)."""
+        self._recorder = SessionRecorder(config.record, config.name, config.ros2_frame_id) if config.record else None
+        """Every session recorded to MCAP (setting ``record``)."""
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> TrackerNode:
         cfg, keys = self.config, self.keys
-        file = PROJECT_ROOT / cfg.zenoh_config if cfg.zenoh_config else None
+        file = resolve(cfg.zenoh_config) if cfg.zenoh_config else None
         self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting, file))
         self._entities = [
             s.declare_queryable(keys.info, self._on_info),
@@ -102,6 +130,8 @@ class TrackerNode:
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
+        if cfg.ros2:
+            self._ros = RosTopics(s, cfg.ros2_domain_id, cfg.ros2_frame_id, cfg.ros2_tf)
         self._loop.start()  # it warms up, then declares the service's liveliness token
         self._watchdog = threading.Thread(target=self._watch, name="inhand-watchdog", daemon=True)
         self._watchdog.start()
@@ -120,6 +150,11 @@ class TrackerNode:
             pending.append(self._inbox.get_nowait()[2])
         for done in pending:
             _answer(done, Error(code=ErrorCode.INTERNAL, message="the service is stopping"))
+        if self._recorder is not None:
+            self._recorder.close_all()
+        if self._ros is not None:
+            self._ros.close()
+            self._ros = None
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -140,10 +175,11 @@ class TrackerNode:
     def _reply(self, query: zenoh.Query, answer) -> None:
         with query:
             if isinstance(answer, Error):
-                query.reply_err(encode(answer), encoding=_ENCODING)
+                query.reply_err(encode(answer), encoding=zenoh_encoding(Error))
             else:
-                query.reply(query.key_expr, encode(answer), encoding=_ENCODING)
+                query.reply(query.key_expr, encode(answer), encoding=zenoh_encoding(type(answer)))
 
+    @_guarded
     def _on_info(self, query: zenoh.Query) -> None:
         m = self.manager
         info = ServiceInfo(
@@ -164,6 +200,7 @@ class TrackerNode:
         )
         self._reply(query, info)
 
+    @_guarded
     def _on_open(self, query: zenoh.Query) -> None:
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
@@ -171,6 +208,7 @@ class TrackerNode:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
         self._reply(query, self._call("open", (request, None)))
 
+    @_guarded
     def _on_close(self, query: zenoh.Query) -> None:
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", CloseSession)
@@ -186,26 +224,31 @@ class TrackerNode:
             return Error(code=ErrorCode.BAD_REQUEST, message=f"{exc} (the payload carries the session's token)")
         return request.model_copy(update={"session": self.keys.session_of(query.key_expr)})
 
+    @_guarded
     def _on_pose(self, query: zenoh.Query) -> None:
-        request = self._session_request(query)
-        if isinstance(request, Error):
-            return self._reply(query, request)
-        try:
-            self.manager.authorize(request.session, request.token)  # a dict read: safe off the loop
-        except ServiceError as exc:
-            return self._reply(query, exc.to_message())
-        latest = self._latest.get(request.session)
+        """The latest estimate of every open session the selector matches, one reply each. No token:
+        the same estimates are published on the pose keys, so Zenoh's access control decides who
+        reads them; the token guards what steers a session."""
+        wanted = query.key_expr
+        latest = dict(self._latest)  # the loop thread adds and drops sessions meanwhile
+        if "*" not in str(wanted):  # one session, by its exact key
+            session = self.keys.session_of(wanted)
+            if session not in latest:
+                opened = session in self.manager.sessions
+                text = f"session '{session}': " + ("no estimate yet" if opened else "is not open")
+                return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=text))
+        keys = {session: zenoh.KeyExpr(self.keys.pose(session)) for session in latest}
         with query:
-            if latest is None:
-                text = f"session '{request.session}': no estimate yet"
-                query.reply_err(encode(Error(code=ErrorCode.BAD_REQUEST, message=text)), encoding=_ENCODING)
-            else:
-                query.reply(query.key_expr, latest, encoding=_ENCODING)
+            for session, payload in latest.items():
+                if wanted.intersects(keys[session]):
+                    query.reply(keys[session], payload, encoding=_ESTIMATE)
 
+    @_guarded
     def _on_status(self, query: zenoh.Query) -> None:
         request = self._session_request(query)
         self._reply(query, request if isinstance(request, Error) else self._call("status", request))
 
+    @_guarded
     def _on_frame(self, sample: zenoh.Sample) -> None:
         received = time.perf_counter()
         session = self.keys.session_of(sample.key_expr)
@@ -225,6 +268,7 @@ class TrackerNode:
             return
         self._inbox.put(("frame", (frame, received), None))
 
+    @_guarded
     def _on_observation(self, sample: zenoh.Sample) -> None:
         session = self.keys.session_of(sample.key_expr)
         try:
@@ -238,6 +282,7 @@ class TrackerNode:
             return
         self._inbox.put(("observation", observation, None))
 
+    @_guarded
     def _on_service(self, sample: zenoh.Sample) -> None:
         name = Keys.service_of(sample.key_expr)
         if name != self.keys.service:
@@ -246,6 +291,7 @@ class TrackerNode:
             else:
                 self._others.add(name)
 
+    @_guarded
     def _on_robot(self, sample: zenoh.Sample) -> None:
         session = self.keys.session_of(sample.key_expr)
         gone = sample.kind == zenoh.SampleKind.DELETE
@@ -315,7 +361,8 @@ class TrackerNode:
                     self._latest[estimate.session] = payload
                     pub = self._publishers.get(estimate.session)
                     if pub is not None:
-                        pub.put(payload, encoding=_ENCODING)
+                        pub.put(payload)  # the publisher's encoding: Estimate's
+                    self._share(estimate)
             now = time.monotonic()
             for session, since in list(self._robot_gone.items()):
                 if now - since > cfg.robot_timeout_s:
@@ -338,8 +385,12 @@ class TrackerNode:
             if kind == "frame":
                 frame, received = payload
                 m.submit(frame, received)
+                if self._recorder is not None:
+                    self._recorder.frame(frame)
             elif kind == "observation":
                 m.observe(payload)
+                if self._recorder is not None:
+                    self._recorder.observation(payload)
             elif kind == "bad_frame":
                 m.count_error(*payload)
             elif kind == "robot":
@@ -386,10 +437,14 @@ class TrackerNode:
         self._robot_gone[info.session] = time.monotonic()
         self._publishers[info.session] = self.session.declare_publisher(
             self.keys.pose(info.session),
-            encoding=_ENCODING,
+            encoding=_ESTIMATE,
             express=True,
             priority=zenoh.Priority.REAL_TIME,
         )
+        if self._ros is not None:
+            self._ros.open(info.session, info.object)
+        if self._recorder is not None:
+            self._recorder.open(info, request)
         _answer(done, info)
 
     def _adopt(self, admission: Admission, build: Future, began: float) -> None:
@@ -417,6 +472,21 @@ class TrackerNode:
         pub = self._publishers.pop(session, None)
         if pub is not None:
             pub.undeclare()
+        if self._ros is not None:
+            self._ros.drop(session)
+        if self._recorder is not None:
+            self._recorder.close(session)
+
+    def _share(self, estimate) -> None:
+        """An estimate to ROS 2 and the recording. Their failure is logged and theirs alone: the
+        robot's own estimate went out already."""
+        try:
+            if self._ros is not None:
+                self._ros.publish(estimate)
+            if self._recorder is not None:
+                self._recorder.estimate(estimate)
+        except Exception:
+            log.exception("publishing session %s's estimate to ROS 2 or its recording failed", estimate.session)
 
 
 def _answer(done: Future | None, value) -> None:

@@ -1,0 +1,107 @@
+"""Session recordings: one MCAP file per session, as the service writes them (setting ``record``)
+and as ``inhand-tracker replay`` reads them back. Foxglove opens them as they are.
+
+Channels (topic, message encoding, schema):
+
+    /inhand/frame         json  RobotFrame without its token: what the robot sent, exactly
+    /inhand/observation   json  PoseObservation without its token
+    /inhand/estimate      json  Estimate
+    /inhand/population    json  the population's summary per frame (POPULATION_FIELDS)
+    /inhand/joint_states  cdr   sensor_msgs/msg/JointState: the robot's measured joints
+    /inhand/pose          cdr   geometry_msgs/msg/PoseWithCovarianceStamped: the estimate
+    /tf                   cdr   tf2_msgs/msg/TFMessage: the object's frame under the world frame
+
+JSON arrays are nested lists; float32 values written by Python's shortest repr read back to the
+same float32. The session's open is the metadata record ``inhand.session`` (SESSION_FIELDS, every
+value a JSON text). Log times are the service's clock, publish times the robot's [ns].
+
+Imports numpy, msgpack and mcap only: the light client reads recordings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .messages import Estimate
+from .trajectory import Trajectory
+
+__all__ = ["CHANNELS", "POPULATION_FIELDS", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording"]
+
+CHANNELS = {
+    "frame": "/inhand/frame",
+    "observation": "/inhand/observation",
+    "estimate": "/inhand/estimate",
+    "population": "/inhand/population",
+    "joint_states": "/inhand/joint_states",
+    "pose": "/inhand/pose",
+    "tf": "/tf",
+}
+"""The topic of each channel, by role."""
+SESSION_METADATA = "inhand.session"
+SESSION_FIELDS = (
+    "session", "service", "protocol", "robot", "object", "method", "worlds", "p0", "sigma_t", "sigma_r", "q0",
+    "joint_names", "sensor_names", "overrides",
+)  # fmt: skip
+"""The open's fields in the metadata record."""
+POPULATION_FIELDS = ("seq", "worlds", "cost", "spread_m", "mass", "friction", "status", "mode_weights")
+"""The population's summary per frame: its worlds, the best world's cost, mass and friction, the
+worlds' position spread [m], the track state and the weights of the two pose modes."""
+
+
+@dataclass
+class SessionRecording:
+    """A recorded session, read back."""
+
+    opened: dict
+    """The session's open (SESSION_FIELDS), p0 and q0 as arrays."""
+    trajectory: Trajectory
+    """What the robot sent, as a trajectory without ground truth."""
+    estimates: list[Estimate] = field(default_factory=list)
+    """Every estimate the service published, in seq order."""
+    population: list[dict] = field(default_factory=list)
+    """The population's summary per frame (POPULATION_FIELDS)."""
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> SessionRecording:
+        from mcap.reader import make_reader
+
+        path = Path(path)
+        with path.open("rb") as f:
+            reader = make_reader(f)
+            records = {m.name: m.metadata for m in reader.iter_metadata()}
+            if SESSION_METADATA not in records:
+                raise ValueError(f"recording '{path}': no '{SESSION_METADATA}' metadata: not a session recording")
+            opened = {k: json.loads(v) for k, v in records[SESSION_METADATA].items()}
+            frames, estimates, population = [], [], []
+            wanted = [CHANNELS[k] for k in ("frame", "estimate", "population")]
+            for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
+                doc = json.loads(message.data)
+                if channel.topic == CHANNELS["frame"]:
+                    frames.append(doc)
+                elif channel.topic == CHANNELS["estimate"]:
+                    estimates.append(Estimate.model_validate(doc))
+                else:
+                    population.append(doc)
+        if not frames:
+            raise ValueError(f"recording '{path}': no frames on {CHANNELS['frame']}")
+        opened["p0"] = np.asarray(opened["p0"], np.float32)
+        if opened.get("q0") is not None:
+            opened["q0"] = np.asarray(opened["q0"], np.float32)
+        frames.sort(key=lambda d: d["seq"])
+        stamps = np.array([d["stamp"] for d in frames], np.float64)
+        steps = np.diff(stamps)
+        rate = 1.0 / float(np.median(steps)) if len(steps) and np.median(steps) > 0 else 30.0
+        header = {"session", "seq", "stamp", "token"}
+        names = [k for k in frames[0] if k not in header]
+        sensing = {k: None if frames[0][k] is None else np.asarray([d[k] for d in frames], np.float32) for k in names}
+        trajectory = Trajectory(
+            f"{path.stem}", opened["robot"], opened["object"], rate, stamp=stamps, meta={"recording": str(path)},
+            **sensing,
+        )  # fmt: skip
+        estimates.sort(key=lambda e: e.seq)
+        return cls(opened, trajectory, estimates, population)
