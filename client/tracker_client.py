@@ -374,6 +374,16 @@ class TrackerClient:
                 out[estimate.session] = estimate
         return out
 
+    def watch(self, callback: Callable[[Estimate], None]) -> zenoh.Subscriber:
+        """Call ``callback(estimate)`` for every estimate of every session of the service (a
+        dashboard, a logger; on a Zenoh thread: keep it short). Undeclare the returned subscriber
+        to stop."""
+
+        def deliver(sample: zenoh.Sample) -> None:
+            callback(decode(bytes(sample.payload.to_bytes()), Estimate))
+
+        return self._zenoh.declare_subscriber(self.keys.every("pose"), deliver)
+
     def _session_id(self) -> str | None:
         return self.info.session if self.info is not None else None
 

@@ -8,9 +8,8 @@ from __future__ import annotations
 import argparse
 import threading
 
-import zenoh
-
-from protocol import Estimate, Keys, decode
+from client import TrackerClient
+from protocol import Estimate
 
 
 def main() -> None:
@@ -19,23 +18,18 @@ def main() -> None:
     p.add_argument("--service", default="default")
     p.add_argument("--count", type=int, default=0, help="exit after this many estimates (default: run forever)")
     args = p.parse_args()
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", f'["{args.connect}"]')
     seen, done = [0], threading.Event()
 
-    def show(sample: zenoh.Sample) -> None:
-        e = decode(bytes(sample.payload.to_bytes()), Estimate)
+    def show(e: Estimate) -> None:
         x, y, z = e.pose[:3]
         print(f"{e.session} seq {e.seq}: ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  {e.status}", flush=True)
         seen[0] += 1
         if args.count and seen[0] >= args.count:
             done.set()
 
-    with zenoh.open(conf) as session:
-        session.declare_subscriber(Keys(args.service).every("pose"), show)
+    with TrackerClient(connect=[args.connect], service=args.service) as client:
+        print("latest:", {s: int(e.seq) for s, e in client.poses().items()}, flush=True)  # one query, every session
+        client.watch(show)
         print("watching", flush=True)
         done.wait()
 

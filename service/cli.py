@@ -201,6 +201,36 @@ def replay(
     raise typer.Exit(code)
 
 
+@app.command()
+def watch(
+    connect: Annotated[str, typer.Option(help="the service's endpoints, comma-separated")] = "tcp/127.0.0.1:7447",
+    name: Annotated[str, typer.Option(help="service name")] = "default",
+    count: Annotated[int, typer.Option(help="stop after this many estimates (0: until Ctrl-C)")] = 0,
+) -> None:
+    """Robot side: print every session's estimates as the service publishes them."""
+    import threading
+
+    from client import TrackerClient
+
+    seen, done = [0], threading.Event()
+
+    def show(e) -> None:
+        x, y, z = e.pose[:3]
+        typer.echo(f"{e.session} seq {e.seq}: ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  {e.status}")
+        seen[0] += 1
+        if count and seen[0] >= count:
+            done.set()
+
+    with TrackerClient(connect=_names(connect), service=name) as client:
+        watcher = client.watch(show)
+        typer.echo(f"watching service '{name}'")
+        try:
+            done.wait()
+        except KeyboardInterrupt:
+            pass
+        watcher.undeclare()
+
+
 def _replay(client, file: Path, method: str | None, worlds: int | None, rate: float, noise: str, live: bool) -> int:
     import numpy as np
 

@@ -229,6 +229,8 @@ def test_a_wildcard_pose_query_answers_once_per_open_session(service):
             replies = list(watcher._zenoh.get(selector, timeout=10))
             keys = sorted(str(r.ok.key_expr) for r in replies)
             assert keys == sorted(Keys("default").pose(s) for s in sessions), (selector, keys)
+            # Every sample names its message: msgpack, with the schema inhand.v3.Estimate.
+            assert {str(r.ok.encoding) for r in replies} == {f"application/msgpack;inhand.v{PROTOCOL_VERSION}.Estimate"}
         a.close_session()
         assert watcher.poses().keys() == {b.info.session}
         b.close_session()
@@ -239,7 +241,13 @@ def test_examples_run_as_processes(service):
         [sys.executable, "examples/pose_watcher.py", "--connect", service.endpoint, "--count", "5"],
         cwd=ROOT, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
+    assert watcher.stdout.readline().startswith("latest: ")
     assert watcher.stdout.readline().strip() == "watching"
+    cli = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "watch", "--connect", service.endpoint, "--count", "3"],
+        cwd=ROOT, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert cli.stdout.readline().strip() == "watching service 'default'"
     robot = subprocess.run(
         [sys.executable, "examples/robot_replay.py", str(TRAJECTORY), "--connect", service.endpoint, "--frames", "12",
          "--camera-hz", "10"],
@@ -250,6 +258,8 @@ def test_examples_run_as_processes(service):
     assert "done: 12 frames, 4 camera poses" in robot.stdout, robot.stdout
     out, _ = watcher.communicate(timeout=60)
     assert watcher.returncode == 0 and len([line for line in out.splitlines() if " seq " in line]) == 5
+    out, _ = cli.communicate(timeout=60)
+    assert cli.returncode == 0 and len([line for line in out.splitlines() if " seq " in line]) == 3
 
 
 def test_touch_presence_is_per_session_in_a_shared_population():
