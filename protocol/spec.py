@@ -25,6 +25,7 @@ from .messages import (
     SessionInfo,
     SessionStatus,
 )
+from .sensing import SENSING
 
 __all__ = ["MESSAGES", "examples", "plain", "schemas", "write_spec"]
 
@@ -51,11 +52,11 @@ def examples() -> dict[str, BaseModel]:
     cov = np.diag(np.array([4e-6, 4e-6, 9e-6, 2.5e-3, 2.5e-3, 1e-2], np.float32))
     q = np.linspace(-0.2, 0.9, 22, dtype=np.float32)
     token = "5f2b9c0e7d1a4b3c8e6f0a9d2c4b7e1f"
-    frame = {
-        "controls": q + np.float32(0.01), "q": q, "force": np.array([[0.0, 0.0, 1.5]] * 4, np.float32),
-        "slip": np.array([0.0, 0.25, 0.0, 0.0], np.float32), "slip_dir": np.array([[1.0, 0.0]] * 4, np.float32),
-        "spin": None, "spin_sense": None,
-    }  # fmt: skip
+    # Every sensing field, filled with fixed values: D = 22 joints, L = 4 sensors.
+    frame = {}
+    for f in SENSING:
+        shape = (len(q) if f.per == "joint" else 4, *f.trailing)
+        frame[f.name] = np.linspace(-0.5, 0.5, int(np.prod(shape)), dtype=np.float32).reshape(shape)
     return {
         "ServiceInfo": ServiceInfo(
             name="default", device="cuda:0", robots=["allegro"], objects=["foam_brick", "spam_can"],

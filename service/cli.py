@@ -149,6 +149,7 @@ def serve(
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
     ros2: Annotated[bool | None, typer.Option("--ros2/--no-ros2", help="publish the estimates as ROS 2 topics")] = None,
     record: Annotated[Path | None, typer.Option(help="record every session to MCAP files in this folder")] = None,
+    view_port: Annotated[int | None, typer.Option(help="serve a live view in a browser on this port")] = None,
 ) -> None:
     """Run the tracking service."""
     import gc
@@ -161,7 +162,7 @@ def serve(
     try:
         settings = load_config(
             config, listen=_names(listen), connect=_names(connect), name=name, device=device, ros2=ros2,
-            record=str(record) if record else None,
+            record=str(record) if record else None, view_port=view_port,
         )  # fmt: skip
     except ValueError as exc:
         raise _fail(f"serve: {exc}") from None

@@ -80,6 +80,7 @@ def test_a_mesh_object_in_the_default_objects_file_loads_at_import(tmp_path, mon
     source = Path(objects.__file__).read_text()
     line = next(x for x in source.splitlines() if x.startswith("DEFAULT_CONFIG = "))
     module = types.ModuleType("objects_with_a_mesh")
+    module.__file__ = objects.__file__
     monkeypatch.setitem(sys.modules, module.__name__, module)  # dataclasses look their module up
     exec(compile(source.replace(line, f"DEFAULT_CONFIG = Path({str(cfg)!r})"), objects.__file__, "exec"), vars(module))
     assert "block" in module.CATALOG

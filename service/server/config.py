@@ -111,6 +111,10 @@ class ServiceConfig(BaseSettings):
     """The ROS frame the poses are in: the robot's world frame (its config's base) as your TF tree names it."""
     ros2_tf: bool = False
     """Also broadcast each session's object frame (``<object>_<session>``) on ``/tf`` under ``ros2_frame_id``."""
+    view_port: int | None = Field(None, ge=1, le=65535)
+    """Serve a live view of the sessions on this port (Newton's viser viewer; open it in a browser)."""
+    view_host: str = "127.0.0.1"
+    """Where the live view listens: 0.0.0.0 to reach it from other machines."""
     record: str | None = None
     """A folder to record every session to, one MCAP file each (``<session>.mcap``): what the robot
     sent, every estimate and a summary of the population, for Foxglove and ``inhand-tracker replay``."""

@@ -113,6 +113,8 @@ class TrackerNode:
         """The sessions' estimates as ROS 2 topics (setting ``ros2``)."""
         self._recorder = SessionRecorder(config.record, config.name, config.ros2_frame_id) if config.record else None
         """Every session recorded to MCAP (setting ``record``)."""
+        self._view = None
+        """The live view in a browser (setting ``view_port``)."""
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> TrackerNode:
@@ -132,6 +134,10 @@ class TrackerNode:
         ]
         if cfg.ros2:
             self._ros = RosTopics(s, cfg.ros2_domain_id, cfg.ros2_frame_id, cfg.ros2_tf)
+        if cfg.view_port:
+            from .viewer import LiveView  # viser, only where a view is asked for
+
+            self._view = LiveView(cfg.view_host, cfg.view_port)
         self._loop.start()  # it warms up, then declares the service's liveliness token
         self._watchdog = threading.Thread(target=self._watch, name="inhand-watchdog", daemon=True)
         self._watchdog.start()
@@ -155,6 +161,9 @@ class TrackerNode:
         if self._ros is not None:
             self._ros.close()
             self._ros = None
+        if self._view is not None:
+            self._view.close()
+            self._view = None
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -363,6 +372,13 @@ class TrackerNode:
                     if pub is not None:
                         pub.put(payload)  # the publisher's encoding: Estimate's
                     self._share(estimate)
+            if self._view is not None:
+                try:
+                    self._view.update(m.sessions)
+                except Exception:  # a view is not worth the service: log it and stop drawing
+                    log.exception("the live view failed; it is closed")
+                    self._view.close()
+                    self._view = None
             now = time.monotonic()
             for session, since in list(self._robot_gone.items()):
                 if now - since > cfg.robot_timeout_s:

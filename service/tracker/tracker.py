@@ -304,6 +304,11 @@ class Tracker:
         self._window_frames += 1
         self._packed.copy_(self._summary(self._scored()))
 
+    def weights(self) -> torch.Tensor:
+        """Each world's share of the estimate now, (G, K): eq. 4's weights over the window's cost
+        (uniform right after an update, before any frame was scored)."""
+        return wrs_pmf(torch.nan_to_num(self._scored(), nan=0.0), self.config.estimate_lambda)
+
     def _scored(self) -> torch.Tensor:
         """The window's mean cost per world with the pose observations' evidence added, (G, K).
         The evidence is scaled by the spread of the contact costs of the worlds that still hold

@@ -1,0 +1,77 @@
+"""The live view (setting ``view_port``), as a user sees it: headless Chromium opens the page of a
+running service and takes a screenshot before and after a session tracks; the page must have
+loaded Newton's viewer and drawn the hand and its hypotheses."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+import pytest
+from service_process import ServiceProcess, free_port
+
+from client import TrackerClient
+from protocol import Trajectory
+from service.paths import DATA_DIR
+
+TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+CHROMIUM = shutil.which("chromium") or shutil.which("google-chrome")
+DRIVER = shutil.which("chromedriver")
+
+
+def _browser():
+    """Headless Chromium driven by its WebDriver (software WebGL): the page runs in real time, so
+    the viewer's websocket stays connected while the test waits for it to draw."""
+    from selenium import webdriver
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in ("--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                 "--window-size=1000,700", "--hide-scrollbars"):  # fmt: skip
+        options.add_argument(flag)
+    return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=DRIVER))
+
+
+def _screenshot(browser, url: str, path, wait: float = 8.0) -> np.ndarray:
+    """The page ``wait`` seconds after it opened, as RGB pixels."""
+    import imageio.v3 as iio
+
+    browser.get(url)
+    time.sleep(wait)
+    browser.save_screenshot(str(path))
+    return iio.imread(path)[..., :3].astype(np.int16)
+
+
+@pytest.mark.skipif(
+    CHROMIUM is None or DRIVER is None, reason="no Chromium: scripts/test installs Debian's where it may (as root)"
+)
+def test_the_live_view_draws_the_hand_and_the_hypotheses(tmp_path):
+    view = free_port()
+    svc = ServiceProcess(free_port(), view_port=str(view))
+    browser = _browser()
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as robot:
+            svc.wait_ready(robot)
+            url = f"http://127.0.0.1:{view}"
+            empty = _screenshot(browser, url, tmp_path / "empty.png")
+            assert browser.title == "Viser", browser.title  # the viewer's page loaded
+            traj = Trajectory.load(TRAJECTORY)
+            info = robot.open_session(
+                traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=8
+            )
+            for i in range(40):  # the hand closes on the object
+                robot.send(traj.frame(i, info.session))
+                robot.latest_pose(timeout=60, after_seq=i)
+            drawn = _screenshot(browser, url, tmp_path / "drawn.png")
+            assert info.session in browser.page_source, "the session is not offered in the page"
+            robot.close_session()
+    finally:
+        browser.quit()
+        svc.stop()
+    scene = (slice(160, 540), slice(320, 660))  # around the object, left of the control panel
+    changed = np.abs(drawn[scene] - empty[scene]).sum(-1) > 60
+    assert changed.mean() > 0.05, f"only {changed.mean():.2%} of the scene changed when the session tracked"
+    # The hand's links and the object's hypotheses are coloured; the empty scene is white and grey.
+    saturation = drawn[scene].max(-1) - drawn[scene].min(-1)
+    assert (saturation > 60).mean() > 0.05, f"{(saturation > 60).mean():.2%} of the scene is coloured"
