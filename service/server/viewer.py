@@ -1,7 +1,8 @@
 """The tracking, live in a browser (setting ``view_port``): Newton's own viewer (``ViewerViser``)
 shows one session's worlds as its population holds them, every world's hand and object overlaid,
-each world's object faded by its share of the estimate; on top, the estimate's pose as a frame and
-the cost-weighted mean's 95 % position region as a sphere. A session is chosen in the page.
+each world's object faded by its share of the estimate; on top, the real robot's fingertips (red,
+by forward kinematics of the joints it sent), the estimate's pose as a frame and the cost-weighted
+mean's 95 % position region as a sphere. A session is chosen in the page.
 
 It draws on the service's loop thread, at most ``rate_hz`` times a second and only while a browser
 is connected: with nobody watching it costs one dictionary look-up a tick."""
@@ -83,6 +84,11 @@ class LiveView:
         self.viewer.begin_frame(now)
         self.viewer.log_state(pop.state_0)
         self.viewer.end_frame()
+        # The real robot as it stands: its fingertips by forward kinematics of the joints it sent.
+        tips = pool.tracker.fk.pos[group].detach().cpu().numpy()
+        self.server.scene.add_point_cloud(
+            "/inhand/real_fingertips", points=tips, colors=(220, 20, 60), point_size=0.012, point_shape="circle"
+        )
         estimate: Estimate | None = session.latest
         if estimate is not None:
             p = estimate.pose.astype(np.float64)
