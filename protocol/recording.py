@@ -100,7 +100,7 @@ class SessionRecording:
         names = [k for k in frames[0] if k not in header]
         sensing = {k: None if frames[0][k] is None else np.asarray([d[k] for d in frames], np.float32) for k in names}
         trajectory = Trajectory(
-            f"{path.stem}", opened["robot"], opened["object"], rate, stamp=stamps, meta={"recording": str(path)},
+            path.stem, opened["robot"], opened["object"], rate, stamp=stamps, meta={"recording": str(path)},
             **sensing,
         )  # fmt: skip
         estimates.sort(key=lambda e: e.seq)

@@ -246,11 +246,11 @@ class TrackerNode:
                 opened = session in self.manager.sessions
                 text = f"session '{session}': " + ("no estimate yet" if opened else "is not open")
                 return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=text))
-        keys = {session: zenoh.KeyExpr(self.keys.pose(session)) for session in latest}
         with query:
             for session, payload in latest.items():
-                if wanted.intersects(keys[session]):
-                    query.reply(keys[session], payload, encoding=_ESTIMATE)
+                key = zenoh.KeyExpr(self.keys.pose(session))
+                if wanted.intersects(key):
+                    query.reply(key, payload, encoding=_ESTIMATE)
 
     @_guarded
     def _on_status(self, query: zenoh.Query) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from protocol import CHANNELS, PROTOCOL_VERSION, Estimate, OpenSession, PoseObservation, RobotFrame, SessionInfo
-from protocol.recording import SESSION_METADATA
+from protocol.recording import SESSION_FIELDS, SESSION_METADATA
 
 from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, tf_message, to_ros_time
 
@@ -50,12 +50,9 @@ class _File:
             text = TYPES.generate_msgdef(msg_type, ros_version=2)[0]
             sid = self.writer.register_schema(name=msg_type, encoding="ros2msg", data=text.encode())
             self.channels[role] = self.writer.register_channel(CHANNELS[role], "cdr", sid)
-        opened = {
-            "session": info.session, "service": service, "protocol": PROTOCOL_VERSION, "robot": info.robot,
-            "object": info.object, "method": info.method, "worlds": info.worlds, "p0": request.p0,
-            "sigma_t": request.sigma_t, "sigma_r": request.sigma_r, "q0": request.q0,
-            "joint_names": info.joint_names, "sensor_names": info.sensor_names, "overrides": request.overrides,
-        }  # fmt: skip
+        # The granted values (info) over the asked ones (request), as the session was opened.
+        known = {"service": service, "protocol": PROTOCOL_VERSION, **request.model_dump(), **info.model_dump()}
+        opened = {k: known[k] for k in SESSION_FIELDS}
         self.writer.add_metadata(SESSION_METADATA, {k: json.dumps(_plain(v)) for k, v in opened.items()})
         self.sequence = 0
 

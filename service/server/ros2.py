@@ -141,14 +141,12 @@ class RosPublisher:
 
 
 class RosTopics:
-    """The service as one ROS 2 node (``inhand_tracker`` in ``namespace``), with a pose publisher
+    """The service as one ROS 2 node (``inhand_tracker``, root namespace), with a pose publisher
     per session and, when ``tf`` is on, one ``/tf`` publisher for all of them."""
 
-    def __init__(
-        self, session: zenoh.Session, domain_id: int = 0, frame_id: str = "world", tf: bool = False, node: str = ""
-    ):
+    def __init__(self, session: zenoh.Session, domain_id: int = 0, frame_id: str = "world", tf: bool = False):
         self.session, self.domain_id, self.frame_id = session, domain_id, frame_id
-        self.node = node or "inhand_tracker"
+        self.node = "inhand_tracker"
         self._zid = str(session.info.zid())
         self._entities = 0
         self._node_token = session.liveliness().declare_token(
