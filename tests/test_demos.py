@@ -123,8 +123,7 @@ def test_ground_truth_keeps_only_demos_whose_object_stays_in_the_hand(hand, reco
 def test_a_micrometre_at_the_start_of_the_brick_stays_below_a_millimetre_while_held(hand, recordings):
     """The tracker's millimetres are not lost to chaos in the demo itself. The set-down is another
     matter: a turned box pressed on the table tips one way or the other (2.0 mm from 1 um by the
-    end of this short pick and place, up to 40 mm where the thumb turned the brick 50-62 degrees),
-    docs/benchmarks.md."""
+    end of this short pick and place, up to 40 mm where the thumb turned the brick 50-62 degrees)."""
     spec, _ = hand
     demos, _ = recordings
     obj = catalog_object("foam_brick")
