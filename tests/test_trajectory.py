@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from protocol import TRAJECTORY_VERSION, GroundTruth, RobotFrame, Trajectory
-from service.bench.plots import bar_chart, line_chart
+from service.bench.plots import bar_chart, line_chart, xy_chart
 from service.paths import DATA_DIR
 from service.tracker.optimizers import OptimizerConfig, update
 
@@ -80,7 +80,9 @@ def test_groups_with_different_methods_update_by_their_own_rules():
 def test_charts_are_png_files(tmp_path):
     bar = bar_chart(tmp_path / "b.png", "ADD", ["LOW", "MED"], ["EYE", "PBO"], np.array([[3.0, 2.0], [5.0, np.nan]]))
     line = line_chart(tmp_path / "l.png", "ADD", {"EYE": np.linspace(0, 5, 90)}, x_step=1 / 30)
-    for path in (bar, line):
+    points = {"med": [[10.1, 5.2], [15.5, 2.5]]}
+    xy = xy_chart(tmp_path / "x.png", "ADD", points, "p99 [ms]", labels={"med": ["40", "1024"]})
+    for path in (bar, line, xy):
         data = path.read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
         width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")

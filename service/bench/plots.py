@@ -10,9 +10,10 @@ import matplotlib
 matplotlib.use("Agg")  # no display on a GPU box or in CI
 
 import matplotlib.pyplot as plt
+import matplotlib.ticker
 import numpy as np
 
-__all__ = ["bar_chart", "line_chart"]
+__all__ = ["bar_chart", "line_chart", "xy_chart"]
 
 
 def _save(fig: plt.Figure, path: str | Path) -> Path:
@@ -72,4 +73,32 @@ def line_chart(
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def xy_chart(
+    path: str | Path,
+    title: str,
+    series: dict[str, Sequence[Sequence[float]]],
+    xlabel: str,
+    ylabel: str = "ADD [mm]",
+    labels: dict[str, Sequence[str]] | None = None,
+) -> Path:
+    """One marked line per series through its (x, y) points, each point annotated with its label
+    (e.g. K); x on a log scale, as frame times and world counts span decades."""
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), layout="constrained")
+    for name, points in series.items():
+        xy = np.asarray(points, float).reshape(-1, 2)
+        ax.plot(xy[:, 0], xy[:, 1], marker="o", label=name, linewidth=1.2)
+        for (x, y), text in zip(xy, (labels or {}).get(name, ()), strict=False):
+            ax.annotate(text, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
+    ax.grid(alpha=0.3, which="both")
     return _save(fig, path)

@@ -2,7 +2,8 @@
 file-name order, with its device, command and date, and a chart where the file asks for one.
 
 A result file: {"title", "device", "date", "command", "about", "columns", "rows"[, "chart"]};
-"chart" is {"kind": "bar", "groups", "series", "mean", "err", "ylabel"}. Then one section per
+"chart" is {"kind": "bar", "groups", "series", "mean", "err", "ylabel"} or {"kind": "xy", "series":
+{name: [[x, y], ...]}, "labels": {name: [text, ...]}, "xlabel", "ylabel"}. Then one section per
 device from docs/results/speed/: the files `inhand-tracker bench speed --json` writes.
 """
 
@@ -11,7 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .plots import bar_chart
+from .plots import bar_chart, xy_chart
 
 __all__ = ["SPEED_COLUMNS", "render", "speed_rows"]
 
@@ -79,9 +80,13 @@ def render(results: Path, out: Path) -> Path:
         lines += [f"## {r['title']}", "", f"{r['device']}, {r['date']}: `{r['command']}`", "", r["about"], ""]
         lines += ["| " + " | ".join(r["columns"]) + " |", "|" + "---|" * len(r["columns"])]
         lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in r["rows"]]
-        if chart := r.get("chart"):
+        if (chart := r.get("chart")) and chart["kind"] == "xy":
+            png = xy_chart(results / f"{path.stem}.png", r["title"], chart["series"], chart["xlabel"],
+                           chart["ylabel"], chart.get("labels"))  # fmt: skip
+        elif chart:
             png = bar_chart(results / f"{path.stem}.png", r["title"], chart["groups"], chart["series"],
                             chart["mean"], chart.get("err"), ylabel=chart["ylabel"])  # fmt: skip
+        if chart:
             lines += ["", f"![{r['title']}]({png.relative_to(out.parent).as_posix()})"]
         lines.append("")
     for path in sorted((results / "speed").glob("*.json")):
