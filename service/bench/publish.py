@@ -72,6 +72,12 @@ def _cell(value) -> str:
     return "-" if value is None else str(value)
 
 
+def _chart(path: Path, title: str, chart: dict) -> Path:
+    if chart["kind"] == "xy":
+        return xy_chart(path, title, chart["series"], chart["xlabel"], chart["ylabel"], chart.get("labels"))
+    return bar_chart(path, title, chart["groups"], chart["series"], chart["mean"], chart.get("err"), chart["ylabel"])
+
+
 def render(results: Path, out: Path) -> Path:
     """Write ``out`` (the page) and its charts beside the results; returns the page's path."""
     lines = [_HEAD]
@@ -80,13 +86,8 @@ def render(results: Path, out: Path) -> Path:
         lines += [f"## {r['title']}", "", f"{r['device']}, {r['date']}: `{r['command']}`", "", r["about"], ""]
         lines += ["| " + " | ".join(r["columns"]) + " |", "|" + "---|" * len(r["columns"])]
         lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in r["rows"]]
-        if (chart := r.get("chart")) and chart["kind"] == "xy":
-            png = xy_chart(results / f"{path.stem}.png", r["title"], chart["series"], chart["xlabel"],
-                           chart["ylabel"], chart.get("labels"))  # fmt: skip
-        elif chart:
-            png = bar_chart(results / f"{path.stem}.png", r["title"], chart["groups"], chart["series"],
-                            chart["mean"], chart.get("err"), ylabel=chart["ylabel"])  # fmt: skip
-        if chart:
+        if chart := r.get("chart"):
+            png = _chart(results / f"{path.stem}.png", r["title"], chart)
             lines += ["", f"![{r['title']}]({png.relative_to(out.parent).as_posix()})"]
         lines.append("")
     for path in sorted((results / "speed").glob("*.json")):
