@@ -95,10 +95,10 @@ def pose_message(estimate: Estimate, frame_id: str):
 
 def tf_message(estimate: Estimate, frame_id: str, child_frame_id: str):
     """The estimate as one transform on ``/tf``: the object's frame under ``frame_id``."""
-    p = estimate.pose.astype(np.float64)
+    pose = _pose(estimate.pose)
+    at = pose.position
     transform = _M["geometry_msgs/msg/Transform"](
-        translation=_M["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2]),
-        rotation=_M["geometry_msgs/msg/Quaternion"](x=p[3], y=p[4], z=p[5], w=p[6]),
+        translation=_M["geometry_msgs/msg/Vector3"](x=at.x, y=at.y, z=at.z), rotation=pose.orientation
     )
     header = _M["std_msgs/msg/Header"](stamp=to_ros_time(estimate.stamp), frame_id=frame_id)
     stamped = _M["geometry_msgs/msg/TransformStamped"](
