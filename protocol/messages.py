@@ -317,7 +317,8 @@ class TrackState(IntEnum):
     TRACKING = 0
     """The worlds agree with the robot and with each other."""
     UNCERTAIN = 1
-    """The cost-weighted position spread of the worlds exceeds the tracker's ``uncertain_spread``."""
+    """The object's surface points spread across the cost-weighted worlds (position and rotation
+    together) more than the tracker's ``uncertain_spread``."""
     DIVERGED = 2
     """The worlds lost the object, or the best world and the real hand disagree about contact: the
     hypotheses were re-seeded this frame around the last trusted estimate."""

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 import pytest
 
+from protocol import TrackState
 from service.bench import SUITES, ground_truth, run_suite
 from service.bench.report import write_report
 from service.paths import DATA_DIR
@@ -39,7 +40,9 @@ def test_optimizers_beat_eye_and_eye_beats_olp(tmp_path):
         assert add[method] < add["EYE"], add
     assert add["EYE"] < add["OLP"], add
     results = json.loads((tmp_path / "results.json").read_text())
-    assert len(results["tracks"]) == 2 * 5 and all(len(t["add_mm"]) == 258 for t in results["tracks"])
+    tracks = results["tracks"]
+    assert len(tracks) == 2 * 5 and all(len(t["add_mm"]) == len(t["status"]) == 258 for t in tracks)
+    assert {s for t in tracks for s in t["status"]} <= {int(s) for s in TrackState}
     report = (tmp_path / "report.md").read_text()
     assert "| REPS |" in report and "![ADD per method and noise](fig2.png)" in report
     for png in ("fig2.png", "add_foam_brick_pick_place_0.png"):

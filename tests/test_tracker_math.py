@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -227,3 +228,43 @@ def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():
     weights = torch.tensor([[0.16] * 6 + [0.01] * 4])  # the turned worlds disagree with the robot
     _, shares = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
     assert shares[0, 1] == pytest.approx(0.04)
+
+
+def test_point_spread_matches_sampled_poses_and_counts_a_turn_by_how_far_it_moves_the_object():
+    from service.tracker.recovery import point_spread
+
+    gen = torch.Generator().manual_seed(0)
+    points = torch.randn(500, 3, generator=gen) * torch.tensor([0.05, 0.02, 0.01])  # a flat, long object
+    moment = (points.T @ points / len(points)).double().numpy()
+    sigma = torch.tensor([0.002, 0.001, 0.003, 0.2, 0.05, 0.1])
+    turns = torch.randn(20000, 6, generator=gen) * sigma
+    turned = torch.cross(turns[:, None, 3:].expand(-1, 500, -1), points[None].expand(20000, -1, -1), dim=-1)
+    moved = points[None] + turns[:, None, :3] + turned
+    sampled = (moved - points[None]).square().sum(-1).mean().sqrt()
+    covariance = torch.diag(sigma.double().square()).numpy()
+    assert point_spread(covariance, moment) == pytest.approx(float(sampled), rel=0.03)
+    # A turn about the long axis moves the points less than one across it.
+    about_long = np.diag([0.0] * 3 + [0.1, 0, 0])
+    across = np.diag([0.0] * 4 + [0.1, 0])
+    assert point_spread(about_long, moment) < point_spread(across, moment)
+
+
+def test_worlds_that_agree_on_the_position_but_not_on_the_turn_are_uncertain():
+    from protocol import TrackState
+    from service.tracker import TrackerConfig
+    from service.tracker.layout import GroupEstimates
+    from service.tracker.recovery import Recovery
+
+    pose = np.tile(np.array([0.1, 0.0, 0.05, 0, 0, 0, 1], np.float32), (3, 1))
+    covariance = np.zeros((3, 6, 6))
+    covariance[0, :3, :3] = np.eye(3) * 0.001**2  # a millimetre apart, turned alike: tracking
+    covariance[1, 3:, 3:] = np.eye(3) * 0.5**2  # the same place, half a radian apart in turn
+    covariance[2, :3, :3] = np.eye(3) * 0.012**2  # 12 mm apart per axis
+    est = GroupEstimates(frame=1, pose=pose, best_pose=pose, cost=np.zeros(3), mean_pose=pose, covariance=covariance,
+                         mass=np.ones(3), friction=np.ones(3), lost=np.zeros(3), contact_disagreement=np.zeros(3),
+                         status=np.zeros(3, np.int64), mode_weights=np.array([[1.0, 0.0]] * 3))  # fmt: skip
+    brick = np.diag([0.1, 0.05, 0.03]) ** 2 / 3  # second moment of a 20 x 10 x 6 cm brick's points
+    recovery = Recovery(TrackerConfig(), groups=3, sensors=4, moment=brick)
+    recovery.start(pose, np.ones(3, bool))
+    recovery.watch(est, None, np.zeros(3, bool), hand=np.zeros((3, 3), np.float32))
+    assert list(recovery.status) == [TrackState.TRACKING, TrackState.UNCERTAIN, TrackState.UNCERTAIN]

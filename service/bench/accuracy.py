@@ -276,6 +276,15 @@ def run_tracks(
     return results
 
 
+def _per_frame(r: TrackResult) -> dict:
+    """A track's per-frame series for results.json: ADD [mm] and, where kept, the track state
+    (:class:`protocol.TrackState` values), so that a miss can be found frame by frame."""
+    out = {"add_mm": np.round(r.add * 1e3, 3).tolist()}
+    if r.status is not None:
+        out["status"] = r.status.astype(int).tolist()
+    return out
+
+
 def _observed(rec: Recording, schedule: str, rate: int = 30) -> np.ndarray:
     """Which frames a camera's pose reaches the tracker on, per trajectory, (F, T) bool."""
     frames, tracks = rec.frames, len(rec.names)
@@ -481,7 +490,7 @@ def _collect(
         "summary": fig2,
         "summary_best_world": best_world,
         "ablations": ablation,
-        "tracks": [r.summary() | {"add_mm": np.round(r.add * 1e3, 3).tolist()} for r in results],
+        "tracks": [r.summary() | _per_frame(r) for r in results],
     }
 
 

@@ -20,7 +20,7 @@ from protocol import TrackState
 from .config import TrackerConfig
 from .layout import GroupEstimates
 
-__all__ = ["Recovery", "Reseed"]
+__all__ = ["Recovery", "Reseed", "point_spread"]
 
 
 @dataclass
@@ -38,11 +38,23 @@ class Reseed:
     on_table: bool = False
 
 
-class Recovery:
-    """Track state and the divergence rules of ``config`` for G groups of L sensors."""
+def point_spread(covariance: np.ndarray, moment: np.ndarray) -> np.ndarray:
+    """RMS displacement [m] of an object's surface points under a pose covariance (..., 6, 6)
+    (position [m^2], rotation vector [rad^2]), for points whose second moment about the object's
+    origin is ``moment`` (3, 3) [m^2]: E|dp + dr x x|^2 = tr(S_p) + tr(S_r) tr(M) - tr(S_r M) to
+    first order, (...,). The spread in ADD terms: a turn counts by how far it moves the object."""
+    rotation = covariance[..., 3:, 3:]
+    turned = np.trace(rotation, axis1=-2, axis2=-1) * np.trace(moment) - np.einsum("...ij,ji->...", rotation, moment)
+    return np.sqrt(np.maximum(np.trace(covariance[..., :3, :3], axis1=-2, axis2=-1) + turned, 0.0))
 
-    def __init__(self, config: TrackerConfig, groups: int, sensors: int):
+
+class Recovery:
+    """Track state and the divergence rules of ``config`` for G groups of L sensors, tracking an
+    object whose surface points have the second moment ``moment`` (3, 3) [m^2] about its origin."""
+
+    def __init__(self, config: TrackerConfig, groups: int, sensors: int, moment: np.ndarray):
         self.config, self.G, self.L = config, groups, sensors
+        self.moment = np.asarray(moment, np.float64)
         self.status = np.zeros(groups, dtype=np.int64)
         """Track state per group, (G,) (:class:`protocol.TrackState`)."""
         self._recovering = np.zeros(groups, dtype=np.int64)
@@ -83,7 +95,7 @@ class Recovery:
         lost_contact = ~recovering & (est.contact_disagreement >= 0.5 * self.L)
         self._contact_loss = np.where(lost_contact, self._contact_loss + 1, 0)
         diverged = (est.lost > cfg.lost_fraction) | (self._contact_loss >= cfg.contact_loss_frames)
-        spread = np.sqrt(np.trace(est.covariance[:, :3, :3], axis1=1, axis2=2))
+        spread = point_spread(est.covariance, self.moment)
         status = np.where(spread > cfg.uncertain_spread, TrackState.UNCERTAIN, TrackState.TRACKING)
         status = np.where(est.mode_weights[:, 1] >= cfg.ambiguous_weight, TrackState.AMBIGUOUS, status)
         status = np.where(recovering, TrackState.RECOVERING, status)
