@@ -71,7 +71,7 @@ class TrackerConfig:
     covariance_floor_t: float = 0.002
     """Standard deviation [m] added to the reported position covariance: what the physics cannot
     resolve (a model that is not the real robot). Where the model is right the worlds' own spread
-    covers the truth (the paper suite at K=1024 on 99.9 % of frames with any floor); where it is not,
+    covers the truth (the paper suite at K=1024 on 99.2-99.9 % of frames with any floor); where it is not,
     the floor decides (the reality-gap suite at K=1024: 86 % with this floor, 97 % with 3 mm; 85-99 %
     is honest). The estimate and the track state ignore it."""
     covariance_floor_r: float = 0.05
