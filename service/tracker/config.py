@@ -66,7 +66,7 @@ class TrackerConfig:
     """Uncertain when the object's surface points spread more than this [m] (RMS) across the
     weighted worlds: position and rotation together, the error in ADD that the worlds' spread
     allows. Position alone missed the turned objects: at high initial noise a brick or a can whose
-    worlds agree on where it is but not on how it is turned was reported tracking while 20 to 60 mm
+    worlds agree on where it is but not on how it is turned was reported tracking while 20 to 90 mm
     off."""
     covariance_floor_t: float = 0.002
     """Standard deviation [m] added to the reported position covariance: what the physics cannot
