@@ -1,5 +1,6 @@
-"""The object's physics parameters per world (mass, friction) as torch views of the model, and the
-solver's copies of the inertial constants that follow the mass."""
+"""The physics parameters each world explores (the object's mass and friction, its contacts'
+stiffness and friction impedance) as torch views of the model, and the solver's copies of the
+inertial constants that follow the mass."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ __all__ = ["ObjectParams"]
 
 
 class ObjectParams:
-    """Mass and friction of each world's object, shaped (G, K), written in place on the device.
+    """Mass, friction and contact parameters of each world's object, shaped (G, K), written in
+    place on the device.
 
     Public setters live on :class:`sim_backend.Population`, which checks the values; ``write`` is
     the unchecked writer the tracker's captured update uses.
@@ -49,6 +51,13 @@ class ObjectParams:
         self._shape_mu = torch.as_strided(mu, (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))
         self.friction = self._shape_mu[..., 0]
         """Object friction coefficient per world, (G, K); a view of the model."""
+        # Contact softness: MuJoCo's solref from Newton's stiffness and damping (the object's
+        # geoms take priority in its contacts with the hand, so its solref rules there).
+        strided = lambda a: torch.as_strided(t(a), (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))  # noqa: E731
+        self._shape_ke, self._shape_kd = strided(model.shape_material_ke), strided(model.shape_material_kd)
+        self._impratio_invsqrt = t(self._solver.mjw_model.opt.impratio_invsqrt).view(G, K)
+        self.nominal_timeconst = float(self.timeconst[0, 0])
+        self.nominal_impratio = float(self.impratio[0, 0])
         self.solver_constants = self._solver_views(built)
         """The solver's inertial constants of the object that its mass sets, by name, (G, K, ...)."""
         self._solver_nominal = {name: view.clone() for name, view in self.solver_constants.items()}
@@ -78,10 +87,34 @@ class ObjectParams:
         }
 
     @property
+    def timeconst(self) -> torch.Tensor:
+        """Time constant of the object's contacts per world, (G, K) [s] (MuJoCo's solref, damping
+        ratio 1): larger is softer."""
+        return 2.0 / self._shape_kd[..., 0]
+
+    @property
+    def impratio(self) -> torch.Tensor:
+        """Ratio of frictional to normal contact impedance per world, (G, K): how stiffly contacts
+        resist sliding (MuJoCo's impratio)."""
+        return self._impratio_invsqrt.pow(-2)
+
+    @property
     def tensors(self) -> list[torch.Tensor]:
         """Every parameter tensor a resample copies, each (G, K, n)."""
-        return [self.mass[..., None], self._inv_mass[..., None], self._shape_mu,
+        return [self.mass[..., None], self._inv_mass[..., None], self._shape_mu, self._shape_ke, self._shape_kd,
+                self._impratio_invsqrt[..., None],
                 self._inertia.view(self.G, self.K, 9), self._inv_inertia.view(self.G, self.K, 9)]  # fmt: skip
+
+    def write_contacts(self, timeconst: torch.Tensor | None, impratio: torch.Tensor | None) -> None:
+        """Set the contacts' time constant [s] and impratio, (G, K) on the device, unchecked and
+        capture-safe as :meth:`write`. Call :meth:`notify` after."""
+        if timeconst is not None:
+            # Newton's (ke, kd) for MuJoCo's solref (timeconst, damping ratio 1): kd = 2 / timeconst,
+            # ke = 1 / timeconst^2 (newton's convert_solref inverted).
+            self._shape_kd.copy_((2.0 / timeconst)[..., None].expand_as(self._shape_kd))
+            self._shape_ke.copy_(timeconst.pow(-2)[..., None].expand_as(self._shape_ke))
+        if impratio is not None:
+            self._impratio_invsqrt.copy_(impratio.rsqrt())
 
     def write(self, mass: torch.Tensor | None, friction: torch.Tensor | None) -> None:
         """Set mass [kg] (inertia scaled with it) and friction, (G, K) on the device, unchecked:
@@ -108,7 +141,7 @@ class ObjectParams:
         mj["dof_invweight"].copy_(mj0["dof_invweight"] / scale[..., None])
 
     def notify(self, device: wp.context.Device) -> None:
-        """Push friction to the solver. It also drops the solver's cached contact parameters, which
+        """Push friction and contact softness to the solver. It also drops the solver's cached contact parameters, which
         a new mass makes stale too; the inertial constants themselves are written directly."""
         with wp.ScopedDevice(device):
             self._solver.notify_model_changed(newton.ModelFlags.SHAPE_PROPERTIES)

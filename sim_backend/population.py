@@ -458,12 +458,20 @@ class Population:
             friction = self._check_param("friction", friction, self.object.friction_range)
         self._write_params(mass, friction)
 
-    def _write_params(self, mass: torch.Tensor | None, friction: torch.Tensor | None) -> None:
+    def _write_params(
+        self,
+        mass: torch.Tensor | None,
+        friction: torch.Tensor | None,
+        timeconst: torch.Tensor | None = None,
+        impratio: torch.Tensor | None = None,
+    ) -> None:
         """:meth:`set_params` for values already in range, (G, K) on the device: no host work, so
-        it can run inside a captured graph (the tracker's update)."""
+        it can run inside a captured graph (the tracker's update). ``timeconst`` [s] and
+        ``impratio``: the object's contacts (:class:`ObjectParams`)."""
         with self.on_stream():
             self.params.write(mass, friction)
-        if mass is not None or friction is not None:
+            self.params.write_contacts(timeconst, impratio)
+        if any(x is not None for x in (mass, friction, timeconst, impratio)):
             self.params.notify(self.device)
 
     def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:

@@ -233,3 +233,45 @@ def test_a_nan_world_never_becomes_the_estimate_when_every_world_lost_the_object
     assert (est.lost == 1.0).all() and torch.isnan(tr.pop.obs.object_pose[:, 0]).any(-1).all()
     assert np.isfinite(est.pose).all() and np.isfinite(est.mean_pose).all() and np.isfinite(est.covariance).all()
     assert (est.pose[:, 1] > recording.initial_pose[:, 1] + 0.4).all(), "a lost world's pose, not a stand-in"
+
+
+def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, recording):
+    """Contact softness and impratio drawn per world reach MuJoCo's own arrays, follow a resample,
+    move at updates, and stay the model's for OLP and when the settings are off."""
+    spec, _ = hand
+    pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
+    tr = Tracker(
+        pop,
+        TrackerConfig(softness_sigma0=0.5, impratio_sigma0=0.5, softness_sigma=0.1, impratio_sigma=0.1, update_every=3),
+        methods=["PBO", "OLP"],
+    )
+    tr.start(_noisy_start(recording), recording.initial_q)
+    params, mjm = pop.params, pop.solver.mjw_model
+    nominal = np.array([params.nominal_timeconst, params.nominal_impratio])
+    assert np.allclose(nominal, [0.02, 10.0], rtol=1e-5)
+
+    def contacts() -> np.ndarray:  # (G, K, 2)
+        return torch.stack([params.timeconst, params.impratio], -1).numpy().copy()
+
+    drawn = contacts()
+    assert drawn[0].std(0).min() > 0, "the PBO group's worlds differ"
+    assert np.allclose(drawn[1], nominal, rtol=1e-5), "OLP simulates the model"
+    assert (drawn / nominal >= 0.25 - 1e-6).all() and (drawn / nominal <= 4 + 1e-6).all()
+    # What MuJoCo steps with: the object's geoms' solref and each world's impratio.
+    solref = mjm.geom_solref.numpy()[:, -1, 0].reshape(2, 8)
+    assert np.allclose(solref, drawn[..., 0], rtol=1e-4)
+    assert np.allclose(mjm.opt.impratio_invsqrt.numpy().reshape(2, 8), drawn[..., 1] ** -0.5, rtol=1e-4)
+
+    for f in range(recording.frames):  # through the grasp, where updates resample and explore
+        tr.step(_frame(recording, f))
+    explored = contacts()
+    assert explored[0].std(0).min() > 0 and not np.allclose(explored[0], drawn[0]), "the updates explored"
+    assert np.allclose(explored[1], nominal, rtol=1e-5)
+
+    pop.resample(torch.tensor([[3] * 8, list(range(8))]))
+    assert np.allclose(contacts()[0], explored[0, 3], rtol=1e-6)
+    assert np.allclose(mjm.geom_solref.numpy()[:8, -1, 0], explored[0, 3, 0], rtol=1e-4)
+
+    off = _tracker(hand, worlds=8)
+    off.start(_noisy_start(recording), recording.initial_q)
+    assert np.allclose(torch.stack([off.pop.params.timeconst, off.pop.params.impratio], -1).numpy(), nominal, rtol=1e-5)

@@ -27,6 +27,17 @@ class TrackerConfig:
     """Exploration: mass noise per update, fraction of the range (Sigma_theta)."""
     friction_sigma: float = 0.05
     """Exploration: friction noise per update, fraction of the range (Sigma_theta)."""
+    softness_sigma0: float = 0.0
+    """Initial spread of the object's contact time constant (MuJoCo's solref: how soft its
+    contacts are), standard deviation of its logarithm, within a factor of 4 of the model's.
+    0: every world has the model's."""
+    impratio_sigma0: float = 0.0
+    """Initial spread of the contacts' impratio (how stiffly they resist sliding), standard
+    deviation of its logarithm, within a factor of 4 of the model's. 0: the model's."""
+    softness_sigma: float = 0.0
+    """Exploration: noise of the time constant's logarithm per update."""
+    impratio_sigma: float = 0.0
+    """Exploration: noise of the impratio's logarithm per update."""
     wrench_force: float = 0.05
     """Exploration: perturbation force standard deviation [N] (Sigma_v)."""
     wrench_torque: float = 0.001
@@ -112,7 +123,8 @@ class TrackerConfig:
         if self.update_every < 1:
             raise ValueError(f"tracker update_every: expected >= 1 frame, got {self.update_every}")
         noise = ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "jitter_t", "jitter_r", "jitter_bandwidth")
-        for name in (*noise, "mass_sigma", "friction_sigma"):
+        contacts = ("softness_sigma0", "impratio_sigma0", "softness_sigma", "impratio_sigma")
+        for name in (*noise, *contacts, "mass_sigma", "friction_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"tracker {name}: expected >= 0, got {getattr(self, name)}")
 

@@ -34,6 +34,11 @@ from .sampling import clipped_normal, roughening_sigma, sample_poses, sample_wre
 
 __all__ = ["Tracker", "pose_modes"]
 
+_CONTACT_SPAN = float(np.log(4.0))
+"""How far the worlds' contact parameters may stray from the model's, in their logarithm: a
+factor of 4 either way spans soft rubber pads to rigid fingertips and MuJoCo's impratio from 2.5
+to 40."""
+
 
 def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
@@ -89,6 +94,11 @@ class Tracker:
         if len(self.methods) != self.G or not set(self.methods) <= set(METHODS):
             raise ValueError(f"tracker methods: expected {self.G} of {METHODS}, got {self.methods}")
         self._olp = torch.tensor([m == "OLP" for m in self.methods], device=dev)
+        params = population.params
+        self._nominal_contacts = torch.tensor([params.nominal_timeconst, params.nominal_impratio], device=dev)
+        """The model's contact time constant [s] and impratio, (2,)."""
+        self._contact_sigma0 = torch.tensor([cfg.softness_sigma0, cfg.impratio_sigma0], device=dev)
+        self._contact_sigma = torch.tensor([cfg.softness_sigma, cfg.impratio_sigma], device=dev)
         scale = np.ones(self.G) if exploration is None else np.asarray(exploration, dtype=np.float64)
         if scale.shape != (self.G,) or (scale < 0).any():
             raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
@@ -197,8 +207,10 @@ class Tracker:
         sel = torch.as_tensor(groups, device=dev)[:, None]
         mass = torch.where(sel, mass, self.pop.mass)
         friction = torch.where(sel, friction, self.pop.friction)
+        drawn = self._contacts_around_model().masked_fill(open_loop[..., None], 0.0).exp()
+        timeconst, impratio = torch.where(sel[..., None], drawn * self._nominal_contacts, self._contacts()).unbind(-1)
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
-        self.pop._write_params(mass, friction)  # drawn inside the object's ranges
+        self.pop._write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
         self.window.masked_fill_(sel, 0.0)
         self._evidence.masked_fill_(sel, 0.0)
 
@@ -374,7 +386,13 @@ class Tracker:
             explore, scale = upd.explore, self._exploration[:, None]
             mass = self._explore(self.pop.mass, cfg.mass_sigma * scale, self._mass_range, explore)
             friction = self._explore(self.pop.friction, cfg.friction_sigma * scale, self._friction_range, explore)
-            self.pop._write_params(mass, friction)
+            contacts = None
+            if cfg.softness_sigma > 0 or cfg.impratio_sigma > 0:
+                model = (self._contacts() / self._nominal_contacts).log()
+                sigma = self._contact_sigma * scale[..., None]
+                step = clipped_normal(model, sigma, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
+                contacts = (torch.where(explore[..., None], step, model).exp() * self._nominal_contacts).unbind(-1)
+            self.pop._write_params(mass, friction, *(contacts or ()))
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
             if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
@@ -387,6 +405,18 @@ class Tracker:
         self.window.zero_()
         self._evidence.zero_()
         self._window_frames.zero_()
+
+    def _contacts(self) -> torch.Tensor:
+        """Each world's contact time constant [s] and impratio, (G, K, 2)."""
+        return torch.stack([self.pop.params.timeconst, self.pop.params.impratio], -1)
+
+    def _contacts_around_model(self) -> torch.Tensor:
+        """Logarithms of each world's contact time constant and impratio relative to the model's,
+        drawn with their initial spreads and clipped to a factor of 4, (G, K, 2)."""
+        zero = torch.zeros(self.G, self.K, 2, device=self.device)
+        if self.config.softness_sigma0 <= 0 and self.config.impratio_sigma0 <= 0:
+            return zero  # draws nothing: the generator's stream is what it was without them
+        return clipped_normal(zero, self._contact_sigma0, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
 
     def _jitter_sigma(self, index: torch.Tensor) -> torch.Tensor:
         """Standard deviations of the roughening after a resample ``index`` (G, K), (G, 1, 6)."""
