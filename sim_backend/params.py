@@ -46,15 +46,14 @@ class ObjectParams:
         expected = obj_shapes[0] + per_world * np.arange(W)[:, None]
         if not np.array_equal(obj_shapes, expected) or np.any(np.diff(obj_shapes[0]) != 1):
             raise ValueError("object shapes: expected the same contiguous shapes in every world")
-        mu = t(model.shape_material_mu)
         n = obj_shapes.shape[1]
-        self._shape_mu = torch.as_strided(mu, (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))
+        per_shape = lambda a: torch.as_strided(t(a), (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))  # noqa: E731
+        self._shape_mu = per_shape(model.shape_material_mu)
         self.friction = self._shape_mu[..., 0]
         """Object friction coefficient per world, (G, K); a view of the model."""
         # Contact softness: MuJoCo's solref from Newton's stiffness and damping (the object's
         # geoms take priority in its contacts with the hand, so its solref rules there).
-        strided = lambda a: torch.as_strided(t(a), (G, K, n), (K * per_world, per_world, 1), int(obj_shapes[0, 0]))  # noqa: E731
-        self._shape_ke, self._shape_kd = strided(model.shape_material_ke), strided(model.shape_material_kd)
+        self._shape_ke, self._shape_kd = per_shape(model.shape_material_ke), per_shape(model.shape_material_kd)
         self._impratio_invsqrt = t(self._solver.mjw_model.opt.impratio_invsqrt).view(G, K)
         self.nominal_timeconst = float(self.timeconst[0, 0])
         self.nominal_impratio = float(self.impratio[0, 0])
@@ -141,7 +140,8 @@ class ObjectParams:
         mj["dof_invweight"].copy_(mj0["dof_invweight"] / scale[..., None])
 
     def notify(self, device: wp.context.Device) -> None:
-        """Push friction and contact softness to the solver. It also drops the solver's cached contact parameters, which
-        a new mass makes stale too; the inertial constants themselves are written directly."""
+        """Push friction and contact softness to the solver. It also drops the solver's cached contact
+        parameters, which a new mass makes stale too; the inertial constants themselves are written
+        directly."""
         with wp.ScopedDevice(device):
             self._solver.notify_model_changed(newton.ModelFlags.SHAPE_PROPERTIES)

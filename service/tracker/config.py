@@ -31,9 +31,9 @@ class TrackerConfig:
     """Initial spread of the object's contact time constant (MuJoCo's solref: how soft its
     contacts are), standard deviation of its logarithm, within a factor of 4 of the model's.
     0: every world has the model's. Off by default because it pays only where the model's contacts
-    are wrong and the worlds are many: with impratio at 0.5 / 0.1 and 1024 worlds it cut the error
-    against MuJoCo C's truth from 8.7 to 5.9 mm but added 1.7 mm where the truth is the model
-    itself, and at K=40 it added 5 mm there (docs/benchmarks.md)."""
+    are wrong and the worlds are many: with impratio, both at 0.5 / 0.1, and 1024 worlds it cut
+    the error against MuJoCo C's truth from 8.7 to 5.9 mm but added 1.7 mm where the truth is the
+    model itself, and at K=40 it added 5 mm there (docs/benchmarks.md)."""
     impratio_sigma0: float = 0.0
     """Initial spread of the contacts' impratio (how stiffly they resist sliding), standard
     deviation of its logarithm, within a factor of 4 of the model's. 0: the model's."""
