@@ -5,13 +5,14 @@ from .config import PopulationConfig, SolverSettings, resolve_device
 from .grasp import Grasp, plan_pinch
 from .kinematics import Kinematics, SensorFK
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
-from .observe import HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise
+from .observe import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise
 from .params import ObjectParams
 from .population import Population, no_collection
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot
 
 __all__ = [
     "CATALOG",
+    "HEALTH_AWAY",
     "HEALTH_LOST",
     "HEALTH_NAN",
     "HEALTH_OK",

@@ -72,7 +72,8 @@ class PopulationConfig:
     spin_speed: float = 0.3
     """Spin of a pad against the object about the pad normal above which it slips [rad/s]."""
     lost_distance: float = 0.35
-    """An object farther than this from the centre of the sensors is lost [m]."""
+    """An object farther than this from the centre of the sensors is away from the hand [m]
+    (``HEALTH_AWAY``): lost while the real hand holds it."""
     lost_speed: float = 5.0
     """An object faster than this has exploded [m/s]."""
     floor_z: float = -0.05

@@ -18,6 +18,7 @@ import torch
 import warp as wp
 
 __all__ = [
+    "HEALTH_AWAY",
     "HEALTH_LOST",
     "HEALTH_NAN",
     "HEALTH_OK",
@@ -39,7 +40,11 @@ HEALTH_OK = 0
 HEALTH_NAN = 1
 """A world's state holds NaN or Inf."""
 HEALTH_LOST = 2
-"""A world's object left the workspace around the hand (dropped, flung, or exploded)."""
+"""A world's object fell through the table or flies off faster than anything held (it exploded)."""
+HEALTH_AWAY = 3
+"""A world's object lies far from the hand but is otherwise plausible: above the table and slower
+than an explosion. Lost while the real hand holds the object; a valid hypothesis when it does not
+(the object was put down, or dropped, and the hand moved on), which only the tracker knows."""
 
 
 @wp.kernel(enable_backward=False)
@@ -230,8 +235,10 @@ def object_health(
     health = HEALTH_OK
     if not finite:
         health = HEALTH_NAN
-    elif p[2] < floor_z or wp.length(p - centre) > lost_distance or wp.length(wp.spatial_top(qd)) > lost_speed:
+    elif p[2] < floor_z or wp.length(wp.spatial_top(qd)) > lost_speed:
         health = HEALTH_LOST
+    elif wp.length(p - centre) > lost_distance:
+        health = HEALTH_AWAY
     health_out[w] = health
 
 
@@ -264,7 +271,7 @@ class Observation:
     object_pose: torch.Tensor
     """Object pose in the world frame, shape (G, K, 7): position [m], quaternion (x, y, z, w)."""
     health: torch.Tensor
-    """Per-world health, shape (G, K), int32: observe.HEALTH_OK, HEALTH_NAN or HEALTH_LOST."""
+    """Per-world health, shape (G, K), int32: observe.HEALTH_OK, HEALTH_NAN, HEALTH_LOST or HEALTH_AWAY."""
 
 
 @dataclass

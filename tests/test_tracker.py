@@ -216,23 +216,47 @@ def test_restarting_one_group_resets_only_its_cost_normalisation(hand, recording
 
 
 def test_a_nan_world_never_becomes_the_estimate_when_every_world_lost_the_object(hand, recording):
-    """After the hand lets go and rises, every world counts as lost: the argmin over equal costs
-    picked world 0, and where world 0 had gone NaN the estimate was NaN (H100, EYE, 2 frames of
-    the paper suite)."""
+    """When every world counts as lost the argmin over equal costs picked world 0, and where world
+    0 had gone NaN the estimate was NaN (H100, EYE, 2 frames of the paper suite)."""
     tr = _tracker(hand, worlds=4, optimizer=OptimizerConfig(method="EYE"))
     tr.start(recording.initial_pose, recording.initial_q)
     for f in range(10):
         tr.step(_frame(recording, f))
     pose = np.tile(recording.initial_pose[:, None], (1, tr.K, 1))
-    pose[..., :3] += [0.0, 0.5, 0.0]  # every object half a metre from the hand: lost
+    pose[..., :3] += [0.0, 0.5, 0.0]  # every object half a metre from the hand,
     tr.pop.reset_state(pose, np.tile(recording.q[9][:, None], (1, tr.K, 1)))
     qd = tr.pop.joint_qd
     qd[:, 0, 3] = float("nan")  # and world 0 of every group blows up
-    est = tr.step(_frame(recording, 10))
+    felt = _frame(recording, 10)
+    felt.force = np.zeros_like(felt.force)
+    felt.force[:, 0, 2] = 1.0  # while the real hand feels the object: lost
+    est = tr.step(felt)
     # The estimate comes before the divergence's re-seed, which clears the worlds' health.
     assert (est.lost == 1.0).all() and torch.isnan(tr.pop.obs.object_pose[:, 0]).any(-1).all()
     assert np.isfinite(est.pose).all() and np.isfinite(est.mean_pose).all() and np.isfinite(est.covariance).all()
     assert (est.pose[:, 1] > recording.initial_pose[:, 1] + 0.4).all(), "a lost world's pose, not a stand-in"
+
+
+def test_an_object_left_away_from_the_open_hand_is_tracked_not_lost(hand, recording):
+    """Far from the hand, an object is lost only while the real hand feels it. Counted lost after
+    a drop, once the hand moved on, every world was, and the group re-seeded every frame."""
+    tr = _tracker(hand, worlds=4, optimizer=OptimizerConfig(method="PBO"), update_every=5)
+    tr.start(recording.initial_pose, recording.initial_q)
+    for f in range(10):
+        tr.step(_frame(recording, f))
+    pose = np.tile(recording.initial_pose[:, None], (1, tr.K, 1))
+    pose[..., 1] += 0.5  # on the table, half a metre from the hand
+    tr.pop.reset_state(pose, np.tile(recording.q[9][:, None], (1, tr.K, 1)))
+    numb = _frame(recording, 10)
+    numb.force = np.zeros_like(numb.force)  # the real fingers touch nothing
+    for _ in range(2 * tr.config.contact_loss_frames):
+        est = tr.step(numb)
+        assert (est.lost == 0).all() and (est.status != Status.DIVERGED).all()
+    kept = tr.pop.object_coords[..., 1].numpy()
+    assert (kept > recording.initial_pose[:, None, 1] + 0.45).all(), "the hypotheses were re-seeded"
+    numb.force[:, 0, 2] = 1.0  # the real hand feels an object its worlds left half a metre away
+    est = tr.step(numb)
+    assert (est.lost == 1).all() and (est.status == Status.DIVERGED).all()
 
 
 def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, recording):

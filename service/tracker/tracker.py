@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from sim_backend import HEALTH_NAN, HEALTH_OK, Population, SensorFK
+from sim_backend import HEALTH_AWAY, HEALTH_NAN, HEALTH_OK, Population, SensorFK
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
 from .capture import CapturedOps
@@ -230,29 +230,64 @@ class Tracker:
 
     def _observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
         cfg, dev = self.config, self.device
-        poses = self.pop.obs.object_pose[group]  # (K, 7)
         observed = torch.as_tensor(np.asarray(pose, np.float32), device=dev)
         cov = torch.as_tensor(np.asarray(covariance, np.float64), device=dev)
+        chol = torch.linalg.cholesky(cov)
+        d2 = self._observed_distance(group, observed, chol)  # (K,)
+        position_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[:3, :3]).max()))
+        rotation_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[3:, 3:]).max()))
+        confident = position_sigma < cfg.observation_confident
+        nearest = float(d2.min())
+        reseed = confident and nearest > cfg.observation_gate
+        if reseed:
+            anchor = np.tile(np.asarray(pose, np.float32), (self.G, 1))
+            mask = np.zeros(self.G, bool)
+            mask[group] = True
+            self._seed(mask, anchor, self.real.q.detach().cpu().numpy(), position_sigma, rotation_sigma)
+            self.recovery.reseeded(anchor, mask)
+            return True
+        if confident and cfg.inject_share > 0 and nearest > cfg.inject_gate and not bool(self._olp[group]):
+            self._inject(group, observed, position_sigma, rotation_sigma)
+            d2 = self._observed_distance(group, observed, chol)
+        chi2_95 = 12.59  # 6 dof
+        self._evidence[group] += (cfg.observation_weight / chi2_95) * d2.float()
+        return False
+
+    def _inject(self, group: int, observed: torch.Tensor, sigma_t: float, sigma_r: float) -> None:
+        """Draw the least likely ``inject_share`` of ``group``'s worlds around an observed pose
+        (7,): the worlds agree with it less than its noise allows, yet not so little that every
+        one of them is wrong (sensor resetting, as in mixture Monte Carlo localisation). Each new
+        world is a copy of the group's best, hand, velocities and physics, with its object moved:
+        reset to the real joints at rest instead, a new world's hand lagged the moving ones and
+        its cost lost to theirs. Without it nothing moves a group that sits a few noise widths off
+        an object at rest: every world stayed 15 mm off one lying on the table under a camera at
+        1 Hz."""
+        scored = self._scored()[group]
+        count = max(1, round(self.config.inject_share * self.K))
+        worst = scored.topk(count).indices
+        index = torch.arange(self.K, device=self.device).expand(self.G, self.K).clone()
+        index[group, worst] = scored.argmin()
+        held = self.window[group] < 1e8
+        typical = self.window[group][held].median() if bool(held.any()) else self.window.new_tensor(0.0)
+        self.pop.resample(index)
+        poses = sample_poses(observed[None], sigma_t, sigma_r, count, self.gen)[0]
+        coords = self.pop.object_coords
+        coords[group, worst] = poses
+        # The new worlds join the window at its typical cost: their source's would make them the
+        # best before they scored a frame.
+        self.window[group, worst] = typical
+        self._evidence[group, worst] = 0.0
+
+    def _observed_distance(self, group: int, observed: torch.Tensor, chol: torch.Tensor) -> torch.Tensor:
+        """Each of ``group``'s worlds' Mahalanobis distance squared from an observed pose (7,)
+        under its covariance's Cholesky factor (6, 6), (K,); large for a NaN world."""
+        poses = self.pop.object_coords[group]  # (K, 7), the state as it will step next
         q_obs = observed[3:].expand_as(poses[:, 3:])
         delta = torch.cat(
             [poses[:, :3] - observed[:3], quat_log(quat_multiply(quat_conjugate(q_obs), poses[:, 3:]))], -1
         )
         delta = torch.nan_to_num(delta.double(), nan=1e3)  # a NaN world agrees with nothing
-        chol = torch.linalg.cholesky(cov)
-        d2 = torch.cholesky_solve(delta.T, chol).T.mul(delta).sum(-1)  # (K,)
-        position_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[:3, :3]).max()))
-        if float(d2.min()) > cfg.observation_gate and position_sigma < cfg.observation_confident:
-            mask = np.zeros(self.G, bool)
-            mask[group] = True
-            anchor = np.tile(np.asarray(pose, np.float32), (self.G, 1))
-            rotation_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[3:, 3:]).max()))
-            q = self.real.q.detach().cpu().numpy()
-            self._seed(mask, anchor, q, position_sigma, rotation_sigma)
-            self.recovery.reseeded(anchor, mask)
-            return True
-        chi2_95 = 12.59  # 6 dof
-        self._evidence[group] += (cfg.observation_weight / chi2_95) * d2.float()
-        return False
+        return torch.cholesky_solve(delta.T, chol).T.mul(delta).sum(-1)
 
     # ------------------------------------------------------------------ frame
     def _allocate_io(self) -> None:
@@ -309,13 +344,24 @@ class Tracker:
         pop.step()
         self.fk.update(self.real.q)
         cost = self.cost(pop.obs, self.real)
+        lost = self._lost()
         # A world that lost its object is worst, and one that went NaN worse still: when every
-        # world has lost the object (the hand let go and rose), the argmin must not pick a NaN pose.
-        cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(pop.obs.health != HEALTH_OK, 1e9)
+        # world has lost the object, the argmin must not pick a NaN pose.
+        cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(lost, 1e9)
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
         self._window_frames += 1
-        self._packed.copy_(self._summary(self._scored()))
+        self._packed.copy_(self._summary(self._scored(), lost))
+
+    def _lost(self) -> torch.Tensor:
+        """Which worlds lost their object, (G, K) bool. An object far from the hand is lost only
+        while the real hand feels the object (or cannot say, without force sensing): once the
+        real fingers touch nothing it may lie anywhere on the table, put down or dropped, and
+        counting it lost there re-seeded every frame after a drop, as soon as the hand moved on."""
+        health = self.pop.obs.health
+        touch = torch.linalg.vector_norm(self.real.force, dim=-1) > self.config.cost.contact_threshold
+        holds = touch.any(-1) | (self.real.has_force < 0.5)  # (G,)
+        return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
 
     def weights(self) -> torch.Tensor:
         """Each world's share of the estimate now, (G, K): eq. 4's weights over the window's cost
@@ -327,16 +373,21 @@ class Tracker:
         The evidence is scaled by the spread of the contact costs of the worlds that still hold
         the object (a lost world's 1e9 would swamp it): the optimizers rank by cost relative to its
         spread, so an observation weighs the same whatever the cost's units; where the contact
-        costs do not separate the worlds at all (before the grasp), the observation decides."""
+        costs do not separate the worlds (before the grasp), it weighs as the optimizers' least
+        meaningful spread, and the observation decides."""
         window = self.window / self._window_frames
         held = window < 1e8
         top = torch.where(held, window, -torch.inf).amax(-1, keepdim=True)
         bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
-        spread = torch.nan_to_num(top - bottom, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(1e-12)
-        return window + self._evidence * spread
+        # At least the spread below which the optimizers see only noise and skip the update: where
+        # contact does not separate the worlds (before the grasp, or with the object left on the
+        # table) the observation alone must be able to move them.
+        spread = torch.nan_to_num(top - bottom, nan=0.0, posinf=0.0, neginf=0.0)
+        return window + self._evidence * spread.clamp_min(self.config.optimizer.min_spread)
 
-    def _summary(self, window: torch.Tensor) -> torch.Tensor:
-        """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host copy."""
+    def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
+        """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
+        copy; ``lost`` (G, K) says which worlds lost their object."""
         obs, pop = self.pop.obs, self.pop
         best = window.argmin(-1)
         take = lambda t: torch.gather(t, 1, best[:, None, None].expand(-1, 1, t.shape[-1]))[:, 0]  # noqa: E731
@@ -369,7 +420,7 @@ class Tracker:
                 "cost": at_best(window),
                 "mass": at_best(pop.mass),
                 "friction": at_best(pop.friction),
-                "lost": (obs.health != HEALTH_OK).float().mean(-1),
+                "lost": lost.float().mean(-1),
                 "contact_disagreement": at_best(self.cost.last_terms[..., 3]),  # sensors in disagreement
                 "hand": self.real.sensor_pos.mean(1),
                 "modes": modes,
