@@ -60,7 +60,8 @@ def test_a_third_party_rmw_zenoh_node_receives_the_pose_and_sees_the_topics(serv
             robot.send(traj.frame(i, info.session))
             estimates.append(robot.latest_pose(timeout=60, after_seq=i))
         deadline = time.monotonic() + 10
-        while len(received) < 5 and time.monotonic() < deadline:
+        # The raw subscriber sees the pose and /tf samples on its own schedule: wait for both.
+        while (len(received) < 5 or len(attachments) < 10) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert len(received) == 5, f"the rmw_zenoh subscriber got {len(received)} of 5 poses"
         for msg, est in zip(received, estimates, strict=True):

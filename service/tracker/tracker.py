@@ -220,7 +220,9 @@ class Tracker:
         (6, 6; position [m^2], rotation vector [rad^2]): each world's Mahalanobis distance joins
         the window's cost until the next update. When no world lies within ``observation_gate`` of
         a confident observation, the group is re-seeded around it instead (the worlds lost the
-        object; contact alone would not bring them back). Returns whether it re-seeded.
+        object; contact alone would not bring them back); when the nearest lies beyond
+        ``inject_gate``, a share of the worlds is drawn around it (:meth:`_inject`). Returns
+        whether it re-seeded.
 
         A few torch ops over the group's K worlds, outside the captured frame, on the population's
         stream (behind the update the last frame may have queued); the gate reads one number back,
