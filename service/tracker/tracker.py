@@ -248,7 +248,8 @@ class Tracker:
             self._seed(mask, anchor, self.real.q.detach().cpu().numpy(), position_sigma, rotation_sigma)
             self.recovery.reseeded(anchor, mask)
             return True
-        if confident and cfg.inject_share > 0 and nearest > cfg.inject_gate and not bool(self._olp[group]):
+        drawn = cfg.inject_share > 0 and self.K > 1 and not bool(self._olp[group])  # OLP simulates its start alone
+        if confident and drawn and nearest > cfg.inject_gate:
             self._inject(group, observed, position_sigma, rotation_sigma)
             d2 = self._observed_distance(group, observed, chol)
         chi2_95 = 12.59  # 6 dof
