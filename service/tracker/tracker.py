@@ -236,8 +236,9 @@ class Tracker:
         cov = torch.as_tensor(np.asarray(covariance, np.float64), device=dev)
         chol = torch.linalg.cholesky(cov)
         d2 = self._observed_distance(group, observed, chol)  # (K,)
-        position_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[:3, :3]).max()))
-        rotation_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(covariance, np.float64)[3:, 3:]).max()))
+        host = np.asarray(covariance, np.float64)
+        largest = lambda block: float(np.sqrt(np.linalg.eigvalsh(block).max()))  # noqa: E731
+        position_sigma, rotation_sigma = largest(host[:3, :3]), largest(host[3:, 3:])
         confident = position_sigma < cfg.observation_confident
         nearest = float(d2.min())
         reseed = confident and nearest > cfg.observation_gate
@@ -248,8 +249,8 @@ class Tracker:
             self._seed(mask, anchor, self.real.q.detach().cpu().numpy(), position_sigma, rotation_sigma)
             self.recovery.reseeded(anchor, mask)
             return True
-        drawn = cfg.inject_share > 0 and self.K > 1 and not bool(self._olp[group])  # OLP simulates its start alone
-        if confident and drawn and nearest > cfg.inject_gate:
+        may_draw = cfg.inject_share > 0 and self.K > 1 and not bool(self._olp[group])  # OLP simulates its start alone
+        if confident and may_draw and nearest > cfg.inject_gate:
             self._inject(group, observed, position_sigma, rotation_sigma)
             d2 = self._observed_distance(group, observed, chol)
         chi2_95 = 12.59  # 6 dof
