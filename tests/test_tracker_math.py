@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
-from service.tracker.optimizers import OptimizerConfig, reps_eta, reps_pmf, update, wrs_pmf
-from service.tracker.sampling import roughening_sigma, sample_poses, silverman_bandwidth
+from service.tracker.optimizers import OptimizerConfig, estimate_pmf, reps_eta, reps_pmf, update, wrs_pmf
+from service.tracker.sampling import roughening_sigma, sample_poses, shrink_toward_mean, silverman_bandwidth
 from sim_backend import Observation
-from sim_backend.rotations import quat_exp, quat_log, quat_multiply
+from sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
 
 
 def _sim_obs(g: int, k: int, d: int = 2, l: int = 2) -> Observation:
@@ -212,6 +212,44 @@ def test_roughening_follows_the_spread_between_its_floor_and_ceiling():
     assert sigma[1, 0, :3].tolist() == pytest.approx([0.5 * 0.002] * 3, rel=0.05)  # half the spread
     assert sigma[1, 0, 3:].tolist() == pytest.approx([0.5 * 0.04] * 3, rel=0.05)
     assert sigma[2, 0].tolist() == pytest.approx([0.005] * 3 + [0.1] * 3)  # wide: the ceiling
+
+
+def test_the_estimate_weights_follow_the_worlds_that_hold_the_object_not_the_worst_one():
+    cost = torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0]])
+    lost = torch.cat([cost, torch.tensor([[1e9]])], dim=-1)  # a sixth world dropped its object
+    w = estimate_pmf(lost, 2.0)
+    assert w[0, -1] == 0.0
+    assert w[0, :5].tolist() == pytest.approx(estimate_pmf(cost, 2.0)[0].tolist())
+    assert w[0, 0] / w[0, 4] == pytest.approx(math.exp(2.0 * 4.0 / cost.std(unbiased=False).item()))
+    flat = wrs_pmf(lost, 5.0)[0, :5]  # eq. 4's range: the five that hold it weigh all alike
+    assert (flat.max() / flat.min()).item() == pytest.approx(1.0, abs=1e-6)
+    assert estimate_pmf(torch.full((1, 4), 1e9), 2.0).tolist() == [[0.25] * 4]  # none holds it: all alike
+    assert estimate_pmf(torch.zeros(1, 3), 2.0)[0].tolist() == pytest.approx([1 / 3] * 3)  # before any frame
+
+
+def test_shrinking_toward_the_mean_before_roughening_keeps_the_spread():
+    gen = torch.Generator().manual_seed(6)
+    mean = torch.tensor([[0.1, 0.0, 0.05, 0.0, 0.0, math.sin(0.3), math.cos(0.3)]])
+    poses = sample_poses(mean, torch.tensor([0.004]), torch.tensor([0.1]), 20000, gen)  # (1, K, 7)
+    h = 0.5
+
+    def spread(p: torch.Tensor) -> torch.Tensor:  # RMS per axis: position [m], rotation vector [rad]
+        turn = quat_log(quat_multiply(quat_conjugate(mean[:, None, 3:]).expand_as(p[..., 3:]), p[..., 3:]))
+        return torch.stack([(x - x.mean(1, keepdim=True)).square().mean().sqrt() for x in (p[..., :3], turn)])
+
+    def displaced(p: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:  # as Population.displace_object
+        rot = quat_multiply(p[..., 3:], quat_exp(shift[..., 3:]))
+        return torch.cat([p[..., :3] + shift[..., :3], torch.nn.functional.normalize(rot, dim=-1)], -1)
+
+    toward = shrink_toward_mean(poses, 1.0)  # all the way: every pose onto the mean
+    assert spread(displaced(poses, toward)).tolist() == pytest.approx([0.0, 0.0], abs=1e-4)
+    noise = torch.randn((*poses.shape[:-1], 6), generator=gen) * h * spread(poses).repeat_interleave(3)
+    rough = displaced(poses, noise)
+    kept = displaced(poses, noise + shrink_toward_mean(poses, 1.0 - math.sqrt(1.0 - h * h)))
+    before = spread(poses)
+    assert spread(rough).tolist() == pytest.approx((before * math.sqrt(1.0 + h * h)).tolist(), rel=0.03)
+    assert spread(kept).tolist() == pytest.approx(before.tolist(), rel=0.03)
+    assert kept[0, :, :3].mean(0).tolist() == pytest.approx(poses[0, :, :3].mean(0).tolist(), abs=1e-4)
 
 
 def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():

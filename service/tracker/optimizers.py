@@ -13,10 +13,12 @@ from dataclasses import dataclass
 import torch
 
 __all__ = [
+    "HELD_COST",
     "METHODS",
     "OptimizerConfig",
     "Update",
     "duplicates",
+    "estimate_pmf",
     "method_rows",
     "reps_eta",
     "reps_pmf",
@@ -26,6 +28,9 @@ __all__ = [
 ]
 
 METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
+
+HELD_COST = 1e8
+"""Window costs below this are worlds that still hold their object: a lost one scores 1e9 a frame."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,19 @@ def wrs_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
     group so that lambda keeps its meaning whatever the cost's units."""
     spread = (cost.amax(-1, keepdim=True) - cost.amin(-1, keepdim=True)).clamp_min(1e-12)
     return torch.softmax(-lam * (cost - cost.amin(-1, keepdim=True)) / spread, dim=-1)
+
+
+def estimate_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
+    """The estimate's weights, (G, K): softmax of -lambda (C_i - min C) / std C over the worlds whose
+    cost is below :data:`HELD_COST`; the others weigh nothing (all alike if none is below it).
+    The standard deviation, not the range of eq. 4: the range follows the single worst world."""
+    held = cost < HELD_COST
+    held = held | ~held.any(-1, keepdim=True)
+    n = held.sum(-1, keepdim=True)
+    mean = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / n
+    std = (torch.where(held, cost - mean, 0.0).square().sum(-1, keepdim=True) / n).sqrt().clamp_min(1e-12)
+    low = torch.where(held, cost, torch.inf).amin(-1, keepdim=True)
+    return torch.softmax(torch.where(held, -lam * (cost - low) / std, -torch.inf), dim=-1)
 
 
 def reps_eta(cost: torch.Tensor, epsilon: float, iterations: int = 60) -> torch.Tensor:

@@ -10,7 +10,14 @@ import torch
 
 from sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
 
-__all__ = ["clipped_normal", "roughening_sigma", "sample_poses", "sample_wrenches", "silverman_bandwidth"]
+__all__ = [
+    "clipped_normal",
+    "roughening_sigma",
+    "sample_poses",
+    "sample_wrenches",
+    "shrink_toward_mean",
+    "silverman_bandwidth",
+]
 
 
 def sample_poses(
@@ -68,3 +75,16 @@ def roughening_sigma(pose: torch.Tensor, bandwidth: float, floor: torch.Tensor, 
     )  # (G, 2)
     wide = torch.minimum(bandwidth * spread, ceiling)[..., None].expand(g, 2, 3).reshape(g, 1, 6)
     return torch.maximum(floor, wide)
+
+
+def shrink_toward_mean(pose: torch.Tensor, factor: float) -> torch.Tensor:
+    """Displacements (G, K, 6) that move each pose of a group (G, K, 7) ``factor`` of the way to
+    the group's mean: translation [m] in the world frame, then rotation vector [rad] in the
+    object's frame (as :meth:`Population.displace_object` takes them). The mean rotation is taken
+    about the group's first pose, fine for spreads well under a radian. Torch ops only."""
+    quat = pose[..., 3:]
+    first = quat[:, :1].expand_as(quat)
+    turn = quat_log(quat_multiply(quat_conjugate(first), quat))
+    mean_q = quat_multiply(quat[:, :1], quat_exp(turn.mean(1, keepdim=True)))
+    towards = quat_log(quat_multiply(quat_conjugate(quat), mean_q.expand_as(quat)))
+    return factor * torch.cat([pose[..., :3].mean(1, keepdim=True) - pose[..., :3], towards], dim=-1)

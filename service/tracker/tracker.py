@@ -16,6 +16,7 @@ second graph, enqueued behind that copy: its indices never leave the device.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -28,9 +29,16 @@ from .capture import CapturedOps
 from .config import TrackerConfig
 from .cost import Cost, RealObservation
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
-from .optimizers import METHODS, duplicates, method_rows, update, wrs_pmf
+from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, update
 from .recovery import Recovery
-from .sampling import clipped_normal, roughening_sigma, sample_poses, sample_wrenches, silverman_bandwidth
+from .sampling import (
+    clipped_normal,
+    roughening_sigma,
+    sample_poses,
+    sample_wrenches,
+    shrink_toward_mean,
+    silverman_bandwidth,
+)
 
 __all__ = ["Tracker", "pose_modes"]
 
@@ -129,6 +137,8 @@ class Tracker:
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._bandwidth = cfg.jitter_bandwidth * silverman_bandwidth(self.K)
+        shrinks = 0 < cfg.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
+        self._shrink = 1.0 - math.sqrt(1.0 - self._bandwidth**2) if shrinks else 0.0
         self._frame_graph = CapturedOps(self._frame_ops, pop.device)
         self._update_graph = CapturedOps(self._update_ops, pop.device, generator=self.gen, pool=self._frame_graph)
         obj = pop.object
@@ -271,7 +281,7 @@ class Tracker:
         worst = scored.topk(count).indices
         index = torch.arange(self.K, device=self.device).expand(self.G, self.K).clone()
         index[group, worst] = scored.argmin()
-        held = self.window[group] < 1e8
+        held = self.window[group] < HELD_COST
         typical = self.window[group][held].median() if bool(held.any()) else self.window.new_tensor(0.0)
         self.pop.resample(index)
         poses = sample_poses(observed[None], sigma_t, sigma_r, count, self.gen)[0]
@@ -368,9 +378,9 @@ class Tracker:
         return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
 
     def weights(self) -> torch.Tensor:
-        """Each world's share of the estimate now, (G, K): eq. 4's weights over the window's cost
+        """Each world's share of the estimate now, (G, K), from the window's cost
         (uniform right after an update, before any frame was scored)."""
-        return wrs_pmf(torch.nan_to_num(self._scored(), nan=0.0), self.config.estimate_lambda)
+        return estimate_pmf(torch.nan_to_num(self._scored(), nan=0.0), self.config.estimate_lambda)
 
     def _scored(self) -> torch.Tensor:
         """The window's mean cost per world with the pose observations' evidence added, (G, K).
@@ -380,7 +390,7 @@ class Tracker:
         costs do not separate the worlds (before the grasp), it weighs as the optimizers' least
         meaningful spread, and the observation decides."""
         window = self.window / self._window_frames
-        held = window < 1e8
+        held = window < HELD_COST
         top = torch.where(held, window, -torch.inf).amax(-1, keepdim=True)
         bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
         # At least the spread below which the optimizers see only noise and skip the update: where
@@ -398,7 +408,7 @@ class Tracker:
         # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
         poses = torch.where(torch.isfinite(obs.object_pose).all(-1, keepdim=True), obs.object_pose, self._origin)
         pose = take(poses)
-        weights = wrs_pmf(window, self.config.estimate_lambda)  # (G, K)
+        weights = estimate_pmf(window, self.config.estimate_lambda)  # (G, K)
         position = poses[..., :3]
         quat = poses[..., 3:]
         # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
@@ -452,7 +462,10 @@ class Tracker:
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
             if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
                 unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
-                shift = unit * self._jitter_sigma(upd.index)
+                pose = self.pop.obs.object_pose.gather(1, upd.index[..., None].expand(-1, -1, 7))  # resampled
+                shift = unit * self._jitter_sigma(pose)
+                if self._shrink > 0:
+                    shift = shift + shrink_toward_mean(pose, self._shrink)
                 # Only extra copies move: each surviving world keeps one copy where it was, so the
                 # estimate does not jitter with the spread it buys.
                 moved = explore & duplicates(upd.index)
@@ -473,11 +486,10 @@ class Tracker:
             return zero  # draws nothing: the generator's stream is what it was without them
         return clipped_normal(zero, self._contact_sigma0, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
 
-    def _jitter_sigma(self, index: torch.Tensor) -> torch.Tensor:
-        """Standard deviations of the roughening after a resample ``index`` (G, K), (G, 1, 6)."""
+    def _jitter_sigma(self, pose: torch.Tensor) -> torch.Tensor:
+        """Standard deviations of the roughening of the resampled worlds' object poses (G, K, 7), (G, 1, 6)."""
         if self._bandwidth <= 0:
             return self._jitter_floor.expand(self.G, 1, 6)
-        pose = self.pop.obs.object_pose.gather(1, index[..., None].expand(-1, -1, 7))  # the resampled worlds
         return roughening_sigma(pose, self._bandwidth, self._jitter_floor, self._jitter_ceiling)
 
     def _explore(self, value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor):
