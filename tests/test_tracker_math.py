@@ -227,6 +227,15 @@ def test_the_estimate_weights_follow_the_worlds_that_hold_the_object_not_the_wor
     assert estimate_pmf(torch.zeros(1, 3), 2.0)[0].tolist() == pytest.approx([1 / 3] * 3)  # before any frame
 
 
+@pytest.mark.parametrize("method", ["WRS", "REPS"])
+def test_a_lost_world_does_not_flatten_the_optimizers_selection(method: str):
+    cost = torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0, 1e9]])  # the last world dropped its object
+    gen = torch.Generator().manual_seed(0)
+    index = update(cost, OptimizerConfig(method=method), gen).index[0]
+    assert (index == 5).sum() == 0  # the lost world is not copied
+    assert (index == 0).sum() >= 3, index.tolist()  # and the others are still told apart
+
+
 def test_shrinking_toward_the_mean_before_roughening_keeps_the_spread():
     gen = torch.Generator().manual_seed(6)
     mean = torch.tensor([[0.1, 0.0, 0.05, 0.0, 0.0, math.sin(0.3), math.cos(0.3)]])

@@ -193,8 +193,13 @@ def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch
         pick = torch.searchsorted(cdf, u).clamp_(max=keep - 1)
         index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
     else:
-        pmf = wrs_pmf(cost, config.wrs_lambda) if method == "WRS" else reps_pmf(cost, config.reps_epsilon)
-        index = systematic_resample(pmf, gen)
+        # Eq. 4 and 6 scale the costs by their spread: a lost world's 1e9 would make every world
+        # that still holds the object weigh alike. They are scored among themselves; the lost draw none.
+        held = cost < HELD_COST
+        held = held | ~held.any(-1, keepdim=True)
+        among = torch.where(held, cost, torch.where(held, cost, -torch.inf).amax(-1, keepdim=True))
+        pmf = wrs_pmf(among, config.wrs_lambda) if method == "WRS" else reps_pmf(among, config.reps_epsilon)
+        index = systematic_resample(torch.where(held, pmf, 0.0), gen)
         # Put the best world in slot 0 so that keep_best protects it.
         index[:, 0] = cost.argmin(-1)
     explore = torch.ones(g, k, dtype=torch.bool, device=dev)
