@@ -49,6 +49,9 @@ __all__ = ["TrackerNode"]
 log = logging.getLogger(__name__)
 
 _ESTIMATE = zenoh_encoding(Estimate)
+_STALL_S = 1.0
+"""A turn of the service's loop longer than this [s] was the service's own stall: the sessions'
+idle time counts again from its end."""
 
 
 def _guarded(handler):
@@ -342,7 +345,7 @@ class TrackerNode:
         self.ready = True
         self._token = self.session.liveliness().declare_token(self.keys.alive)  # only now do robots see us
         log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
-        refreshed = time.monotonic()
+        refreshed = resumed = time.monotonic()
         while not self._stop.is_set():
             self._beat = time.monotonic()
             idle = not any(s.pending for s in m.sessions.values())
@@ -380,11 +383,15 @@ class TrackerNode:
                     self._view.close()
                     self._view = None
             now = time.monotonic()
+            if now - self._beat > _STALL_S:
+                # The service itself was busy (a first step compiling kernels on a cold cache can
+                # take minutes on a CPU): its robots were waiting for an estimate, not silent.
+                resumed = now
             for session, since in list(self._robot_gone.items()):
                 if now - since > cfg.robot_timeout_s:
                     log.info("closing session %s: its robot's liveliness token is gone", session)
                     self._drop(session)
-            for session in [s.id for s in m.sessions.values() if now - s.heard > cfg.idle_timeout_s]:
+            for session in [s.id for s in m.sessions.values() if now - max(s.heard, resumed) > cfg.idle_timeout_s]:
                 log.info("closing session %s: no frame for %.0f s", session, cfg.idle_timeout_s)
                 self._drop(session)
             if now - refreshed > 0.2:  # what info answers: read here, where the populations change
