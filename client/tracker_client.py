@@ -309,8 +309,15 @@ class TrackerClient:
             covariance=covariance,
         )
         if self._observer is None:
+            # The frames' priority and congestion control: on one link Zenoh keeps the order within
+            # a priority, so an observation sent before a frame is used at that frame, and none is
+            # dropped when the link is busy.
             self._observer = self._zenoh.declare_publisher(
-                self.keys.observation(self.info.session), encoding=zenoh_encoding(PoseObservation), express=True
+                self.keys.observation(self.info.session),
+                encoding=zenoh_encoding(PoseObservation),
+                express=True,
+                priority=zenoh.Priority.REAL_TIME,
+                congestion_control=zenoh.CongestionControl.BLOCK,
             )
         self._observer.put(encode(observation))
 

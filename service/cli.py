@@ -103,7 +103,8 @@ def _command_line(ctx: typer.Context) -> str:
             if value != param.default:
                 words.append(param.opts[0] if value else param.secondary_opts[0])
             continue
-        for v in value if isinstance(value, tuple) else (value,):  # a repeated option, e.g. --set
+        repeated = isinstance(value, tuple) or getattr(param, "multiple", False)  # e.g. --set, once per value
+        for v in value if repeated else (value,):
             shown = ",".join(map(str, v)) if isinstance(v, list) else str(v)
             if shown != str(param.default):
                 words += [param.opts[0], shlex.quote(shown)]
@@ -410,6 +411,10 @@ def bench_speed(
         str, typer.Option(help="solver caps ITERATIONSxLINE_SEARCH, comma-separated; default: the solver's own")
     ] = "default",
     frames: Annotated[int, typer.Option(help="timed frames per size (after 30 warm-up frames)")] = 200,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", metavar="population.NAME=VALUE", help="a physics setting: population.tolerance=1e-4"),
+    ] = None,
     device: Device = "auto",
     json_: Annotated[bool, typer.Option("--json", help="print JSON (device, date, command, results)")] = False,
 ) -> None:
@@ -417,6 +422,7 @@ def bench_speed(
     _gpu_stack()
     from service.bench.speed import as_dicts, bench_speed, format_table
     from service.server.budget import device_name
+    from service.tracker import TrackerConfig
     from sim_backend import PopulationConfig, resolve_device
 
     try:
@@ -426,6 +432,12 @@ def bench_speed(
     except ValueError:
         text = f"bench speed: caps: expected ITERATIONSxLINE_SEARCH or default, comma-separated, got {caps!r}"
         raise _fail(text) from None
+    try:
+        config, physics = _settings(set_ or [])
+        if config != TrackerConfig():
+            raise ValueError(f"expected population.NAME=VALUE (the physics), got {set_}")
+    except ValueError as exc:
+        raise _fail(f"bench speed: --set: {exc}") from None
 
     def show(r) -> None:
         log.info(
@@ -443,6 +455,7 @@ def bench_speed(
                 frames=frames,
                 device=device,
                 caps=solver_caps,
+                physics=physics,
                 progress=show,
                 **({"jacobians": jacobian.split(",")} if jacobian else {}),
             )

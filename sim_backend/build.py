@@ -102,6 +102,7 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
             ls_iterations=settings.ls_iterations,
             jacobian=settings.jacobian,
             tolerance=cfg.tolerance,
+            ls_tolerance=cfg.ls_tolerance,
             nconmax=cfg.contacts_per_world,
             njmax=cfg.constraints_per_world,
         )

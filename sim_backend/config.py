@@ -58,6 +58,8 @@ class PopulationConfig:
     8 substeps, 49 against 85 (docs/benchmarks.md)."""
     tolerance: float = 1e-6
     """Solver convergence tolerance on the scaled cost improvement and gradient."""
+    ls_tolerance: float = 0.01
+    """Line-search tolerance: the search stops once the slope has fallen to this share of its start."""
     contacts_per_world: int = 32
     """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
     broad_phase: str = "explicit"
@@ -102,8 +104,9 @@ class PopulationConfig:
             raise ValueError(f"population solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
         if self.jacobian not in ("dense", "sparse"):
             raise ValueError(f"population jacobian: expected 'dense' or 'sparse', got {self.jacobian!r}")
-        if not (0.0 < self.tolerance < 1.0):
-            raise ValueError(f"population tolerance: expected 0 < tolerance < 1, got {self.tolerance}")
+        for name in ("tolerance", "ls_tolerance"):
+            if not (0.0 < getattr(self, name) < 1.0):
+                raise ValueError(f"population {name}: expected 0 < {name} < 1, got {getattr(self, name)}")
         if not (0.0 < self.frame_rate <= 1000.0):
             raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
         # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make

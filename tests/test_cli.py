@@ -74,11 +74,16 @@ def test_settings_split_into_the_tracker_and_its_physics():
 
 def test_bench_speed_times_the_tracker_against_the_physics():
     out = _run("bench", "speed", "--worlds", "4", "--groups", "1,2", "--caps", "default,4x3", "--frames", "5",
-               "--device", "cpu", "--json")  # fmt: skip
+               "--set", "population.tolerance=1e-5", "--set", "population.ls_tolerance=0.05", "--device", "cpu",
+               "--json")  # fmt: skip
     assert out.exit_code == 0, out.stderr[-2000:]
     result = json.loads(out.stdout)
-    command = "inhand-tracker bench speed --worlds 4 --groups 1,2 --caps default,4x3 --frames 5 --device cpu"
-    assert result["command"] == command
+    command = (
+        "inhand-tracker bench speed --worlds 4 --groups 1,2 --caps default,4x3 --frames 5"
+        " --set population.tolerance=1e-5 --set population.ls_tolerance=0.05 --device cpu"
+    )
+    assert result["command"] == command  # each --set as typed, so the file's command runs again
+    assert {(r["tolerance"], r["ls_tolerance"]) for r in result["results"]} == {(1e-5, 0.05)}
     assert re.search(r" x\d+$", result["device"])
     rows = result["results"]
     assert [(r["worlds"], r["groups"], r["iterations"], r["ls_iterations"]) for r in rows] == [
@@ -92,6 +97,8 @@ def test_bench_speed_times_the_tracker_against_the_physics():
         assert r["captured"] is False  # torch has no CPU graphs: plain calls around the physics graph
     bad = _run("bench", "speed", "--worlds", "5", "--groups", "2", "--device", "cpu")
     assert bad.exit_code == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr
+    bad = _run("bench", "speed", "--set", "jitter_bandwidth=0", "--device", "cpu")
+    assert bad.exit_code == 2 and "--set: expected population.NAME=VALUE (the physics)" in bad.stderr
     bad = _run("bench", "speed", "--caps", "4x", "--device", "cpu")
     assert bad.exit_code == 2 and "caps: expected ITERATIONSxLINE_SEARCH" in bad.stderr
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
@@ -146,7 +147,9 @@ def test_observations_over_zenoh_are_used_and_a_malformed_one_is_counted(traj):
             robot.observe_pose(traj.truth.initial_pose, SURE)
             raw = msgpack.unpackb(encode(_observation(traj.truth.initial_pose, session=info.session)), raw=False)
             raw["covariance"] = dict(raw["covariance"], data=np.diag([1e-4] * 5 + [-1.0]).astype(np.float32).tobytes())
-            robot._zenoh.put(Keys("default").observation(info.session), msgpack.packb(raw, use_bin_type=True))
+            # In order with the frames, as the client sends its observations.
+            key = Keys("default").observation(info.session)
+            robot._zenoh.put(key, msgpack.packb(raw, use_bin_type=True), priority=zenoh.Priority.REAL_TIME)
             robot.send(traj.frame(1, info.session))
             robot.latest_pose(timeout=60, after_seq=1)
             status = robot.status()

@@ -274,6 +274,8 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
         PopulationConfig(jacobian="diagonal")
     with pytest.raises(ValueError, match="tolerance: expected 0 < tolerance < 1, got 0"):
         PopulationConfig(tolerance=0)
+    with pytest.raises(ValueError, match=r"ls_tolerance: expected 0 < ls_tolerance < 1, got 1\.5"):
+        PopulationConfig(ls_tolerance=1.5)
     urdf = CONFIGS / "robots" / "example_gripper.urdf"
     assert load_robot(CONFIGS / "robots" / "allegro.toml").finger_ke == 3.0
     bad_cfg = tmp_path / "bad.toml"

@@ -17,7 +17,7 @@ from .plots import bar_chart, xy_chart
 __all__ = ["SPEED_COLUMNS", "render", "speed_rows"]
 
 SPEED_COLUMNS = [
-    "W", "G", "substeps", "solver (iterations / line search)", "tracker median ms", "tracker p99 ms",
+    "W", "G", "substeps", "solver (iterations / line search[, tolerances])", "tracker median ms", "tracker p99 ms",
     "physics median ms", "physics p99 ms", "M world-substeps/s", "30 Hz (p99)", "memory/world",
 ]  # fmt: skip
 _SPEED_ABOUT = (
@@ -27,11 +27,18 @@ _SPEED_ABOUT = (
 )
 
 
+def _solver(r: dict) -> str:
+    budget = f"{r['iterations']} / {r['ls_iterations']}"
+    if "tolerance" in r:  # files written before the tolerances were settings of `bench speed` lack them
+        budget += f", tolerances {r['tolerance']:g} / {r['ls_tolerance']:g}"
+    return f"{r['solver']} ({budget})"
+
+
 def speed_rows(results: list[dict]) -> list[list]:
     """One row per `bench speed` result under :data:`SPEED_COLUMNS`."""
     return [
         [
-            r["worlds"], r["groups"], r["substeps"], f"{r['solver']} ({r['iterations']} / {r['ls_iterations']})",
+            r["worlds"], r["groups"], r["substeps"], _solver(r),
             f"{r['tracker_median_ms']:.2f}", f"{r['tracker_p99_ms']:.2f}", f"{r['physics_median_ms']:.2f}",
             f"{r['physics_p99_ms']:.2f}", f"{r['world_substeps_per_s'] / 1e6:.2f}", "yes" if r["real_time"] else "no",
             f"{r['bytes_per_world'] / 1024:.0f} KiB",

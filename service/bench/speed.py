@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -40,6 +40,10 @@ class SpeedResult:
     """The solver's iteration cap per substep."""
     ls_iterations: int
     """Its line-search cap."""
+    tolerance: float
+    """The solver's convergence tolerance."""
+    ls_tolerance: float
+    """Its line search's."""
     frames: int
     """Timed frames (after the warm-up, which includes the graph captures)."""
     tracker_median_ms: float
@@ -92,11 +96,13 @@ def bench_speed(
     device: str = "auto",
     jacobians: Sequence[str] = (PopulationConfig.jacobian,),
     caps: Sequence[tuple[int | None, int | None]] = ((None, None),),
+    physics: Mapping[str, object] | None = None,
     progress=None,
 ) -> list[SpeedResult]:
     """Time ``frames`` tracker steps and as many bare physics frames for every (substeps,
     solver caps (iterations, line-search iterations; None: the solver's own), Jacobian layout,
-    G, W)."""
+    G, W). ``physics`` overrides further :class:`PopulationConfig` fields (tolerance, ...) in every row."""
+    overrides = dict(physics or {})
     dev = resolve_device(device)
     traj = Trajectory.load(DATA_DIR / TRAJECTORY)
     obj = catalog_object(traj.object)
@@ -107,7 +113,7 @@ def bench_speed(
             if w % g:
                 raise ValueError(f"worlds: {w} do not split into {g} groups")
     for jacobian in jacobians:
-        PopulationConfig(jacobian=jacobian)  # a bad name fails before anything is measured
+        PopulationConfig(jacobian=jacobian, **overrides)  # a bad value fails before anything is measured
     sync = (lambda: wp.synchronize_device(dev)) if dev.is_cuda else (lambda: None)
     results = []
     for n, (iterations, ls_iterations), jacobian, g in itertools.product(substeps, caps, jacobians, groups):
@@ -119,7 +125,7 @@ def bench_speed(
             before = used_bytes(dev)
             config = PopulationConfig(
                 groups=g, worlds=w // g, substeps=n, device=dev.alias, jacobian=jacobian,
-                iterations=iterations, ls_iterations=ls_iterations,
+                iterations=iterations, ls_iterations=ls_iterations, **overrides,
             )  # fmt: skip
             pop = Population(HandSpec(), obj, config)
             tracker = Tracker(pop, TrackerConfig())
@@ -152,6 +158,8 @@ def bench_speed(
                     solver=config.solver_settings.name,
                     iterations=config.solver_settings.iterations,
                     ls_iterations=config.solver_settings.ls_iterations,
+                    tolerance=config.tolerance,
+                    ls_tolerance=config.ls_tolerance,
                     frames=len(timed),
                     tracker_median_ms=float(np.median(track)),
                     tracker_p99_ms=float(np.percentile(track, 99)),

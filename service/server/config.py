@@ -89,6 +89,8 @@ class ServiceConfig(BaseSettings):
     """The solver's line-search iteration cap (None: the solver's own, 10 for Newton)."""
     tolerance: float = Field(PopulationConfig.tolerance, gt=0, lt=1)
     """The solver's convergence tolerance on the scaled cost improvement and gradient."""
+    ls_tolerance: float = Field(PopulationConfig.ls_tolerance, gt=0, lt=1)
+    """Its line search's tolerance: the search stops once the slope has fallen to this share of its start."""
     rate_hz: float = Field(30.0, ge=0)
     """The robots' frame rate the service keeps up with [Hz]: a new population is admitted only
     while the p99 steps of all populations together fit in ``budget_share`` of one frame period.

@@ -191,7 +191,8 @@ class SessionManager:
         """When sessions were opened in the last minute [s, monotonic]."""
         self._built = 0
         """Populations built so far: a new one's key never repeats a dropped one's."""
-        physics = {k: getattr(config, k) for k in ("substeps", "iterations", "ls_iterations", "tolerance")}
+        budget = ("substeps", "iterations", "ls_iterations", "tolerance", "ls_tolerance")
+        physics = {k: getattr(config, k) for k in budget}
         self.frame_times = FrameTimes.load(config.frame_time_cache, {"device": device_name(self.device), **physics})
         """p99 step time of a population by its worlds, on this device and physics setting."""
 
@@ -369,6 +370,7 @@ class SessionManager:
                 iterations=cfg.iterations,
                 ls_iterations=cfg.ls_iterations,
                 tolerance=cfg.tolerance,
+                ls_tolerance=cfg.ls_tolerance,
             ),
             turn=self.turn,
         )
