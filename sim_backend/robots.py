@@ -7,11 +7,13 @@ touch sensors and where the sensor frame sits on each) is returned as a :class:`
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
+import re
 import tomllib
 import warnings
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import newton
@@ -124,9 +126,12 @@ class FileRobotSpec:
     joints: tuple[str, ...]
     sensor_links: tuple[str, ...]
     sensor_offsets: tuple[tuple[float, ...], ...] = ()
-    ke: float = 3.0
-    kd: float = 0.1
-    effort: float = 1.0
+    ke: float | tuple[float, ...] = 3.0
+    """Position gain of each joint's controller [N m/rad or N/m]: one value, or one per joint."""
+    kd: float | tuple[float, ...] = 0.1
+    """Damping gain [N m s/rad or N s/m]: one value, or one per joint."""
+    effort: float | tuple[float, ...] = 1.0
+    """Torque or force limit [N m or N]: one value, or one per joint."""
     floating: bool = False
     base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     """Pose of the robot's root in the world: position [m], quaternion (x, y, z, w)."""
@@ -318,7 +323,40 @@ def _joint_coord_dof(builder: newton.ModelBuilder, joints: list[int]) -> tuple[n
     return coord, dof
 
 
+_PYTHON_URI = re.compile(r"python://([A-Za-z_][\w.]*)/")
+
+
+def python_package_path(uri: str) -> str:
+    """``python://PACKAGE/rel/path`` as a path inside the installed Python package (found without
+    importing it); any other path unchanged. This is how robot models shipped in a package from
+    PyPI are named, the way ``package://`` names a ROS package."""
+    if not uri.startswith("python://"):
+        return uri
+    return _PYTHON_URI.sub(lambda m: _package_folder(m.group(1), uri), uri, count=1)
+
+
+def _package_folder(package: str, uri: str) -> str:
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        raise ValueError(f"'{uri}' names the Python package '{package}', which is not installed")
+    return spec.submodule_search_locations[0] + os.sep
+
+
+def _mjcf_source(spec: FileRobotSpec) -> str:
+    """The MJCF to parse: its path, or, where it names files as ``python://PACKAGE/...`` (an
+    include or a ``meshdir``), its text with those made absolute. Newton's importer resolves only
+    plain paths, and its custom resolvers drop the including file's ``meshdir``."""
+    text = Path(spec.path).read_text()
+    if "python://" not in text:
+        return spec.path
+    try:
+        return _PYTHON_URI.sub(lambda m: _package_folder(m.group(1), m.group(0)), text)
+    except ValueError as exc:
+        raise ValueError(f"robot '{spec.name}' path: '{spec.path}' {exc}") from None
+
+
 def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLayout:
+    spec = replace(spec, path=python_package_path(spec.path))
     if not os.path.isfile(spec.path):
         raise ValueError(f"robot '{spec.name}' path: no such file '{spec.path}'")
     body_start, joint_start = builder.body_count, builder.joint_count
@@ -335,7 +373,7 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
             if ext == ".urdf":
                 builder.add_urdf(spec.path, xform=base, floating=spec.floating, **packages)
             elif ext in (".xml", ".mjcf"):
-                builder.add_mjcf(spec.path, xform=base, floating=spec.floating)
+                builder.add_mjcf(_mjcf_source(spec), xform=base, floating=spec.floating)
             else:
                 raise ValueError(f"robot '{spec.name}' path: expected .urdf, .xml or .mjcf, got '{ext}'")
     except ValueError:
@@ -362,10 +400,11 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
                 f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a revolute or prismatic joint"
             )
     coord, dof = _joint_coord_dof(builder, joints)
-    for d in dof:
-        builder.joint_target_ke[d] = spec.ke
-        builder.joint_target_kd[d] = spec.kd
-        builder.joint_effort_limit[d] = spec.effort
+    gains = {name: _per_joint(spec, name) for name in ("ke", "kd", "effort")}
+    for i, d in enumerate(dof):
+        builder.joint_target_ke[d] = gains["ke"][i]
+        builder.joint_target_kd[d] = gains["kd"][i]
+        builder.joint_effort_limit[d] = gains["effort"][i]
         builder.joint_target_mode[d] = int(newton.JointTargetMode.POSITION)
     lower = np.asarray([builder.joint_limit_lower[d] for d in dof])
     upper = np.asarray([builder.joint_limit_upper[d] for d in dof])
@@ -404,6 +443,18 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
     )
 
 
+def _per_joint(spec: FileRobotSpec, name: str) -> np.ndarray:
+    """A controller setting of ``spec`` as one value per joint, (D,)."""
+    value = np.atleast_1d(np.asarray(getattr(spec, name), dtype=np.float64))
+    if value.shape not in ((1,), (len(spec.joints),)):
+        raise ValueError(
+            f"robot '{spec.name}' {name}: expected one value or {len(spec.joints)} (one per joint), got {value.size}"
+        )
+    if not (np.isfinite(value).all() and (value >= 0).all()):
+        raise ValueError(f"robot '{spec.name}' {name}: expected finite values >= 0, got {value.tolist()}")
+    return np.broadcast_to(value, (len(spec.joints),))
+
+
 def _short(label: str) -> str:
     """Last path element of a Newton label (importers prefix labels with their parents)."""
     return label.rsplit("/", 1)[-1]
@@ -426,7 +477,8 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
     if unknown:
         raise ValueError(f"robot config '{path}': unknown keys {unknown} for kind '{kind}' (known: {sorted(known)})")
     if kind == "file":
-        table["path"] = str(path.parent / table["path"])
+        if not str(table.get("path", "")).startswith("python://"):
+            table["path"] = str(path.parent / table["path"])
         table["package_dirs"] = tuple(str(path.parent / d) for d in table.get("package_dirs", ()))
         table["sensor_offsets"] = tuple(tuple(o) for o in table.get("sensor_offsets", ()))
     table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}

@@ -6,11 +6,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from protocol import SENSING
 from service.bench.motions import MOTION_KINDS, make_motion
 from service.bench.mujoco_truth import export_scene, record_mujoco
+from service.bench.palm_motions import DISTAL_COUPLING, PALM_MOTION_KINDS, make_palm_motion
+from service.bench.suites import robot_spec
 from service.cli import app
 from sim_backend import HandSpec, Kinematics, catalog_object
 
@@ -54,6 +57,43 @@ def test_cross_engine_suite_in_short_form_tracks_better_than_open_loop(tmp_path)
     assert "MuJoCo C" in report and "| trajectory | open loop |" in report
     assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
         f"cross-engine-short-spam_can_{k}_0.traj" for k in sorted(MOTION_KINDS[:2])
+    ]
+
+
+def test_mujoco_truth_on_the_shadow_hand_keeps_the_object_on_its_palm_and_feels_it(tmp_path):
+    """The second hand, from its package's MJCF with its tendons: each palm motion keeps the can on
+    the hand, the fingertips touch it, and the distal joints follow their middle ones."""
+    spec, obj = robot_spec("shadow_hand"), catalog_object("spam_can")
+    scene = export_scene(spec, obj, tmp_path / "shadow.xml")
+    kin = Kinematics(spec)
+    names = [n.rsplit(":", 1)[-1] for n in kin.layout.joint_names]
+    middle, distal = names.index("MFJ1"), names.index("MFJ0")
+    for kind in PALM_MOTION_KINDS:
+        demo = make_palm_motion(kin, obj, kind, seconds=8.0)
+        rec = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
+        assert rec.held([demo], margin=-0.03)[0], kind
+        first = dict(reversed(demo.phases))
+        carry = slice(first["carry"], first["place"])
+        touching = (np.linalg.norm(rec.force[carry, 0], axis=-1) > 0.05).any(axis=-1)
+        assert touching.mean() > 0.3, (kind, touching.mean())
+        coupled = rec.q[carry, 0, distal] - DISTAL_COUPLING * rec.q[carry, 0, middle]
+        assert np.abs(coupled).max() < 0.2, kind  # the tendon's slack: +-1 mm, 0.14 rad of the distal joint
+
+
+@pytest.mark.slow
+def test_cross_engine_suite_on_the_shadow_hand_in_short_form(tmp_path):
+    out = tmp_path / "out"
+    args = ["bench", "accuracy", "--suite", "cross-engine-shadow", "--short", "--methods", "OLP,PBO"]
+    args += ["--noise", "med", "--device", "cpu", "--out", str(out), "--cache", str(tmp_path / "cache")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    results = json.loads((out / "results.json").read_text())
+    assert results["suite"]["name"] == "cross-engine-shadow-short"
+    summary = {m: results["summary"][m]["med"]["mean_mm"] for m in ("OLP", "PBO")}
+    assert summary["PBO"] < summary["OLP"], summary
+    assert all(np.isfinite(t["open_loop_mean_mm"]) for t in results["tracks"])
+    assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
+        f"cross-engine-shadow-short-spam_can_{k}_0.traj" for k in sorted(PALM_MOTION_KINDS[:2])
     ]
 
 

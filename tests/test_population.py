@@ -4,6 +4,7 @@ parameters, observations and errors."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -324,6 +325,51 @@ def test_users_robot_from_urdf_named_in_a_config():
     assert tuple(pop.obs.q.shape) == (1, 2, 2) and tuple(pop.obs.force.shape) == (1, 2, 2, 3)
     # The slides move towards their targets.
     assert pop.obs.q[0, 0, 0] < -0.002 and pop.obs.q[0, 0, 1] > 0.002
+
+
+def test_shadow_hand_from_its_pypi_package_loads_every_shape_and_feels_what_lies_on_its_palm():
+    """A second real hand by files alone: the MJCF that gymnasium-robotics installs, named by
+    python:// paths, with its tendons; the object lies on the upturned palm and the curled fingers
+    touch it."""
+    import newton
+
+    from sim_backend import add_robot
+
+    spec = load_robot(CONFIGS / "robots" / "shadow_hand.toml")
+    builder = newton.ModelBuilder()
+    newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
+    layout = add_robot(builder, spec)
+    colliders = [s for s in range(builder.shape_count) if builder.shape_flags[s] & newton.ShapeFlags.COLLIDE_SHAPES]
+    assert len(colliders) == 22 and layout.dof_count == 24 and layout.sensor_count == 5
+    assert all(builder.body_shapes[b] for b in layout.sensor_bodies)
+
+    obj = catalog_object("foam_brick")
+    pop = Population(spec, obj, PopulationConfig(worlds=2, device="cpu"))
+    pop.reset_state(np.array([0.0, -0.13, 0.18, 0, 0, 0, 1.0]))  # 7 mm above the palm: it falls into place
+    fence = layout.default_q.copy()
+    for i, name in enumerate(layout.joint_names):  # curl the fingers (the distal joints as their tendon couples them)
+        if name[-4:-2] in ("FF", "MF", "RF", "LF") and name[-1] in "012":
+            fence[i] = 1.25 if name[-1] == "0" else 1.1
+    for _ in range(40):
+        pop.set_targets(fence[None])
+        pop.step()
+    pad = torch.linalg.vector_norm(pop.obs.force[0, 0], dim=-1)  # (L,) [N]
+    assert bool((pad[1:3] > 0.05).all()), pad  # the middle and ring fingertips press on the brick
+    assert float(pop.object_coords[0, 0, 2]) > 0.15  # still on the palm, not on the table
+
+
+def test_python_package_paths_and_per_joint_gains_are_checked(tmp_path):
+    import newton
+
+    from sim_backend import add_robot
+
+    spec = load_robot(CONFIGS / "robots" / "shadow_hand.toml")
+    xml = tmp_path / "hand.xml"
+    xml.write_text((CONFIGS / "robots" / "shadow_hand.xml").read_text().replace("gymnasium_robotics", "no_such_pkg"))
+    with pytest.raises(ValueError, match=r"names the Python package 'no_such_pkg', which is not installed"):
+        add_robot(newton.ModelBuilder(), replace(spec, path=str(xml)))
+    with pytest.raises(ValueError, match=r"robot 'shadow_hand' ke: expected one value or 24 \(one per joint\), got 3"):
+        add_robot(newton.ModelBuilder(), replace(spec, ke=(1.0, 2.0, 3.0)))
 
 
 def _gripper_with_meshes(root: Path, folder: str, pad_collides: bool = True) -> Path:

@@ -24,11 +24,11 @@ from service.evaluation import add_error, adds_error, covered
 from service.paths import CACHE_DIR
 from service.tracker import METHODS, Frame, Tracker, TrackerConfig
 from service.tracker.sampling import sample_poses
-from sim_backend import HandSpec, Population, PopulationConfig, catalog_object
+from sim_backend import Population, PopulationConfig, catalog_object
 
 from .demos import Recording
 from .progress import progress_bar
-from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, Suite
+from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, Suite, robot_spec
 from .truth import ground_truth, open_loop_disagreement
 
 __all__ = ["OBSERVATIONS", "TrackResult", "TrackSetting", "run_suite", "run_tracks", "settings"]
@@ -208,7 +208,7 @@ def run_tracks(
     if observations not in OBSERVATIONS:
         raise ValueError(f"observations: expected one of {OBSERVATIONS}, got {observations!r}")
     obj = catalog_object(trajectories[0].object)
-    spec = HandSpec()
+    spec = robot_spec(trajectories[0].robot)
     rec = Recording.stack(trajectories)
     gen = torch.Generator().manual_seed(seed)
     start = torch.tensor(rec.initial_pose, dtype=torch.float32)

@@ -304,7 +304,8 @@ class Recording(SensingAttributes):
 
     def held(self, demos: Sequence[Demo], margin: float = 0.02) -> np.ndarray:
         """Whether each track kept its object in the hand from the lift to the set-down, (G,): the
-        object's centre stays ``margin`` [m] above where it started (the lift raises it 6 cm)."""
+        object's centre stays ``margin`` [m] above where it started (a lift raises it 6 cm; an
+        object carried on the palm is held while it lies there, a negative margin)."""
         out = np.empty(len(demos), bool)
         for g, d in enumerate(demos):
             first = {name: i for name, i in reversed(d.phases)}

@@ -6,12 +6,23 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from client.replay import NOISE_LEVELS
-from sim_backend import PopulationConfig
+from service.paths import CONFIG_DIR
+from sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
 
 from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS
+from .palm_motions import PALM_MOTION_KINDS
 
-__all__ = ["EXPLORATION", "K_ABLATION", "NOISE_LEVELS", "SUITES", "PhysicsGap", "SensorNoise", "Suite"]
+__all__ = [
+    "EXPLORATION",
+    "K_ABLATION",
+    "NOISE_LEVELS",
+    "SUITES",
+    "PhysicsGap",
+    "SensorNoise",
+    "Suite",
+    "robot_spec",
+]
 
 EXPLORATION: dict[str, float] = {"low": 0.25, "med": 1.0, "high": 4.0}
 """Exploration levels of the ablation: multipliers on the parameter and wrench noise."""
@@ -68,6 +79,9 @@ class Suite:
     """The object slips out of the hand in the middle of the first carry, a drop that the robot
     did not command and the tracker is not told of (its friction falls to 0.02 in the truth). Its
     frame is in each trajectory's ``meta["drop_frame"]``."""
+    robot: str = HandSpec().name
+    """The robot config (``configs/robots/NAME.toml``) the truth is recorded with and the tracker
+    runs: the procedural hand's suites pick up and carry, the Shadow Hand's carry on the palm."""
 
     def short(self) -> Suite:
         """The suite in short form (one object, two kinds, 10 s tracks): a check that runs on a CPU."""
@@ -102,4 +116,25 @@ SUITES: dict[str, Suite] = {
         sensors=_REAL_SENSORS,
         engine="mujoco",
     ),
+    "cross-engine-shadow": Suite(
+        "cross-engine-shadow",
+        ("spam_can", "foam_brick"),
+        PALM_MOTION_KINDS,
+        1,
+        seconds=20.0,
+        sensors=_REAL_SENSORS,
+        engine="mujoco",
+        robot="shadow_hand",
+    ),
 }
+
+
+def robot_spec(name: str, finger_damping: float = 1.0) -> RobotSpec:
+    """The robot called ``name``: the procedural hand, or a robot config of ``configs/robots``;
+    ``finger_damping`` scales its fingers' damping (a truth's physics gap)."""
+    if name == HandSpec().name:
+        return HandSpec(finger_kd=HandSpec().finger_kd * finger_damping)
+    spec = load_robot(CONFIG_DIR / "robots" / f"{name}.toml")
+    if finger_damping != 1.0:
+        raise ValueError(f"robot '{name}': a finger damping gap is defined for the procedural hand only")
+    return spec

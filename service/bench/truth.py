@@ -26,11 +26,13 @@ from sim_backend import (
     resolve_device,
 )
 from sim_backend.objects import ObjectSpec
+from sim_backend.robots import RobotSpec
 
 from .demos import Demo, Recording, make_demo, record
 from .motions import make_motion
 from .mujoco_truth import MujocoScene, export_scene, record_mujoco
-from .suites import SensorNoise, Suite
+from .palm_motions import make_palm_motion
+from .suites import SensorNoise, Suite, robot_spec
 
 __all__ = ["ground_truth", "open_loop_disagreement"]
 
@@ -43,12 +45,21 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
     with which the hand keeps hold of the object): the demos in the tracker's own simulator (one
     population per object, one group per physics draw of a demo), or the motions in MuJoCo C
     (``suite.engine``)."""
-    spec = HandSpec(finger_kd=HandSpec().finger_kd * suite.gap.finger_damping)
-    kin = Kinematics(HandSpec())  # the robot's own model plans the demos
+    spec = robot_spec(suite.robot, suite.gap.finger_damping)
+    kin = Kinematics(robot_spec(suite.robot))  # the robot's own model plans the demos
+    on_palm = suite.robot != HandSpec().name
+    if on_palm and suite.engine != "mujoco":
+        raise ValueError(f"suite '{suite.name}': robot '{suite.robot}' has palm motions, recorded in MuJoCo C only")
     out: list[Trajectory] = []
     for o, name in enumerate(suite.objects):
         obj = catalog_object(name)
-        if suite.engine == "mujoco":
+        if on_palm:
+            demos = [
+                make_palm_motion(kin, obj, kind, v, suite.seconds)
+                for kind in suite.kinds
+                for v in range(suite.variants)
+            ]
+        elif suite.engine == "mujoco":
             demos = [
                 make_motion(kin, obj, kind, v, suite.seconds) for kind in suite.kinds for v in range(suite.variants)
             ]
@@ -74,7 +85,8 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             with tempfile.TemporaryDirectory() as tmp:
                 xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
                 scene = export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
-                recordings, rounds = _held_mujoco(scene, obj, demos, rng)
+                # On the palm "held" is the object still lying there; a pinch must lift it 2 cm.
+                recordings, rounds = _held_mujoco(scene, obj, demos, rng, margin=-0.03 if on_palm else 0.02)
             tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
         else:
             held, rounds = _held_newton(suite, spec, obj, demos, rng, device)
@@ -92,7 +104,7 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
         }
         for i, ((rec, g), d, file) in enumerate(zip(tracks, demos, names, strict=True)):
             event = {"drop_frame": int(drops[i])} if suite.drop and suite.engine == "newton" else {}
-            traj = rec.trajectory(g, HandSpec().name, name, meta | {"demo": d.name} | event)
+            traj = rec.trajectory(g, suite.robot, name, meta | {"demo": d.name} | event)
             if cache is not None:
                 traj.save(cache / file)
             out.append(traj)
@@ -100,7 +112,7 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
 
 
 def _held_newton(
-    suite: Suite, spec: HandSpec, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator, device: str
+    suite: Suite, spec: RobotSpec, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator, device: str
 ) -> tuple[Recording, int]:
     """The demos recorded in the tracker's own simulator, with the suite's physics gap."""
     # A GPU's frame costs little more for more worlds (a held pinch: 4.9 ms at 40, 7.1 ms at
@@ -121,7 +133,7 @@ def _held_newton(
 
 
 def _dropped(
-    suite: Suite, spec: HandSpec, obj: ObjectSpec, demos: list[Demo], held: Recording, device: str
+    suite: Suite, spec: RobotSpec, obj: ObjectSpec, demos: list[Demo], held: Recording, device: str
 ) -> tuple[Recording, np.ndarray]:
     """The demos recorded again with the physics drawn for ``held``, the object slipping out of the
     hand from the middle of the first carry. Returns the recording and each demo's drop frame."""
@@ -139,18 +151,19 @@ def _dropped(
 
 
 def _held_mujoco(
-    scene: MujocoScene, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator
+    scene: MujocoScene, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator, margin: float
 ) -> tuple[list[Recording], int]:
     """Each motion recorded in MuJoCo C (a track of its own: MuJoCo C steps one world) with the
     first hidden mass and friction drawn from the prior with which the object stays in the hand
-    (see :func:`_held_recording`). Returns the recordings and the most draws one took."""
+    (see :func:`_held_recording`; ``margin`` as :meth:`Recording.held`'s). Returns the recordings
+    and the most draws one took."""
     out, most = [], 1
     for d in demos:
         for draw in range(_DRAWS):
             mass = float(_draw_prior(obj.mass, obj.mass_range, rng, 1)[0])
             friction = float(_draw_prior(obj.friction, obj.friction_range, rng, 1)[0])
             rec = record_mujoco(scene, d, mass, friction)
-            if rec.held([d])[0]:
+            if rec.held([d], margin)[0]:
                 out.append(rec)
                 most = max(most, draw + 1)
                 break
@@ -214,7 +227,7 @@ def open_loop_disagreement(
     two engines disagree about the motion, and only the sensing can bring an estimate back."""
     obj = catalog_object(trajectories[0].object)
     config = PopulationConfig(groups=len(trajectories), worlds=1, device=device, **(population or {}))
-    pop = Population(HandSpec(), obj, config)
+    pop = Population(robot_spec(trajectories[0].robot), obj, config)
     demos = [Demo(t.name, t.controls, t.truth.initial_pose, t.truth.initial_q, phases=()) for t in trajectories]
     mass = np.array([t.truth.mass for t in trajectories], np.float32)
     friction = np.array([t.truth.friction for t in trajectories], np.float32)
