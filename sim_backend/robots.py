@@ -75,6 +75,8 @@ class RobotLayout:
     """Body index of the link carrying each sensor, shape (L,), int."""
     sensor_offsets: np.ndarray
     """Sensor frame in its link's frame, shape (L, 7): position [m] then quaternion (x, y, z, w)."""
+    carries_on_palm: bool = False
+    """The hand carries objects on a palm that has no touch sensor (see :class:`FileRobotSpec`)."""
 
     @property
     def dof_count(self) -> int:
@@ -136,6 +138,10 @@ class FileRobotSpec:
     base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     """Pose of the robot's root in the world: position [m], quaternion (x, y, z, w)."""
     default_q: tuple[float, ...] = ()
+    carries_on_palm: bool = False
+    """The hand carries objects on its palm, which has no touch sensor: fingertips that feel
+    nothing then do not say the object fell, so a lost track is re-seeded where the object was,
+    not on the table below it."""
     package_dirs: tuple[str, ...] = ()
     """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
     NAME folder); the URDF's own package folder is found without it."""
@@ -440,6 +446,7 @@ def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotL
         sensor_names=tuple(spec.sensor_links),
         sensor_bodies=np.asarray([body_names[n] for n in spec.sensor_links]) - body_start,
         sensor_offsets=offsets,
+        carries_on_palm=spec.carries_on_palm,
     )
 
 

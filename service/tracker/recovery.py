@@ -4,7 +4,8 @@ A group whose worlds nearly all lost the object, or whose best world disagrees w
 about contact for several frames, is re-seeded around its last trusted estimate (the last one
 whose best world felt the contacts the real hand felt; moved with the real hand since, if the
 hand held the object then) with wider noise. When the real fingers touch nothing at that moment
-the object fell, and the hypotheses are laid on the table below that estimate instead.
+the object fell, and the hypotheses are laid on the table below that estimate instead (unless the
+hand carries objects on its palm, where untouched fingertips say nothing).
 
 Host-side numpy over (G,) arrays: it reads the estimate the frame already copied back.
 """
@@ -50,10 +51,12 @@ def point_spread(covariance: np.ndarray, moment: np.ndarray) -> np.ndarray:
 
 class Recovery:
     """Track state and the divergence rules of ``config`` for G groups of L sensors, tracking an
-    object whose surface points have the second moment ``moment`` (3, 3) [m^2] about its origin."""
+    object whose surface points have the second moment ``moment`` (3, 3) [m^2] about its origin.
+    ``falls``: fingertips that touch nothing mean the object fell (not for a hand that carries
+    objects on its palm)."""
 
-    def __init__(self, config: TrackerConfig, groups: int, sensors: int, moment: np.ndarray):
-        self.config, self.G, self.L = config, groups, sensors
+    def __init__(self, config: TrackerConfig, groups: int, sensors: int, moment: np.ndarray, falls: bool = True):
+        self.config, self.G, self.L, self.falls = config, groups, sensors, falls
         self.moment = np.asarray(moment, np.float64)
         self.status = np.zeros(groups, dtype=np.int64)
         """Track state per group, (G,) (:class:`protocol.TrackState`)."""
@@ -118,7 +121,7 @@ class Recovery:
         # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
         # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
         # would catch it again, so those hypotheses go onto the table below it.
-        dropped = diverged & felt & ~touching
+        dropped = diverged & felt & ~touching & self.falls
         held = diverged & ~dropped
         sigma_r = cfg.sigma_r * cfg.reseed_scale
         out = []

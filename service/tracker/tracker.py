@@ -144,7 +144,9 @@ class Tracker:
         obj = pop.object
         self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
         points = obj.surface_points(1000).astype(np.float64)
-        self.recovery = Recovery(cfg, self.G, self.L, moment=points.T @ points / len(points))
+        self.recovery = Recovery(
+            cfg, self.G, self.L, moment=points.T @ points / len(points), falls=not pop.layout.carries_on_palm
+        )
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
 
