@@ -80,6 +80,18 @@ def test_mujoco_truth_on_the_shadow_hand_keeps_the_object_on_its_palm_and_feels_
         assert np.abs(coupled).max() < 0.2, kind  # the tendon's slack: +-1 mm, 0.14 rad of the distal joint
 
 
+def test_the_shadow_hands_truth_in_the_trackers_own_physics_keeps_the_object_on_its_palm(tmp_path):
+    from service.bench.suites import SUITES
+    from service.bench.truth import ground_truth
+
+    suite = SUITES["paper-shadow"].short()
+    tracks = ground_truth(suite, device="cpu", cache=tmp_path)
+    assert [t.robot for t in tracks] == ["shadow_hand"] * 2 and tracks[0].meta["engine"] == "newton"
+    for t in tracks:
+        assert t.truth.pose[:, 2].min() > 0.14, t.name  # on the palm (its face is 14.7 cm up), not the table
+        assert (np.linalg.norm(t.force, axis=-1) > 0.05).any(-1).mean() > 0.3, t.name
+
+
 @pytest.mark.slow
 def test_cross_engine_suite_on_the_shadow_hand_in_short_form(tmp_path):
     out = tmp_path / "out"

@@ -64,7 +64,8 @@ _TAIL = """## Reproduce
   [--set NAME=VALUE] [--short]` writes `results.json`, `report.md` and charts to
   `bench-results/accuracy-SUITE/`. The paper and reality-gap suites' truth comes from the
   tracker's own simulator (the reality gap with its physics and sensors off); the cross-engine
-  suite's from MuJoCo C (the hand's MJCF, a 1 ms step, other motions, sensor noise). `--short`
+  suite's from MuJoCo C (the hand's MJCF, a 1 ms step, other motions, sensor noise). The same
+  three with a `-shadow` suffix run the Shadow Hand carrying the object on its palm. `--short`
   runs a suite's first object and two kinds of 10 s tracks, as CI does.
 - Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8]
   [--caps default,4x4] --json > docs/results/speed/DEVICE.json`, one file per device.

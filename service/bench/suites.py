@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from client.replay import NOISE_LEVELS
 from service.paths import CONFIG_DIR
 from sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
@@ -94,6 +96,9 @@ class Suite:
 _REAL_SENSORS = SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2)
 """What the suites that stand in for a real robot add to its sensing."""
 
+_SHADOW_OBJECTS = ("spam_can", "foam_brick")
+"""What the Shadow Hand's suites carry on the palm (the banana rolls off an open palm)."""
+
 SUITES: dict[str, Suite] = {
     "smoke": Suite("smoke", ("foam_brick",), ("pick_place",), 2, seconds=10.0, pace=0.7),
     "paper": Suite("paper", ("spam_can", "foam_brick", "toy_banana"), DEMO_KINDS, 2, seconds=60.0),
@@ -116,9 +121,20 @@ SUITES: dict[str, Suite] = {
         sensors=_REAL_SENSORS,
         engine="mujoco",
     ),
+    "paper-shadow": Suite("paper-shadow", _SHADOW_OBJECTS, PALM_MOTION_KINDS, 1, seconds=20.0, robot="shadow_hand"),
+    "reality-gap-shadow": Suite(
+        "reality-gap-shadow",
+        _SHADOW_OBJECTS,
+        PALM_MOTION_KINDS,
+        1,
+        seconds=20.0,
+        gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
+        sensors=_REAL_SENSORS,
+        robot="shadow_hand",
+    ),
     "cross-engine-shadow": Suite(
         "cross-engine-shadow",
-        ("spam_can", "foam_brick"),
+        _SHADOW_OBJECTS,
         PALM_MOTION_KINDS,
         1,
         seconds=20.0,
@@ -131,10 +147,12 @@ SUITES: dict[str, Suite] = {
 
 def robot_spec(name: str, finger_damping: float = 1.0) -> RobotSpec:
     """The robot called ``name``: the procedural hand, or a robot config of ``configs/robots``;
-    ``finger_damping`` scales its fingers' damping (a truth's physics gap)."""
+    ``finger_damping`` scales its fingers' damping (a truth's physics gap; a robot from a file has
+    all its joints' damping scaled)."""
     if name == HandSpec().name:
         return HandSpec(finger_kd=HandSpec().finger_kd * finger_damping)
     spec = load_robot(CONFIG_DIR / "robots" / f"{name}.toml")
-    if finger_damping != 1.0:
-        raise ValueError(f"robot '{name}': a finger damping gap is defined for the procedural hand only")
-    return spec
+    if finger_damping == 1.0:
+        return spec
+    # A robot from a file: every joint's damping, the wrist's too (it has no separate fingers).
+    return replace(spec, kd=tuple(float(kd) * finger_damping for kd in np.broadcast_to(spec.kd, len(spec.joints))))

@@ -42,14 +42,16 @@ log = logging.getLogger(__name__)
 def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_DIR) -> list[Trajectory]:
     """Every trajectory of ``suite``: read from the shipped files or ``cache``, else recorded (and
     written to ``cache``) with hidden mass and friction drawn from the tracker's prior (among those
-    with which the hand keeps hold of the object): the demos in the tracker's own simulator (one
-    population per object, one group per physics draw of a demo), or the motions in MuJoCo C
-    (``suite.engine``)."""
+    with which the hand keeps hold of the object): the demos (or a palm-carrying hand's palm
+    motions) in the tracker's own simulator (one population per object, one group per physics draw
+    of a demo), or the motions in MuJoCo C (``suite.engine``)."""
     spec = robot_spec(suite.robot, suite.gap.finger_damping)
     kin = Kinematics(robot_spec(suite.robot))  # the robot's own model plans the demos
     on_palm = suite.robot != HandSpec().name
-    if on_palm and suite.engine != "mujoco":
-        raise ValueError(f"suite '{suite.name}': robot '{suite.robot}' has palm motions, recorded in MuJoCo C only")
+    if on_palm and suite.drop:
+        raise ValueError(f"suite '{suite.name}': a drop is scripted for the procedural hand's carry only")
+    # On the palm "held" is the object still lying there; a pinch must lift it 2 cm.
+    margin = -0.03 if on_palm else 0.02
     out: list[Trajectory] = []
     for o, name in enumerate(suite.objects):
         obj = catalog_object(name)
@@ -85,11 +87,10 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             with tempfile.TemporaryDirectory() as tmp:
                 xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
                 scene = export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
-                # On the palm "held" is the object still lying there; a pinch must lift it 2 cm.
-                recordings, rounds = _held_mujoco(scene, obj, demos, rng, margin=-0.03 if on_palm else 0.02)
+                recordings, rounds = _held_mujoco(scene, obj, demos, rng, margin)
             tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
         else:
-            held, rounds = _held_newton(suite, spec, obj, demos, rng, device)
+            held, rounds = _held_newton(suite, spec, obj, demos, rng, device, margin)
             if suite.drop:
                 held, drops = _dropped(suite, spec, obj, demos, held, device)
             held = _add_sensor_noise(held, suite.sensors, rng)
@@ -112,7 +113,13 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
 
 
 def _held_newton(
-    suite: Suite, spec: RobotSpec, obj: ObjectSpec, demos: list[Demo], rng: np.random.Generator, device: str
+    suite: Suite,
+    spec: RobotSpec,
+    obj: ObjectSpec,
+    demos: list[Demo],
+    rng: np.random.Generator,
+    device: str,
+    margin: float,
 ) -> tuple[Recording, int]:
     """The demos recorded in the tracker's own simulator, with the suite's physics gap."""
     # A GPU's frame costs little more for more worlds (a held pinch: 4.9 ms at 40, 7.1 ms at
@@ -129,7 +136,7 @@ def _held_newton(
         ramp_targets=suite.gap.ramp_targets,
     )
     truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
-    return _held_recording(truth, demos, rng)
+    return _held_recording(truth, demos, rng, margin)
 
 
 def _dropped(
@@ -186,7 +193,9 @@ _DRAWS = 32
 """Hidden physics tried per demo at most before the recording gives up."""
 
 
-def _held_recording(truth: Population, demos: list, rng: np.random.Generator) -> tuple[Recording, int]:
+def _held_recording(
+    truth: Population, demos: list, rng: np.random.Generator, margin: float = 0.02
+) -> tuple[Recording, int]:
     """Each demo recorded with hidden mass and friction drawn from the prior, among those with
     which the object stays in the hand from the lift to the set-down.
 
@@ -203,7 +212,7 @@ def _held_recording(truth: Population, demos: list, rng: np.random.Generator) ->
         mass = _draw_prior(obj.mass, obj.mass_range, rng, n * c)
         friction = _draw_prior(obj.friction, obj.friction_range, rng, n * c)
         rec = record(truth, candidates, mass, friction)
-        held = rec.held(candidates).reshape(n, c)
+        held = rec.held(candidates, margin).reshape(n, c)
         for i in np.flatnonzero(held.any(axis=1)):
             kept[i] = kept[i] or (rec, int(i * c + held[i].argmax()))
         if all(kept):
