@@ -332,7 +332,7 @@ def _joint_coord_dof(builder: newton.ModelBuilder, joints: list[int]) -> tuple[n
 _PYTHON_URI = re.compile(r"python://([A-Za-z_][\w.]*)/")
 
 
-def python_package_path(uri: str) -> str:
+def _python_package_path(uri: str) -> str:
     """``python://PACKAGE/rel/path`` as a path inside the installed Python package (found without
     importing it); any other path unchanged. This is how robot models shipped in a package from
     PyPI are named, the way ``package://`` names a ROS package."""
@@ -350,8 +350,9 @@ def _package_folder(package: str, uri: str) -> str:
 
 def _mjcf_source(spec: FileRobotSpec) -> str:
     """The MJCF to parse: its path, or, where it names files as ``python://PACKAGE/...`` (an
-    include or a ``meshdir``), its text with those made absolute. Newton's importer resolves only
-    plain paths, and its custom resolvers drop the including file's ``meshdir``."""
+    include or a ``meshdir``), its text with those made absolute (its other paths must then be
+    absolute too). Newton's importer resolves only plain paths, and its custom resolvers drop the
+    including file's ``meshdir``."""
     text = Path(spec.path).read_text()
     if "python://" not in text:
         return spec.path
@@ -362,7 +363,7 @@ def _mjcf_source(spec: FileRobotSpec) -> str:
 
 
 def _add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLayout:
-    spec = replace(spec, path=python_package_path(spec.path))
+    spec = replace(spec, path=_python_package_path(spec.path))
     if not os.path.isfile(spec.path):
         raise ValueError(f"robot '{spec.name}' path: no such file '{spec.path}'")
     body_start, joint_start = builder.body_count, builder.joint_count
