@@ -23,7 +23,7 @@ from sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo, Script
 
-__all__ = ["MOTION_KINDS", "make_motion"]
+__all__ = ["MOTION_KINDS", "make_motion", "minimum_jerk"]
 
 MOTION_KINDS = ("wrist_roll", "tilt_shake", "loosen", "twist")
 
@@ -32,7 +32,7 @@ _ABDUCTION = (6, 10, 14)
 _THUMB_SWING = 18
 
 
-def _minimum_jerk(t: np.ndarray) -> np.ndarray:
+def minimum_jerk(t: np.ndarray) -> np.ndarray:
     """Progress at times ``t`` in (0, 1] with zero velocity and acceleration at both ends."""
     return t**3 * (10.0 - 15.0 * t + 6.0 * t**2)
 
@@ -52,7 +52,7 @@ def make_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, s
     grasp = plan_pinch(kin, obj, wrist_q=wrist)
     start = lay.default_q.copy()
     start[:3] = wrist[0], wrist[1], wrist[2] + 0.1
-    path = Script(start, lay.lower, lay.upper, profile=_minimum_jerk)
+    path = Script(start, lay.lower, lay.upper, profile=minimum_jerk)
 
     above = start.copy()
     above[2] = wrist[2]

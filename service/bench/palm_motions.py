@@ -25,7 +25,7 @@ from sim_backend.kinematics import Kinematics
 from sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo, Script
-from .motions import _minimum_jerk
+from .motions import minimum_jerk
 
 __all__ = ["PALM_MOTION_KINDS", "make_palm_motion", "palm_rest_pose"]
 
@@ -71,7 +71,7 @@ def make_palm_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int =
     rng = np.random.default_rng([variant, 200 + PALM_MOTION_KINDS.index(kind)])
     pose = palm_rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.15, 0.15)]))
     start = lay.default_q.copy()
-    path = Script(start, lay.lower, lay.upper, profile=_minimum_jerk)
+    path = Script(start, lay.lower, lay.upper, profile=minimum_jerk)
     middle, distal = j(*(f"{f}J1" for f in _FINGERS)), j(*(f"{f}J0" for f in _FINGERS))
 
     def move(phase: str, target: np.ndarray, seconds: float) -> None:
