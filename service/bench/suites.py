@@ -154,5 +154,5 @@ def robot_spec(name: str, finger_damping: float = 1.0) -> RobotSpec:
     spec = load_robot(CONFIG_DIR / "robots" / f"{name}.toml")
     if finger_damping == 1.0:
         return spec
-    # A robot from a file: every joint's damping, the wrist's too (it has no separate fingers).
+    # A robot from a file does not tell its fingers' joints from the others: all are scaled.
     return replace(spec, kd=tuple(float(kd) * finger_damping for kd in np.broadcast_to(spec.kd, len(spec.joints))))

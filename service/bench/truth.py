@@ -17,7 +17,6 @@ from service.evaluation import add_error
 from service.paths import CACHE_DIR, DATA_DIR
 from service.tracker import TrackerConfig
 from sim_backend import (
-    HandSpec,
     Kinematics,
     Population,
     PopulationConfig,
@@ -47,7 +46,7 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
     of a demo), or the motions in MuJoCo C (``suite.engine``)."""
     spec = robot_spec(suite.robot, suite.gap.finger_damping)
     kin = Kinematics(robot_spec(suite.robot))  # the robot's own model plans the demos
-    on_palm = suite.robot != HandSpec().name
+    on_palm = kin.layout.carries_on_palm  # palm motions; a hand that pinches gets the demos and motions
     if on_palm and suite.drop:
         raise ValueError(f"suite '{suite.name}': a drop is scripted for the procedural hand's carry only")
     # On the palm "held" is the object still lying there; a pinch must lift it 2 cm.
