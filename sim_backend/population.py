@@ -27,6 +27,7 @@ from .objects import ObjectSpec
 from .params import ObjectParams
 from .robots import RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
+from .separate import object_push
 
 __all__ = ["Population", "no_collection"]
 
@@ -392,6 +393,56 @@ class Population:
                 newton.eval_fk(self.model, state.joint_q, state.joint_qd, state, mask=articulations)
             # flags=0: clear MuJoCo's warm start and applied forces, keep the state just written.
             self.solver.reset(self.state_0, world_mask=wp.array([*worlds, False], dtype=bool), flags=0)
+
+    def separate_object(self, worlds: torch.Tensor | np.ndarray, passes: int = 6) -> None:
+        """Move the object of each world in ``worlds`` (G, K) bool out of whatever it overlaps
+        (the hand, the table) by a translation along the contacts' normals, as far as the
+        overlaps go; the robot, the rotation and the velocities stay. A drawn pose a few
+        millimetres inside a palm would otherwise be pushed out by the solver at a speed that
+        throws a light object off the hand. ``passes`` rounds of collision detection: a corner
+        pushed out of the palm may meet a finger."""
+        worlds = worlds.cpu() if isinstance(worlds, torch.Tensor) else worlds
+        sel = torch.as_tensor(np.asarray(worlds), dtype=torch.bool)
+        if sel.shape != (self.G, self.K):
+            raise ValueError(f"worlds: expected shape ({self.G}, {self.K}), got {tuple(sel.shape)}")
+        flags = sel.reshape(self.W).numpy()
+        moving = sel.to(self.torch_device)[..., None]
+        c, s = self.contacts, self._static
+        with self.on_stream(), wp.ScopedDevice(self.device):
+            articulations = wp.array(flags[self.model.articulation_world.numpy()], dtype=bool)
+            push_sum = wp.zeros(self.W, dtype=wp.vec3)
+            depth_sum = wp.zeros(self.W, dtype=wp.float32)
+            push = wp.to_torch(push_sum).view(self.G, self.K, 3)
+            depth = wp.to_torch(depth_sum).view(self.G, self.K, 1)
+            st = self.state_0
+            for _ in range(passes):
+                newton.eval_fk(self.model, st.joint_q, st.joint_qd, st, mask=articulations)
+                self.pipeline.collide(st, self.contacts)
+                push_sum.zero_()
+                depth_sum.zero_()
+                wp.launch(
+                    object_push,
+                    dim=c.rigid_contact_max,
+                    inputs=[
+                        c.rigid_contact_count,
+                        c.rigid_contact_shape0,
+                        c.rigid_contact_shape1,
+                        c.rigid_contact_point0,
+                        c.rigid_contact_point1,
+                        c.rigid_contact_normal,
+                        c.rigid_contact_margin0,
+                        c.rigid_contact_margin1,
+                        self.model.shape_body,
+                        self.state_0.body_q,
+                        s["object_world"],
+                    ],
+                    outputs=[push_sum, depth_sum],
+                )
+                step = torch.where(moving, push / depth.clamp_min(1e-9), 0.0)
+                for state in (self.state_0, self.state_1):
+                    self._state_views["joint_q"](state)[..., self._free_coords()][..., :3] += step
+            for state in (self.state_0, self.state_1):
+                newton.eval_fk(self.model, state.joint_q, state.joint_qd, state, mask=articulations)
 
     def displace_object(self, displacement: torch.Tensor) -> None:
         """Move each world's object by a small rigid displacement, shape (G, K, 6): translation

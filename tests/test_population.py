@@ -127,6 +127,38 @@ def test_a_displaced_object_keeps_what_the_grasp_cannot_see_and_loses_what_it_ca
         pop.displace_object(torch.zeros(3, 6))
 
 
+def test_an_object_drawn_inside_the_table_is_pushed_out_of_it_before_it_moves(hand):
+    """A hypothesis drawn a few millimetres inside what it lies on is moved out along the contact
+    normal, keeping its x, y and rotation, instead of being launched by the solver; the worlds not
+    asked for are left alone."""
+    spec, _ = hand
+    obj = catalog_object("foam_brick")
+    pop = Population(spec, obj, PopulationConfig(worlds=3, device="cpu"))
+    hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32)
+
+    def lowest(pose: torch.Tensor) -> torch.Tensor:  # (G, K, 7) -> (G, K) [m]
+        q = pose[..., None, 3:].expand(*pose.shape[:-1], len(hull), 4)
+        return pose[..., 2] + quat_rotate(q, hull.expand(*pose.shape[:-1], -1, -1))[..., 2].amin(-1)
+
+    rest, tilt = -float(obj.mesh.bounds[0, 2]), [math.sin(0.1), 0.0, 0.0, math.cos(0.1)]
+    flat = [0.0, 0.0, 0.0, 1.0]
+    pop.reset_state(np.array([[[0.1, 0.0, rest - 0.006, *flat], [0.1, 0.0, rest - 0.006, *flat],
+                               [0.1, 0.02, rest - 0.011, *tilt]]]))  # fmt: skip
+    before = pop.object_coords.clone()
+    assert bool((lowest(before) < -0.005).all())
+    pop.separate_object(np.array([[True, False, True]]))
+    after = pop.object_coords.clone()
+    sunk = lowest(after)[0]
+    assert abs(float(sunk[0])) < 2e-4 and abs(float(sunk[2])) < 2e-4, sunk  # on the table, not in it
+    assert float(sunk[1]) == pytest.approx(-0.006, abs=1e-6)  # not asked for
+    moved = after - before
+    assert torch.allclose(moved[..., :2], torch.zeros(1, 3, 2), atol=1e-6), "pushed straight up, off the table"
+    assert torch.allclose(moved[..., 3:], torch.zeros(1, 3, 4), atol=1e-6), "rotation kept"
+    pop.step()
+    speed = torch.linalg.vector_norm(pop.obs.object_pose[0, :, :3] - after[0, :, :3], dim=-1) * pop.config.frame_rate
+    assert float(speed[0]) < 0.02 < 0.05 < float(speed[1]), speed  # the solver's push launches the one left inside
+
+
 def test_graph_replay_equals_eager_stepping(hand):
     pop, _ = _grasped(hand, "foam_brick", worlds=2)
     saved = pop.snapshot()

@@ -222,6 +222,8 @@ class Tracker:
         drawn = self._contacts_around_model().masked_fill(open_loop[..., None], 0.0).exp()
         timeconst, impratio = torch.where(sel[..., None], drawn * self._nominal_contacts, self._contacts()).unbind(-1)
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
+        # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
+        self.pop.separate_object(sel.expand(self.G, self.K))
         self.pop._write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
         self.window.masked_fill_(sel, 0.0)
         self._evidence.masked_fill_(sel, 0.0)
@@ -289,6 +291,9 @@ class Tracker:
         poses = sample_poses(observed[None], sigma_t, sigma_r, count, self.gen)[0]
         coords = self.pop.object_coords
         coords[group, worst] = poses
+        drawn = torch.zeros(self.G, self.K, dtype=torch.bool, device=self.device)
+        drawn[group, worst] = True
+        self.pop.separate_object(drawn)
         # The new worlds join the window at its typical cost: their source's would make them the
         # best before they scored a frame.
         self.window[group, worst] = typical
