@@ -223,7 +223,7 @@ class Tracker:
         timeconst, impratio = torch.where(sel[..., None], drawn * self._nominal_contacts, self._contacts()).unbind(-1)
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
-        self.pop.separate_object(sel.expand(self.G, self.K))
+        self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
         self.pop._write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
         self.window.masked_fill_(sel, 0.0)
         self._evidence.masked_fill_(sel, 0.0)
