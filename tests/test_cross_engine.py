@@ -51,9 +51,7 @@ def test_cross_engine_suite_in_short_form_tracks_better_than_open_loop(tmp_path)
     results = json.loads((out / "results.json").read_text())
     assert results["suite"]["engine"] == "mujoco" and results["suite"]["name"] == "cross-engine-short"
     summary = {m: results["summary"][m]["med"]["mean_mm"] for m in ("OLP", "PBO")}
-    # The object stays tracked on the palm (about 9-11 mm here, one start; PBO below OLP is a claim
-    # over many starts, for the GPU benchmark): a hypothesis thrown off the hand costs 100 mm or more.
-    assert max(summary.values()) < 20.0, summary
+    assert summary["PBO"] < summary["OLP"], summary
     assert all(np.isfinite(t["open_loop_mean_mm"]) for t in results["tracks"])
     report = (out / "report.md").read_text()
     assert "MuJoCo C" in report and "| trajectory | open loop |" in report
