@@ -229,6 +229,17 @@ class TrackerClient:
             priority=zenoh.Priority.REAL_TIME,
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
+        # The frames' priority and congestion control: on one link Zenoh keeps the order within a
+        # priority, so an observation sent before a frame is used at that frame, and none is dropped
+        # when the link is busy. Declared with the session, not at the first observation: a
+        # declaration sent just before a frame is one more message the frame could overtake.
+        self._observer = self._zenoh.declare_publisher(
+            self.keys.observation(info.session),
+            encoding=zenoh_encoding(PoseObservation),
+            express=True,
+            priority=zenoh.Priority.REAL_TIME,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         self._subscriber = self._zenoh.declare_subscriber(self.keys.pose(info.session), self._on_pose)
         self._token = self._zenoh.liveliness().declare_token(self.keys.robot(info.session))
         self._service_watch = self._zenoh.liveliness().declare_subscriber(self.keys.alive, self._on_service)
@@ -308,17 +319,6 @@ class TrackerClient:
             pose=pose,
             covariance=covariance,
         )
-        if self._observer is None:
-            # The frames' priority and congestion control: on one link Zenoh keeps the order within
-            # a priority, so an observation sent before a frame is used at that frame, and none is
-            # dropped when the link is busy.
-            self._observer = self._zenoh.declare_publisher(
-                self.keys.observation(self.info.session),
-                encoding=zenoh_encoding(PoseObservation),
-                express=True,
-                priority=zenoh.Priority.REAL_TIME,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
         self._observer.put(encode(observation))
 
     def send(self, frame: RobotFrame) -> None:
