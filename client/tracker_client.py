@@ -222,23 +222,19 @@ class TrackerClient:
         self._latest = None
         self._sent_stamp = None
         self.service_lost = False
-        self._publisher = self._zenoh.declare_publisher(
-            self.keys.frame(info.session),
-            encoding=zenoh_encoding(RobotFrame),
-            express=True,
-            priority=zenoh.Priority.REAL_TIME,
-            congestion_control=zenoh.CongestionControl.BLOCK,
+        # Frames and observations share one priority and congestion control: on one link Zenoh keeps
+        # the order within a priority, so an observation sent before a frame is used at that frame,
+        # and none is dropped when the link is busy. Both are declared with the session: declaring
+        # the observer at the first observation, just before a frame, adds a message the frame
+        # could overtake.
+        ordered = dict(
+            express=True, priority=zenoh.Priority.REAL_TIME, congestion_control=zenoh.CongestionControl.BLOCK
         )
-        # The frames' priority and congestion control: on one link Zenoh keeps the order within a
-        # priority, so an observation sent before a frame is used at that frame, and none is dropped
-        # when the link is busy. Declared with the session, not at the first observation: a
-        # declaration sent just before a frame is one more message the frame could overtake.
+        self._publisher = self._zenoh.declare_publisher(
+            self.keys.frame(info.session), encoding=zenoh_encoding(RobotFrame), **ordered
+        )
         self._observer = self._zenoh.declare_publisher(
-            self.keys.observation(info.session),
-            encoding=zenoh_encoding(PoseObservation),
-            express=True,
-            priority=zenoh.Priority.REAL_TIME,
-            congestion_control=zenoh.CongestionControl.BLOCK,
+            self.keys.observation(info.session), encoding=zenoh_encoding(PoseObservation), **ordered
         )
         self._subscriber = self._zenoh.declare_subscriber(self.keys.pose(info.session), self._on_pose)
         self._token = self._zenoh.liveliness().declare_token(self.keys.robot(info.session))

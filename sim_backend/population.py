@@ -433,7 +433,7 @@ class Population:
                         c.rigid_contact_margin0,
                         c.rigid_contact_margin1,
                         self.model.shape_body,
-                        self.state_0.body_q,
+                        st.body_q,
                         s["object_world"],
                     ],
                     outputs=[push_sum, depth_sum],
