@@ -559,6 +559,9 @@ def bench_accuracy(
     device: Device = "auto",
     out: Annotated[Path | None, typer.Option(help="output folder (default bench-results/accuracy-SUITE)")] = None,
     cache: Annotated[Path | None, typer.Option(help="where generated trajectories are kept")] = None,
+    save_frames: Annotated[
+        bool, typer.Option(help="also write frames.npz: each frame's error, reported covariance and cost")
+    ] = False,
     json_: Json = False,
 ) -> None:
     """Tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A."""
@@ -594,6 +597,7 @@ def bench_accuracy(
                 population=population,
                 observations=observations,
                 vision_sigma=(sigma_t, sigma_r),
+                frames_to=out / "frames.npz" if save_frames else None,
                 **chosen,
             )
     except ValueError as exc:

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
-__all__ = ["CHI2_6DOF_95", "add_error", "adds_error", "covered", "transform_points"]
+__all__ = ["CHI2_6DOF_95", "add_error", "adds_error", "covered", "pose_error", "transform_points"]
 
 CHI2_6DOF_95 = 12.592
 """The 95 % quantile of a chi-square with 6 degrees of freedom: the reported 95 % region's bound."""
@@ -44,16 +44,22 @@ def adds_error(points: np.ndarray, true_pose: np.ndarray, est_pose: np.ndarray) 
     return distance.reshape(*shape, len(points)).mean(-1)
 
 
+def pose_error(true_pose: np.ndarray, est_pose: np.ndarray) -> np.ndarray:
+    """The true pose seen from the estimate, (..., 6) float64: position difference [m] and the
+    rotation vector of est^-1 true [rad], as an Estimate's covariance is laid out."""
+    t = torch.as_tensor(np.asarray(true_pose, np.float64))
+    e = torch.as_tensor(np.asarray(est_pose, np.float64))
+    e, t = torch.broadcast_tensors(e, t)
+    turn = quat_log(quat_multiply(quat_conjugate(e[..., 3:]), t[..., 3:]))
+    return torch.cat([t[..., :3] - e[..., :3], turn], -1).numpy()
+
+
 def covered(true_pose: np.ndarray, est_pose: np.ndarray, covariance: np.ndarray, floor: float = 1e-10) -> np.ndarray:
     """Whether the true pose lies in the estimate's 95 % region: its Mahalanobis distance under
     ``covariance`` (..., 6, 6; position and rotation vector about ``est_pose``, as an Estimate's)
     within the 6-dof chi-square bound, (...,) bool. ``floor`` [m^2, rad^2] keeps a collapsed
     population's singular covariance invertible."""
-    t = torch.as_tensor(np.asarray(true_pose, np.float64))
-    e = torch.as_tensor(np.asarray(est_pose, np.float64))
-    e, t = torch.broadcast_tensors(e, t)
-    turn = quat_log(quat_multiply(quat_conjugate(e[..., 3:]), t[..., 3:]))
-    delta = torch.cat([t[..., :3] - e[..., :3], turn], -1)
+    delta = torch.as_tensor(pose_error(true_pose, est_pose))
     cov = torch.as_tensor(np.asarray(covariance, np.float64)) + floor * torch.eye(6, dtype=torch.float64)
     d2 = (delta[..., None, :] @ torch.linalg.solve(cov, delta[..., None]))[..., 0, 0]
     return (d2 <= CHI2_6DOF_95).numpy()

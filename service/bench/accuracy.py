@@ -10,6 +10,7 @@ The tracker sees only what the robot sends plus a noisy initial pose; ADD scores
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 
 from protocol import DEFAULT_WORLDS, TrackState, Trajectory
-from service.evaluation import add_error, adds_error, covered
+from service.evaluation import add_error, adds_error, covered, pose_error
 from service.paths import CACHE_DIR
 from service.tracker import METHODS, Frame, Tracker, TrackerConfig
 from service.tracker.sampling import sample_poses
@@ -31,7 +32,7 @@ from .progress import progress_bar
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, Suite, robot_spec
 from .truth import ground_truth, open_loop_disagreement
 
-__all__ = ["OBSERVATIONS", "TrackResult", "TrackSetting", "run_suite", "run_tracks", "settings"]
+__all__ = ["OBSERVATIONS", "TrackResult", "TrackSetting", "run_suite", "run_tracks", "save_frames", "settings"]
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +85,10 @@ class TrackResult:
     """The estimate's track state per frame, (F,) int (:class:`protocol.TrackState`)."""
     event: int | None = None
     """The frame the object was lost (slipped out of the hand) in the truth, on a loss suite."""
+    frames: dict[str, np.ndarray] | None = field(default=None, repr=False)
+    """What the estimate said each frame against the truth (:func:`save_frames`): ``error`` (F, 6)
+    the true pose seen from the estimate [m, rad], ``covariance`` (F, 6, 6) as reported, ``cost``
+    (F,) the lowest window cost and ``lost`` (F,) the share of worlds that lost the object."""
 
     def after_event(self, within: float = 0.01, hold: int = 15) -> tuple[float | None, float | None]:
         """Seconds from the loss to the status first saying anything but tracking, and to the
@@ -243,6 +248,8 @@ def run_tracks(
         bests = np.empty_like(poses)
         covariances = np.empty((rec.frames, len(group), 6, 6), np.float32)
         statuses = np.empty((rec.frames, len(group)), np.int64)
+        costs = np.empty((rec.frames, len(group)), np.float32)
+        lost = np.empty_like(costs)
         diverged = np.zeros(len(group), np.int64)
         seen = _observed(rec, observations)[:, rows]  # (F, G)
         events = [int(x) if (x := t.meta.get("drop_frame")) is not None else None for t in trajectories]
@@ -254,6 +261,8 @@ def run_tracks(
             bests[f] = est.best_pose
             covariances[f] = est.covariance
             statuses[f] = est.status
+            costs[f] = est.cost
+            lost[f] = est.lost
             diverged += est.status == TrackState.DIVERGED
             for g in np.flatnonzero(seen[f]):
                 noisy = _noisy(torch.tensor(rec.object_pose[f, rows[g]][None]), *vision_sigma, vision_torch)[0]
@@ -265,13 +274,16 @@ def run_tracks(
         add_best = add_error(points, truth, bests)
         add_s = adds_error(points[:200], truth[::_ADDS_EVERY], poses[::_ADDS_EVERY])
         inside = covered(truth, poses, covariances)
+        error = pose_error(truth, poses).astype(np.float32)
         for g, t in enumerate(group):
             n = int(rec.lengths[t.trajectory])
             name = rec.names[t.trajectory]
+            frames = {"error": error, "covariance": covariances, "cost": costs, "lost": lost}
+            frames = {k: v[:n, g] for k, v in frames.items()}
             results.append(
                 TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g]),
                             add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g], statuses[:n, g],
-                            events[t.trajectory])
+                            events[t.trajectory], frames)
             )  # fmt: skip
     return results
 
@@ -283,6 +295,16 @@ def _per_frame(r: TrackResult) -> dict:
     if r.status is not None:
         out["status"] = r.status.astype(int).tolist()
     return out
+
+
+def save_frames(results: Sequence[TrackResult], path: Path) -> None:
+    """Every track's per-frame estimate against the truth (:attr:`TrackResult.frames`) as one
+    ``.npz``: arrays ``{i}/{name}`` for track i of ``tracks``, a JSON list of the tracks' settings,
+    so that a reported uncertainty can be checked, or recalibrated, without running the suite again."""
+    arrays = {f"{i}/{k}": v for i, r in enumerate(results) for k, v in (r.frames or {}).items()}
+    index = [{**asdict(r.setting), "trajectory": r.trajectory, "object": r.object} for r in results]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, tracks=np.array(json.dumps(index)), **arrays)
 
 
 def _observed(rec: Recording, schedule: str, rate: int = 30) -> np.ndarray:
@@ -322,6 +344,7 @@ def run_suite(
     population: dict[str, int | float | bool] | None = None,
     observations: str = "none",
     vision_sigma: tuple[float, float] = (0.005, 0.05),
+    frames_to: Path | None = None,
 ) -> dict:
     """Ground truth, then every object's tracks as one batched run; returns the results as a dict
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
@@ -331,7 +354,8 @@ def run_suite(
     settings (default ``TrackerConfig()``; its seed is the suite's). ``population``: the tracker's
     physics settings other than PopulationConfig's defaults, e.g. ``{"impratio": 30.0}`` (the
     ground truth keeps the defaults and its suite's gap). ``observations``, ``vision_sigma``: a
-    camera's pose estimates reaching the tracker (:func:`run_tracks`)."""
+    camera's pose estimates reaching the tracker (:func:`run_tracks`). ``frames_to``: where
+    :func:`save_frames` writes every track's per-frame estimate against the truth."""
     if observations not in OBSERVATIONS:
         raise ValueError(f"observations: expected one of {OBSERVATIONS}, got {observations!r}")
     for m in methods:
@@ -397,6 +421,8 @@ def run_suite(
                 )
     bar.close()
     t_track = time.perf_counter() - t0 - t_truth
+    if frames_to is not None:
+        save_frames(results, frames_to)
     return _collect(suite, results, worlds, k_ablation, t_truth, t_track, device, substeps, config, population, vision)
 
 
