@@ -96,13 +96,25 @@ class TrackerConfig:
     worlds agree on where it is but not on how it is turned was reported tracking while 20 to 90 mm
     off."""
     covariance_floor_t: float = 0.002
-    """Standard deviation [m] added to the reported position covariance: what the physics cannot
-    resolve (a model that is not the real robot). Where the model is right the worlds' own spread
-    covers the truth (the paper suite at K=1024 on 99.2-99.9 % of frames with any floor); where it is not,
-    the floor decides (the reality-gap suite at K=1024: 86 % with this floor, 97 % with 3 mm; 85-99 %
-    is honest). The estimate and the track state ignore it."""
+    """Standard deviation [m] added to the reported position covariance at the reference cost
+    (``covariance_cost_ref``): what the physics cannot resolve because the model is not the robot.
+    Its variance grows with the lowest window cost, the part of what the robot sensed that no world
+    explains, up to 16 times (4x this deviation). A constant floor could not be honest on both
+    sides: where the model is the truth's (the paper suite) the best world's cost is 0.2-0.4 and
+    the worlds' own spread covers the truth on 95 % of frames at K=1024 (100 % with a constant
+    floor); across a reality gap or another engine the cost is 12-37 and the spread alone covers
+    9-39 %. The estimate and the track state ignore it."""
     covariance_floor_r: float = 0.05
     """The same for the rotation vector [rad]."""
+    covariance_cost_ref: float = 18.0
+    """The lowest window cost at which the floor is ``covariance_floor_t`` and ``_r``: about what a
+    well-tracking group scores against a robot with sensor noise (15-16 on the reality-gap suite;
+    each of the cost's terms is weighted to about 1 at its typical magnitude)."""
+    covariance_resolution: float = 5.0
+    """Also added: the variance the group was last seeded with (its initial pose noise) times this
+    over K. The worlds sample the start region, and the fewer they are, the coarser they resolve it,
+    which their spread after resampling does not show: on the paper suite at K=40 the spread alone
+    covers 48 % of frames (a 2 mm error against a 1-2 mm spread)."""
     mode_angle: float = 0.5
     """Worlds within this angle [rad] and ``mode_distance`` of a mode's seed belong to that mode."""
     mode_distance: float = 0.02
@@ -150,6 +162,11 @@ class TrackerConfig:
         if self.jitter_shrink_worlds < 0:
             got = self.jitter_shrink_worlds
             raise ValueError(f"tracker jitter_shrink_worlds: expected >= 0 worlds (0: never), got {got}")
+        if not (self.covariance_cost_ref > 0 and self.covariance_resolution >= 0):
+            raise ValueError(
+                f"tracker covariance_cost_ref: expected > 0 (got {self.covariance_cost_ref}) and"
+                f" covariance_resolution >= 0 (got {self.covariance_resolution})"
+            )
         if self.update_every < 1:
             raise ValueError(f"tracker update_every: expected >= 1 frame, got {self.update_every}")
         noise = ("sigma_t", "sigma_r", "wrench_force", "wrench_torque", "jitter_t", "jitter_r", "jitter_bandwidth")

@@ -134,6 +134,8 @@ class Tracker:
         self._jitter_ceiling = torch.tensor(ceiling, device=dev)
         self._diagonal = np.arange(6)
         self._floor = np.array([cfg.covariance_floor_t**2] * 3 + [cfg.covariance_floor_r**2] * 3, np.float32)
+        self._seeded = np.zeros((self.G, 6), np.float32)
+        """Each group's variance of its latest seeding, (G, 6) [m^2, rad^2]: what its worlds sample."""
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._bandwidth = cfg.jitter_bandwidth * silverman_bandwidth(self.K)
@@ -203,6 +205,8 @@ class Tracker:
         cfg, dev = self.config, self.device
         mean_t = torch.as_tensor(mean, dtype=torch.float32, device=dev)
         poses = sample_poses(mean_t, sigma_t, sigma_r, self.K, self.gen)
+        var_t, var_r = (np.broadcast_to(np.square(s, dtype=np.float32), self.G) for s in (sigma_t, sigma_r))
+        self._seeded[groups] = np.stack([var_t] * 3 + [var_r] * 3, axis=-1)[groups]
         (m_lo, m_hi), (f_lo, f_hi) = self._mass_range, self._friction_range
         obj = self.pop.object
         nominal_mass = torch.full((self.G, self.K), obj.mass, device=dev)
@@ -354,8 +358,16 @@ class Tracker:
         for r in reseeds:
             self._seed(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
         estimate.status = self.recovery.status.copy()
-        estimate.covariance[:, self._diagonal, self._diagonal] += self._floor  # in place: reported, not judged
+        estimate.covariance[:, self._diagonal, self._diagonal] += self._unresolved(estimate.cost)
         return estimate
+
+    def _unresolved(self, cost: np.ndarray) -> np.ndarray:
+        """The variance the worlds' spread does not show, (G, 6) [m^2, rad^2], added to the reported
+        covariance (reported, not judged): the model's mismatch, growing with the lowest window
+        ``cost`` (G,) that no world explains, and the resolution of K worlds over the seeded region."""
+        cfg = self.config
+        mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / cfg.covariance_cost_ref, 0.0, 16.0)
+        return self._floor * mismatch[:, None] + self._seeded * (cfg.covariance_resolution / self.K)
 
     def _frame_ops(self) -> None:
         """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
