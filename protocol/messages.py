@@ -346,8 +346,9 @@ class Estimate(_Message):
     """The cost-weighted mean object pose over the session's worlds, (7,)."""
     covariance: Matrix6
     """Cost-weighted covariance of (position [m^2], rotation vector [rad^2], world frame) about
-    ``mean_pose``, (6, 6), plus the tracker's floor for what the physics cannot resolve (2 mm and
-    0.05 rad by default): the truth should lie in its 95 % region on about 95 % of frames."""
+    ``mean_pose``, (6, 6), plus what that spread cannot show: the model's mismatch (a floor that
+    grows with ``cost``) and how coarsely the worlds sample the start region: the truth should lie
+    in its 95 % region on about 95 % of frames."""
     cost: float
     """The best world's mean cost since the last optimizer update (eq. 3, dimensionless)."""
     mass: float

@@ -15,6 +15,7 @@ import pytest
 from protocol import TrackState
 from service.bench import SUITES, ground_truth, run_suite
 from service.bench.report import write_report
+from service.evaluation import CHI2_6DOF_95
 from service.paths import DATA_DIR
 from service.tracker import TrackerConfig
 
@@ -56,7 +57,11 @@ def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
         SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True, repeats=repeats,
         config=config,
     )  # fmt: skip
-    once, thrice = run(1), run(3, TrackerConfig(jitter_bandwidth=0.5))
+    once = run(1)
+    thrice = run_suite(
+        SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True, repeats=3,
+        config=TrackerConfig(jitter_bandwidth=0.5), frames_to=tmp_path / "frames.npz",
+    )  # fmt: skip
     assert once["tracker"] == {} and thrice["tracker"] == {"jitter_bandwidth": 0.5}  # the settings are reported
     assert thrice["repeats"] == 3 and len(thrice["tracks"]) == 3 * len(once["tracks"]) == 6
     first = [t for t in thrice["tracks"] if t["repeat"] == 0]
@@ -76,3 +81,13 @@ def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
     assert f"| OLP | {olp['mean_mm']:.2f} [{runs}] ± " in report, report
     assert "tracker settings other than the defaults: {'jitter_bandwidth': 0.5}" in report
     assert "## ADD of the lowest-cost world" in report
+    # The saved frames are what each track's coverage was judged on.
+    frames = np.load(tmp_path / "frames.npz")
+    index = json.loads(str(frames["tracks"]))
+    assert [(t["trajectory"], t["repeat"]) for t in index] == [(t["trajectory"], t["repeat"]) for t in thrice["tracks"]]
+    for i, track in enumerate(thrice["tracks"]):
+        error, covariance = frames[f"{i}/error"].astype(np.float64), frames[f"{i}/covariance"].astype(np.float64)
+        assert error.shape == (len(track["add_mm"]), 6) and covariance.shape == (len(track["add_mm"]), 6, 6)
+        d2 = np.einsum("fi,fi->f", error, np.linalg.solve(covariance + 1e-10 * np.eye(6), error[..., None])[..., 0])
+        assert np.mean(d2 <= CHI2_6DOF_95) == pytest.approx(track["coverage_95"], abs=1e-3)
+        assert np.isfinite(frames[f"{i}/cost"]).all() and frames[f"{i}/lost"].shape == error.shape[:1]

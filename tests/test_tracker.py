@@ -188,6 +188,27 @@ def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording
     assert counts[(1, 4)] == counts[(2, 16)], counts
 
 
+def test_the_reported_covariance_adds_the_unexplained_cost_and_the_start_regions_resolution(hand, recording):
+    tr = _tracker(hand, worlds=8)
+    tr.start(_noisy_start(recording), recording.initial_q, sigma_t=np.array([0.005, 0.01]), sigma_r=0.1)
+    cfg, floor = tr.config, np.array([0.002**2] * 3 + [0.05**2] * 3)
+    seeded = np.array([[0.005**2] * 3 + [0.1**2] * 3, [0.01**2] * 3 + [0.1**2] * 3])
+    resolution = seeded * cfg.covariance_resolution / 8
+    # A world that explains everything leaves the start region's resolution; at the reference cost
+    # the floor is the configured one; a lost population's huge or NaN cost is capped at 4x it.
+    at_reference = tr._unresolved(np.array([0.0, cfg.covariance_cost_ref]))
+    np.testing.assert_allclose(at_reference, resolution + np.stack([0 * floor, floor]), rtol=1e-6)
+    np.testing.assert_allclose(tr._unresolved(np.array([1e9, np.nan])), resolution + 16 * floor, rtol=1e-6)
+    assert (tr._unresolved(np.array([2.0, 0.0]))[0] > tr._unresolved(np.array([1.0, 0.0]))[0]).all()
+    est = tr.step(_frame(recording, 0))
+    added = tr._unresolved(est.cost)
+    assert (np.diagonal(est.covariance, axis1=1, axis2=2) >= added * (1 - 1e-5)).all()
+    # More worlds resolve the start region more finely.
+    many = _tracker(hand, worlds=32)
+    many.start(_noisy_start(recording), recording.initial_q, sigma_t=np.array([0.005, 0.01]), sigma_r=0.1)
+    np.testing.assert_allclose(many._unresolved(np.zeros(2)), resolution / 4, rtol=1e-6)
+
+
 def test_a_bad_frame_is_refused_with_the_field_and_shapes(hand, recording):
     tr = _tracker(hand, worlds=2)
     tr.start(recording.initial_pose, recording.initial_q)
