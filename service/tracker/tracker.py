@@ -47,6 +47,10 @@ _CONTACT_SPAN = float(np.log(4.0))
 factor of 4 either way spans soft rubber pads to rigid fingertips and MuJoCo's impratio from 2.5
 to 40."""
 
+_MISMATCH_CAP = 16.0
+"""The most the floor's variance grows with the cost (4x its deviation): a population that lost its
+object scores 1e9, and its region would cover the room; its status says so instead."""
+
 
 def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
@@ -366,7 +370,7 @@ class Tracker:
         covariance (reported, not judged): the model's mismatch, growing with the lowest window
         ``cost`` (G,) that no world explains, and the resolution of K worlds over the seeded region."""
         cfg = self.config
-        mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / cfg.covariance_cost_ref, 0.0, 16.0)
+        mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / cfg.covariance_cost_ref, 0.0, _MISMATCH_CAP)
         return self._floor * mismatch[:, None] + self._seeded * (cfg.covariance_resolution / self.K)
 
     def _frame_ops(self) -> None:
