@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
-__all__ = ["CHI2_6DOF_95", "add_error", "adds_error", "covered", "pose_error", "transform_points"]
+__all__ = ["CHI2_6DOF_95", "add_error", "adds_error", "covered", "pose_error", "transform_points", "within_region"]
 
 CHI2_6DOF_95 = 12.592
 """The 95 % quantile of a chi-square with 6 degrees of freedom: the reported 95 % region's bound."""
@@ -59,7 +59,12 @@ def covered(true_pose: np.ndarray, est_pose: np.ndarray, covariance: np.ndarray,
     ``covariance`` (..., 6, 6; position and rotation vector about ``est_pose``, as an Estimate's)
     within the 6-dof chi-square bound, (...,) bool. ``floor`` [m^2, rad^2] keeps a collapsed
     population's singular covariance invertible."""
-    delta = torch.as_tensor(pose_error(true_pose, est_pose))
+    return within_region(pose_error(true_pose, est_pose), covariance, floor)
+
+
+def within_region(error: np.ndarray, covariance: np.ndarray, floor: float = 1e-10) -> np.ndarray:
+    """:func:`covered` for a :func:`pose_error` already at hand, (..., 6) -> (...,) bool."""
+    delta = torch.as_tensor(np.asarray(error, np.float64))
     cov = torch.as_tensor(np.asarray(covariance, np.float64)) + floor * torch.eye(6, dtype=torch.float64)
     d2 = (delta[..., None, :] @ torch.linalg.solve(cov, delta[..., None]))[..., 0, 0]
     return (d2 <= CHI2_6DOF_95).numpy()

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from protocol import DEFAULT_WORLDS, TrackState, Trajectory
-from service.evaluation import add_error, adds_error, covered, pose_error
+from service.evaluation import add_error, adds_error, pose_error, within_region
 from service.paths import CACHE_DIR
 from service.tracker import METHODS, Frame, Tracker, TrackerConfig
 from service.tracker.sampling import sample_poses
@@ -273,8 +273,9 @@ def run_tracks(
         add = add_error(points, truth, poses)  # (F, G)
         add_best = add_error(points, truth, bests)
         add_s = adds_error(points[:200], truth[::_ADDS_EVERY], poses[::_ADDS_EVERY])
-        inside = covered(truth, poses, covariances)
-        error = pose_error(truth, poses).astype(np.float32)
+        error = pose_error(truth, poses)
+        inside = within_region(error, covariances)
+        error = error.astype(np.float32)
         for g, t in enumerate(group):
             n = int(rec.lengths[t.trajectory])
             name = rec.names[t.trajectory]

@@ -59,14 +59,11 @@ settings are compared with paired runs and `--repeats`, with standard errors.
 
 _TAIL = """## Reproduce
 
-- Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap,cross-engine}
-  --noise low,med,high --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--substeps N]
-  [--set NAME=VALUE] [--short]` writes `results.json`, `report.md` and charts to
-  `bench-results/accuracy-SUITE/`. The paper and reality-gap suites' truth comes from the
-  tracker's own simulator (the reality gap with its physics and sensors off); the cross-engine
-  suite's from MuJoCo C (the hand's MJCF, a 1 ms step, other motions, sensor noise). The same
-  three with a `-shadow` suffix run the Shadow Hand carrying the object on its palm. `--short`
-  runs a suite's first object and two kinds of 10 s tracks, as CI does.
+- Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap,cross-engine}[-shadow]
+  --noise low,med,high --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--set NAME=VALUE] [--short]
+  [--save-frames]` writes `results.json`, `report.md`, charts and (with `--save-frames`) each
+  frame's error, covariance and cost to `bench-results/accuracy-SUITE/`; the README describes the
+  suites' truths. `--short` runs a suite's first object and two kinds of 10 s tracks, as CI does.
 - Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8]
   [--caps default,4x4] --json > docs/results/speed/DEVICE.json`, one file per device.
 - The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
