@@ -285,12 +285,12 @@ def test_an_object_left_away_from_the_open_hand_is_tracked_not_lost(hand, record
 
 def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, recording):
     """Contact softness and impratio drawn per world reach MuJoCo's own arrays, follow a resample,
-    move at updates, and stay the model's for OLP and when the settings are off."""
+    move at updates, and stay the model's for OLP and in groups of fewer than contact_worlds."""
     spec, _ = hand
     pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
     tr = Tracker(
         pop,
-        TrackerConfig(softness_sigma0=0.5, impratio_sigma0=0.5, softness_sigma=0.1, impratio_sigma=0.1, update_every=3),
+        TrackerConfig(contact_gate_cost=0.0, contact_worlds=8, update_every=3),
         methods=["PBO", "OLP"],
     )
     tr.start(_noisy_start(recording), recording.initial_q)
@@ -320,7 +320,7 @@ def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, reco
     assert np.allclose(contacts()[0], explored[0, 3], rtol=1e-6)
     assert np.allclose(mjm.geom_solref.numpy()[:8, -1, 0], explored[0, 3, 0], rtol=1e-4)
 
-    off = _tracker(hand, worlds=8)
+    off = _tracker(hand, worlds=8, contact_gate_cost=0.0)  # fewer worlds than contact_worlds
     off.start(_noisy_start(recording), recording.initial_q)
     assert np.allclose(torch.stack([off.pop.params.timeconst, off.pop.params.impratio], -1).numpy(), nominal, rtol=1e-5)
 
@@ -343,3 +343,31 @@ def test_hypotheses_drawn_around_an_object_lying_on_a_palm_stay_on_the_hand():
         tracker.step(Frame(controls=q, q=q, force=np.zeros((1, pop.L, 3), np.float32)))
     away = torch.linalg.vector_norm(pop.object_coords[0, :, :3] - torch.as_tensor(start[:3]), dim=-1)
     assert float(away.max()) < 0.03, f"objects {away.tolist()} m from where they lay"
+
+
+def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(hand, recording):
+    """Gated, the worlds keep the model's contacts while their lowest cost stays under the gate;
+    with the gate under that cost they open after the set number of updates in a row, draw their
+    contacts, and explore them, except OLP's single world; a new session closes the gate."""
+    spec, _ = hand
+    for gate, opened in ((1e9, [False, False]), (1e-9, [True, False])):
+        pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
+        config = TrackerConfig(contact_gate_cost=gate, contact_gate_updates=2, contact_worlds=8, update_every=3)
+        tr = Tracker(pop, config, ["PBO", "OLP"])
+        tr.start(_noisy_start(recording), recording.initial_q)
+        nominal = np.array([pop.params.nominal_timeconst, pop.params.nominal_impratio])
+        opened_at = None
+        for f in range(recording.frames):
+            tr.step(_frame(recording, f))
+            if opened_at is None and tr.contacts_explored()[0]:
+                opened_at = f + 1
+        contacts = torch.stack([pop.params.timeconst, pop.params.impratio], -1).numpy()
+        assert tr.contacts_explored().tolist() == opened
+        assert np.allclose(contacts[1], nominal, rtol=1e-5), "OLP simulates the model"
+        if opened[0]:
+            assert opened_at is not None and opened_at >= 6, "two updates in a row above the gate first"
+            assert contacts[0].std(0).min() > 0
+        else:
+            assert np.allclose(contacts[0], nominal, rtol=1e-5)
+        tr.start(_noisy_start(recording), recording.initial_q)
+        assert not tr.contacts_explored().any(), "a new session starts with the model's contacts"

@@ -115,6 +115,9 @@ class TrackResult:
         said = [(self.status[f : f + within + 1] != TrackState.TRACKING).any() for f in onsets]
         return len(onsets), int(np.sum(said))
 
+    contacts_explored: bool | None = None
+    """Whether the tracker's worlds explored their contacts by the track's end: its lowest cost
+    said the model's contacts were wrong (:attr:`TrackerConfig.contact_gate_cost`)."""
     open_loop: np.ndarray | None = field(default=None, repr=False)
     """ADD of the tracker's physics run open loop from the true start with the true mass and
     friction, per frame, (F,) [m]: how far the engines disagree about this track's motion."""
@@ -128,6 +131,7 @@ class TrackResult:
             "add_max_mm": float(self.add.max() * 1e3),
             "best_world_add_mean_mm": float(self.add_best.mean() * 1e3),
             "diverged_frames": self.diverged,
+            **({} if self.contacts_explored is None else {"contacts_explored": self.contacts_explored}),
             **({} if self.add_s is None else {"add_s_mean_mm": float(self.add_s.mean() * 1e3)}),
             **({} if self.covered is None else {"coverage_95": float(self.covered.mean())}),
             **(
@@ -269,6 +273,7 @@ def run_tracks(
                 tracker.observe(int(g), noisy, cov)
             if progress:
                 progress(len(group) * k)
+        explored = tracker.contacts_explored()
         truth = rec.object_pose[:, rows]
         add = add_error(points, truth, poses)  # (F, G)
         add_best = add_error(points, truth, bests)
@@ -284,7 +289,7 @@ def run_tracks(
             results.append(
                 TrackResult(t, name, obj.name, add[:n, g], add_best[:n, g], int(diverged[g]),
                             add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g], statuses[:n, g],
-                            events[t.trajectory], frames)
+                            events[t.trajectory], frames, bool(explored[g]))
             )  # fmt: skip
     return results
 

@@ -111,6 +111,12 @@ class Tracker:
         """The model's contact time constant [s] and impratio, (2,)."""
         self._contact_sigma0 = torch.tensor([cfg.softness_sigma0, cfg.impratio_sigma0], device=dev)
         self._contact_sigma = torch.tensor([cfg.softness_sigma, cfg.impratio_sigma], device=dev)
+        spreads = (cfg.softness_sigma0, cfg.impratio_sigma0, cfg.softness_sigma, cfg.impratio_sigma)
+        self._explores_contacts = max(spreads) > 0 and self.K >= max(2, cfg.contact_worlds)  # one world is the model
+        self._contacts_open = torch.zeros(self.G, dtype=torch.bool, device=dev)
+        """Whether each group's worlds explore their contacts, (G,) bool (:attr:`TrackerConfig.contact_gate_cost`)."""
+        self._mismatched_updates = torch.zeros(self.G, dtype=torch.int32, device=dev)
+        """Updates in a row on which each group's lowest window cost was above the gate, (G,)."""
         scale = np.ones(self.G) if exploration is None else np.asarray(exploration, dtype=np.float64)
         if scale.shape != (self.G,) or (scale < 0).any():
             raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
@@ -174,6 +180,10 @@ class Tracker:
             self.frame = self.window_frames = 0
             self._window_frames.zero_()
         self.cost.reset(torch.as_tensor(mask, device=self.device))
+        started = torch.as_tensor(mask, device=self.device)
+        ungated = self._explores_contacts and cfg.contact_gate_cost <= 0
+        self._contacts_open.masked_fill_(started, False).logical_or_(started & ~self._olp & ungated)
+        self._mismatched_updates.masked_fill_(started, 0)
         self._seed(mask, p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
                    cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
@@ -227,7 +237,8 @@ class Tracker:
         sel = torch.as_tensor(groups, device=dev)[:, None]
         mass = torch.where(sel, mass, self.pop.mass)
         friction = torch.where(sel, friction, self.pop.friction)
-        drawn = self._contacts_around_model().masked_fill(open_loop[..., None], 0.0).exp()
+        # A re-seeded group whose contacts were found wrong draws them again; the others keep the model's.
+        drawn = self._contacts_around_model().masked_fill(~self._contacts_open[:, None, None], 0.0).exp()
         timeconst, impratio = torch.where(sel[..., None], drawn * self._nominal_contacts, self._contacts()).unbind(-1)
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
@@ -465,21 +476,43 @@ class Tracker:
             }
         )
 
+    def contacts_explored(self) -> np.ndarray:
+        """Whether each group's worlds explore their contacts now, (G,) bool: the model's contacts
+        were found wrong (:attr:`TrackerConfig.contact_gate_cost`). Reads the device."""
+        return self._contacts_open.cpu().numpy()
+
+    def _gate_contacts(self, explores: torch.Tensor) -> torch.Tensor:
+        """Count the updates in a row on which each group's lowest window cost among the worlds
+        that hold the object stayed above the gate, and open the contact exploration of the groups
+        ``explores`` (G,) bool where that count is reached. Returns the groups opened now, (G,)."""
+        cfg = self.config
+        window = self.window / self._window_frames
+        lowest = torch.where(window < HELD_COST, window, torch.inf).amin(-1)
+        mismatched = torch.isfinite(lowest) & (lowest > cfg.contact_gate_cost)
+        self._mismatched_updates.add_(1).mul_(mismatched)
+        opens = (self._mismatched_updates >= cfg.contact_gate_updates) & explores & ~self._contacts_open
+        self._contacts_open.logical_or_(opens)
+        return opens
+
     def _update_ops(self) -> None:
         """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
         upd = update(self._scored(), cfg.optimizer, self.gen, self.methods, self._rows)
+        explores = upd.explore.any(-1) & ~self._olp & (self._exploration > 0)
+        opens = self._gate_contacts(explores) if self._explores_contacts else None
         self.pop._resample(upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
             mass = self._explore(self.pop.mass, cfg.mass_sigma * scale, self._mass_range, explore)
             friction = self._explore(self.pop.friction, cfg.friction_sigma * scale, self._friction_range, explore)
             contacts = None
-            if cfg.softness_sigma > 0 or cfg.impratio_sigma > 0:
+            if opens is not None:
                 model = (self._contacts() / self._nominal_contacts).log()
                 sigma = self._contact_sigma * scale[..., None]
                 step = clipped_normal(model, sigma, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
-                contacts = (torch.where(explore[..., None], step, model).exp() * self._nominal_contacts).unbind(-1)
+                logs = torch.where((explore & self._contacts_open[:, None])[..., None], step, model)
+                logs = torch.where(opens[:, None, None], self._contacts_around_model(), logs)
+                contacts = (logs.exp() * self._nominal_contacts).unbind(-1)
             self.pop._write_params(mass, friction, *(contacts or ()))
             wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
@@ -505,7 +538,7 @@ class Tracker:
         """Logarithms of each world's contact time constant and impratio relative to the model's,
         drawn with their initial spreads and clipped to a factor of 4, (G, K, 2)."""
         zero = torch.zeros(self.G, self.K, 2, device=self.device)
-        if self.config.softness_sigma0 <= 0 and self.config.impratio_sigma0 <= 0:
+        if not self._explores_contacts or (self.config.softness_sigma0 <= 0 and self.config.impratio_sigma0 <= 0):
             return zero  # draws nothing: the generator's stream is what it was without them
         return clipped_normal(zero, self._contact_sigma0, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
 
