@@ -410,3 +410,7 @@ class SessionStatus(_Message):
     """The service's frame budget [ms] (0: none)."""
     load_ms: float = 0.0
     """The service's populations' p99 step times, summed [ms]."""
+    contacts_explored: bool = False
+    """Whether the session's worlds explore their contacts' softness and impratio: their lowest
+    cost said the model's contacts are wrong (a session of 1024 worlds or more; the tracker's
+    ``contact_gate_cost``)."""

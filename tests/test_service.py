@@ -356,3 +356,28 @@ def test_an_object_from_a_mesh_file_is_tracked_through_the_service_by_a_setting(
             estimate = client.latest_pose(timeout=120, after_seq=i)
         assert estimate.status == "tracking" and abs(estimate.pose[2] - 0.03) < 0.005
         client.close_session()
+
+
+def test_status_says_when_a_session_s_worlds_explore_their_contacts():
+    """A session whose lowest cost stays above its contact gate says so in its status; one whose
+    gate is closed does not."""
+    from service.server import ServiceConfig, SessionManager
+    from sim_backend import load_catalog, load_robot
+
+    traj = Trajectory.load(TRAJECTORY)
+    robot = load_robot(ROOT / "configs/robots/allegro.toml")
+    manager = SessionManager(ServiceConfig(groups=1, device="cpu", rate_hz=0), {robot.name: robot}, load_catalog())
+    gate = {"contact_worlds": 4, "contact_gate_updates": 2}
+    opened = {}
+    for cost in (1e-9, 1e9):
+        info = manager.open(
+            OpenSession(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose, q0=traj.truth.initial_q,
+                        worlds=4, overrides=gate | {"contact_gate_cost": cost})
+        )  # fmt: skip
+        pool = manager.sessions[info.session].pool
+        assert not manager.status(info.session, info.token).contacts_explored
+        for i in range(60):  # the fingers close on the brick from frame 41
+            manager.submit(traj.frame(i, info.session, token=info.token))
+            manager.step(pool)
+        opened[cost] = manager.status(info.session, info.token).contacts_explored
+    assert opened == {1e-9: True, 1e9: False}

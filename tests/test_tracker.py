@@ -356,13 +356,13 @@ def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(h
         tr = Tracker(pop, config, ["PBO", "OLP"])
         tr.start(_noisy_start(recording), recording.initial_q)
         nominal = np.array([pop.params.nominal_timeconst, pop.params.nominal_impratio])
-        opened_at = None
+        opened_at, est = None, None
         for f in range(recording.frames):
-            tr.step(_frame(recording, f))
-            if opened_at is None and tr.contacts_explored()[0]:
+            est = tr.step(_frame(recording, f))
+            if opened_at is None and est.contacts_explored[0]:
                 opened_at = f + 1
         contacts = torch.stack([pop.params.timeconst, pop.params.impratio], -1).numpy()
-        assert tr.contacts_explored().tolist() == opened
+        assert est.contacts_explored.tolist() == opened
         assert np.allclose(contacts[1], nominal, rtol=1e-5), "OLP simulates the model"
         if opened[0]:
             assert opened_at is not None and opened_at >= 6, "two updates in a row above the gate first"
@@ -370,4 +370,4 @@ def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(h
         else:
             assert np.allclose(contacts[0], nominal, rtol=1e-5)
         tr.start(_noisy_start(recording), recording.initial_q)
-        assert not tr.contacts_explored().any(), "a new session starts with the model's contacts"
+        assert not tr.step(_frame(recording, 0)).contacts_explored.any(), "a new session starts with the model's"

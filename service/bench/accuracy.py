@@ -273,7 +273,7 @@ def run_tracks(
                 tracker.observe(int(g), noisy, cov)
             if progress:
                 progress(len(group) * k)
-        explored = tracker.contacts_explored()
+        explored = est.contacts_explored
         truth = rec.object_pose[:, rows]
         add = add_error(points, truth, poses)  # (F, G)
         add_best = add_error(points, truth, bests)

@@ -100,6 +100,7 @@ class _Session:
     """The robot clock of the newest frame accepted [s]."""
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     latest: Estimate | None = None
+    contacts_explored: bool = False
     failed: str | None = None
     """Why the session's population failed; it takes no more frames then."""
     notice: str | None = None
@@ -659,6 +660,7 @@ class SessionManager:
                 notice=s.notice,
             )
             s.notice = None
+            s.contacts_explored = bool(est.contacts_explored[g])
             out.append(s.latest)
         return out
 
@@ -699,6 +701,7 @@ class SessionManager:
             reseeds_by_observation=s.reseeds_by_observation,
             budget_ms=self.budget_ms if self.config.rate_hz else 0.0,
             load_ms=self.load_ms(),
+            contacts_explored=s.contacts_explored,
         )
 
     def count_error(self, session_id: str, message: str) -> None:

@@ -86,6 +86,7 @@ ESTIMATE = Columns.of(
         "hand": (3,),
         "modes": (2, 7),
         "mode_weights": (2,),
+        "contacts_explored": (),
     }
 )
 """The packed estimate: what one device-to-host copy per frame carries for every group."""
@@ -172,6 +173,9 @@ class GroupEstimates:
     world's away from it."""
     mode_weights: np.ndarray | None = None
     """The share of the cost weights in each mode, (G, 2)."""
+    contacts_explored: np.ndarray | None = None
+    """Whether each group's worlds explore their contacts, (G,) bool: its lowest cost said the
+    model's contacts are wrong (:attr:`.TrackerConfig.contact_gate_cost`)."""
 
     @classmethod
     def unpack(cls, rows: np.ndarray, frame: int, status: np.ndarray) -> GroupEstimates:
@@ -191,4 +195,5 @@ class GroupEstimates:
             status=status,
             modes=v("modes"),
             mode_weights=v("mode_weights"),
+            contacts_explored=v("contacts_explored") > 0.5,
         )

@@ -473,13 +473,9 @@ class Tracker:
                 "hand": self.real.sensor_pos.mean(1),
                 "modes": modes,
                 "mode_weights": mode_weights,
+                "contacts_explored": self._contacts_open.float(),
             }
         )
-
-    def contacts_explored(self) -> np.ndarray:
-        """Whether each group's worlds explore their contacts now, (G,) bool: the model's contacts
-        were found wrong (:attr:`TrackerConfig.contact_gate_cost`). Reads the device."""
-        return self._contacts_open.cpu().numpy()
 
     def _gate_contacts(self, explores: torch.Tensor) -> torch.Tensor:
         """Count the updates in a row on which each group's lowest window cost among the worlds
