@@ -69,6 +69,9 @@ class Recovery:
         """The real hand's position (the mean of its sensor positions) at the last trusted frame, (G, 3) [m]."""
         self._trusted_held = np.zeros(groups, bool)
         """Whether the real hand touched the object at the last trusted frame, (G,)."""
+        self._cost_level = np.full(groups, np.nan)
+        """The best world's window cost, averaged over the last ``surprise_frames``, (G,); NaN
+        before a group's first frame."""
 
     def start(self, p0: np.ndarray, mask: np.ndarray) -> None:
         """Groups ``mask`` (G,) start tracking from ``p0`` (G, 7)."""
@@ -79,6 +82,7 @@ class Recovery:
         self.status[mask] = TrackState.TRACKING
         self._recovering[mask] = 0
         self._contact_loss[mask] = 0
+        self._cost_level[mask] = np.nan
 
     def reseeded(self, anchor: np.ndarray, mask: np.ndarray) -> None:
         """Groups ``mask`` (G,) were re-seeded around ``anchor`` (G, 7) from a pose observation."""
@@ -99,8 +103,10 @@ class Recovery:
         self._contact_loss = np.where(lost_contact, self._contact_loss + 1, 0)
         diverged = (est.lost > cfg.lost_fraction) | (self._contact_loss >= cfg.contact_loss_frames)
         spread = point_spread(est.covariance, self.moment)
-        status = np.where(spread > cfg.uncertain_spread, TrackState.UNCERTAIN, TrackState.TRACKING)
-        status = np.where(est.mode_weights[:, 1] >= cfg.ambiguous_weight, TrackState.AMBIGUOUS, status)
+        unsure = spread > cfg.uncertain_spread
+        ambiguous = est.mode_weights[:, 1] >= cfg.ambiguous_weight
+        status = np.where(unsure | self._surprised(est.cost), TrackState.UNCERTAIN, TrackState.TRACKING)
+        status = np.where(ambiguous, TrackState.AMBIGUOUS, status)
         status = np.where(recovering, TrackState.RECOVERING, status)
         status = np.where(diverged, TrackState.DIVERGED, status)
         touching = np.zeros(self.G, bool)
@@ -112,8 +118,9 @@ class Recovery:
         # those frames' pose (the object knocked out of every simulated hand) made the anchor. An
         # uncertain frame whose best world agrees on every sensor does count: a grasp that only
         # a few worlds made is uncertain until the lift, and anchoring before it put the
-        # hypotheses back on the table under the lifted object.
-        tracking = (status == TrackState.TRACKING) & ~lost_contact
+        # hypotheses back on the table under the lifted object. A surprise in the cost alone
+        # (a sudden slip) does not hold the anchor back: the contacts' agreement says more.
+        tracking = ~(unsure | ambiguous | recovering | diverged | lost_contact)
         trusted = tracking | (~diverged & (est.contact_disagreement == 0))
         self.trusted[trusted] = est.pose[trusted]
         self._trusted_hand[trusted] = hand[trusted]
@@ -139,3 +146,15 @@ class Recovery:
             self._contact_loss[diverged] = 0
         self.status[:] = status
         return out
+
+    def _surprised(self, cost: np.ndarray) -> np.ndarray:
+        """Whether each group's best window cost ``cost`` (G,) jumped above its recent level
+        (:attr:`TrackerConfig.surprise_ratio`), (G,) bool; then folds it into that level."""
+        cfg = self.config
+        fresh = np.isnan(self._cost_level)
+        level = np.where(fresh, cost, self._cost_level)
+        surprised = (cfg.surprise_ratio > 0) & (cost > cfg.surprise_ratio * level) & (cost > cfg.surprise_cost)
+        # A group whose worlds all lost the object scores inf: the lost-fraction rule's case, and
+        # no level to learn.
+        self._cost_level = np.where(np.isfinite(cost), level + (cost - level) / cfg.surprise_frames, self._cost_level)
+        return surprised & ~fresh
