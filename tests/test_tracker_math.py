@@ -357,3 +357,7 @@ def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
     assert not uncertain[:, 1:].any(), uncertain
     # The anchor for a re-seed still follows the estimate: the contacts agreed throughout.
     assert anchors[-1] == pytest.approx(0.05 - 0.001 * (len(costs) - 1))
+    for bad, words in [({"surprise_frames": 0}, "surprise_frames: expected >= 1 frame, got 0"),
+                       ({"surprise_ratio": -1.0}, "surprise_ratio: expected >= 0, got -1.0")]:  # fmt: skip
+        with pytest.raises(ValueError, match=words):
+            TrackerConfig(**bad)
