@@ -49,13 +49,16 @@ def _tracker(hand, worlds: int, groups: int = 2, **cfg) -> Tracker:
 def test_tracks_the_pick_with_sane_estimates_and_is_deterministic(hand, recording):
     points = catalog_object(OBJECT).surface_points(1000)
     runs = []
-    for _ in range(2):
-        tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="EYE"), seed=3)
+    # The second run's status calls every rise of the cost a surprise: what the status says must
+    # not feed back into the tracking.
+    for surprise in ({}, {"surprise_ratio": 1.0, "surprise_cost": 0.0}):
+        tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="EYE"), seed=3, **surprise)
         tr.start(_noisy_start(recording), recording.initial_q)
         estimates = [tr.step(_frame(recording, f)) for f in range(recording.frames)]
         runs.append(estimates)
     a, b = runs
     assert all(np.array_equal(x.pose, y.pose) for x, y in zip(a, b, strict=True)), "same seed, same estimates"
+    assert any((x.status != y.status).any() for x, y in zip(a, b, strict=True)), "the status rule never fired"
     last = a[-1]
     add = add_error(points, recording.object_pose[-1], last.pose)
     assert (add < 0.03).all(), f"final ADD {add * 1e3} mm"
@@ -68,24 +71,45 @@ def test_tracks_the_pick_with_sane_estimates_and_is_deterministic(hand, recordin
     assert np.abs(last.mean_pose[:, :3] - last.pose[:, :3]).max() < 0.02
 
 
-def test_dropping_every_world_diverges_then_recovers(hand, recording):
-    tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="PBO"), recover_frames=10)
+def _knocked_out(hand, recording, **cfg) -> tuple[np.ndarray, np.ndarray]:
+    """Track the recording while every simulated object is knocked out of the hand at frame 100
+    (the real one stays held); each frame's status and pose, (F, G) and (F, G, 7)."""
+    tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="PBO"), recover_frames=10, **cfg)
     tr.start(_noisy_start(recording), recording.initial_q)
-    statuses = []
+    statuses, poses = [], []
     for f in range(recording.frames):
-        if f == 100:  # knock every simulated object out of the hand; the real one stays held
+        if f == 100:
             push = torch.zeros(tr.G, tr.K, 6)
             push[..., 2] = -300.0
             tr.pop.set_wrench(push)
-        statuses.append(tr.step(_frame(recording, f)).status.copy())
-    statuses = np.array(statuses)
+        est = tr.step(_frame(recording, f))
+        statuses.append(est.status.copy())
+        poses.append(est.pose.copy())
+    return np.array(statuses), np.array(poses)
+
+
+@pytest.fixture(scope="module")
+def knocked_out(hand, recording):
+    return _knocked_out(hand, recording)
+
+
+def test_dropping_every_world_diverges_then_recovers(hand, recording, knocked_out):
+    statuses, _ = knocked_out
     after_drop = statuses[100:]
-    for g in range(tr.G):
+    for g in range(statuses.shape[1]):
         diverged = np.flatnonzero(after_drop[:, g] == Status.DIVERGED)
         assert len(diverged), f"group {g} never noticed that every world lost the object"
         first = diverged[0]
         assert first <= 10, f"group {g} took {first} frames to notice"
         assert after_drop[first + 1, g] == Status.RECOVERING
+
+
+def test_a_surprised_status_re_seeds_the_lost_worlds_where_a_calm_one_does(hand, recording, knocked_out):
+    """The cost's surprise is a report: the re-seed after the knock-out lands where it does
+    without it (the anchor follows the contacts' agreement, not the status)."""
+    statuses, poses = _knocked_out(hand, recording, surprise_ratio=1.0, surprise_cost=0.0)
+    assert (statuses != knocked_out[0]).any(), "the status rule never fired"
+    assert np.array_equal(poses, knocked_out[1])
 
 
 def test_a_real_drop_puts_the_hypotheses_on_the_table(hand, recording):
