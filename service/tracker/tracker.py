@@ -416,6 +416,15 @@ class Tracker:
         (uniform right after an update, before any frame was scored)."""
         return estimate_pmf(torch.nan_to_num(self._scored(), nan=0.0), self.config.estimate_lambda)
 
+    def _window(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The window's mean cost per world, (G, K), and its highest and lowest among the worlds
+        that still hold the object, (G, 1) each (-inf and inf where none does)."""
+        window = self.window / self._window_frames
+        held = window < HELD_COST
+        top = torch.where(held, window, -torch.inf).amax(-1, keepdim=True)
+        bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
+        return window, top, bottom
+
     def _scored(self) -> torch.Tensor:
         """The window's mean cost per world with the pose observations' evidence added, (G, K).
         The evidence is scaled by the spread of the contact costs of the worlds that still hold
@@ -423,10 +432,7 @@ class Tracker:
         spread, so an observation weighs the same whatever the cost's units; where the contact
         costs do not separate the worlds (before the grasp), it weighs as the optimizers' least
         meaningful spread, and the observation decides."""
-        window = self.window / self._window_frames
-        held = window < HELD_COST
-        top = torch.where(held, window, -torch.inf).amax(-1, keepdim=True)
-        bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
+        window, top, bottom = self._window()
         # At least the spread below which the optimizers see only noise and skip the update: where
         # contact does not separate the worlds (before the grasp, or with the object left on the
         # table) the observation alone must be able to move them.
@@ -482,8 +488,7 @@ class Tracker:
         that hold the object stayed above the gate, and open the contact exploration of the groups
         ``explores`` (G,) bool where that count is reached. Returns the groups opened now, (G,)."""
         cfg = self.config
-        window = self.window / self._window_frames
-        lowest = torch.where(window < HELD_COST, window, torch.inf).amin(-1)
+        lowest = self._window()[2][:, 0]
         mismatched = torch.isfinite(lowest) & (lowest > cfg.contact_gate_cost)
         self._mismatched_updates.add_(1).mul_(mismatched)
         opens = (self._mismatched_updates >= cfg.contact_gate_updates) & explores & ~self._contacts_open
@@ -494,8 +499,9 @@ class Tracker:
         """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
         upd = update(self._scored(), cfg.optimizer, self.gen, self.methods, self._rows)
-        explores = upd.explore.any(-1) & ~self._olp & (self._exploration > 0)
-        opens = self._gate_contacts(explores) if self._explores_contacts else None
+        opens = None
+        if self._explores_contacts:
+            opens = self._gate_contacts(upd.explore.any(-1) & ~self._olp & (self._exploration > 0))
         self.pop._resample(upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
