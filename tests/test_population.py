@@ -359,6 +359,38 @@ def test_users_robot_from_urdf_named_in_a_config():
     assert pop.obs.q[0, 0, 0] < -0.002 and pop.obs.q[0, 0, 1] > 0.002
 
 
+def test_the_wrist_slides_along_world_x_y_z_then_turns_yaw_pitch_and_roll():
+    """The procedural hand's wrist is one joint of six axes, without links of its own: the palm
+    stands at (x, y, z), turned by yaw about world z, pitch about the turned y, the palm's own turn
+    (facing the table, fingers along world +x), then roll about the palm's normal; so the model
+    has one tree level for the arm, not six."""
+    import newton
+    from scipy.spatial.transform import Rotation
+
+    from sim_backend import HandSpec, add_robot
+
+    builder = newton.ModelBuilder()
+    newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
+    layout = add_robot(builder, HandSpec())
+    model = builder.finalize(device="cpu")
+    assert model.body_count == 17 and layout.dof_count == 22  # palm and 16 finger links
+    palm = next(b for b in range(model.body_count) if model.body_label[b].endswith("palm"))
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        q = layout.default_q.copy()
+        q[:6] = rng.uniform(-0.5, 0.5, 6) + np.array([0.0, 0.0, 0.3, 0.0, 0.0, 0.0])
+        state = model.state()
+        joint_q = state.joint_q.numpy()
+        joint_q[layout.coord_indices] = q
+        state.joint_q.assign(joint_q)
+        newton.eval_fk(model, state.joint_q, state.joint_qd, state)
+        pose = state.body_q.numpy()[palm]
+        turn = Rotation.from_euler("y", 90, degrees=True)
+        expected = Rotation.from_euler("ZY", q[3:5]) * turn * Rotation.from_euler("x", q[5])
+        np.testing.assert_allclose(pose[:3], q[:3], atol=1e-6)
+        assert (expected.inv() * Rotation.from_quat(pose[3:])).magnitude() < 1e-5
+
+
 def test_shadow_hand_from_its_pypi_package_loads_every_shape_and_feels_what_lies_on_its_palm():
     """A second real hand by files alone: the MJCF that gymnasium-robotics installs, named by
     python:// paths, with its tendons; the object lies on the upturned palm and the curled fingers

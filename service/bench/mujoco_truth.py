@@ -83,9 +83,15 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
         raise RuntimeError(f"{xml}: the MJCF read back differs from the model written")
     model.opt.timestep = STEP
     body_of = {int(n): b for b, n in enumerate(solver.mjc_body_to_newton.numpy()[0]) if n >= 0}
-    coord_of_joint = built.model.joint_q_start.numpy()
+    q_start, qd_start = built.model.joint_q_start.numpy(), built.model.joint_qd_start.numpy()
     joint_to_newton = solver.mjc_jnt_to_newton_jnt.numpy()[0]
-    qpos_of_coord = {int(coord_of_joint[n]): int(model.jnt_qposadr[j]) for j, n in enumerate(joint_to_newton) if n >= 0}
+    joint_to_dof = solver.mjc_jnt_to_newton_dof.numpy()[0]
+    # A Newton joint of several axes (the wrist's D6) becomes one MuJoCo joint per axis.
+    qpos_of_coord = {
+        int(q_start[n] + joint_to_dof[j] - qd_start[n]): int(model.jnt_qposadr[j])
+        for j, n in enumerate(joint_to_newton)
+        if n >= 0
+    }
     lay = built.layout
     qpos = np.array([qpos_of_coord[int(c)] for c in lay.coord_indices])
     d_of_qpos = {int(a): d for d, a in enumerate(qpos)}
