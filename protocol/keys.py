@@ -71,10 +71,16 @@ class Keys:
         return f"{self.root}/s/{check_name('session', session)}/robot"
 
     def every(self, kind: str) -> str:
-        """The wildcard over all sessions' ``kind`` keys (frame, observation, pose, status, robot)."""
-        if kind not in ("frame", "observation", "pose", "status", "robot"):
-            raise ValueError(f"key kind: expected frame, observation, pose, status or robot, got {kind!r}")
+        """The wildcard over all sessions' ``kind`` keys (frame, observation, pose, status, robot),
+        or over all their keys (``*``)."""
+        if kind not in ("frame", "observation", "pose", "status", "robot", "*"):
+            raise ValueError(f"key kind: expected frame, observation, pose, status, robot or *, got {kind!r}")
         return f"{self.root}/s/*/{kind}"
+
+    @staticmethod
+    def kind_of(key: str) -> str:
+        """The last chunk of a per-session key: frame, observation, pose, status or robot."""
+        return str(key).rsplit("/", 1)[-1]
 
     @staticmethod
     def services(kind: str) -> str:

@@ -3,8 +3,8 @@ owns the GPU (the :class:`SessionManager`) and publishes every estimate, and a b
 that builds new populations between the loop's steps, so that an open never freezes the others.
 
 Keys (protocol/keys.py): a liveliness token ``alive``; queryables ``info``, ``rpc/open``,
-``rpc/close``, ``s/*/pose`` (latest estimate) and ``s/*/status``; a subscriber on ``s/*/frame``;
-a liveliness subscriber on ``s/*/robot`` that closes a session whose robot is gone past the
+``rpc/close``, ``s/*/pose`` (latest estimate) and ``s/*/status``; one subscriber on ``s/*/*`` for
+the robots' frames and observations, in the order they arrive; a liveliness subscriber on ``s/*/robot`` that closes a session whose robot is gone past the
 timeout.
 """
 
@@ -130,8 +130,11 @@ class TrackerNode:
             s.declare_queryable(keys.close, self._on_close),
             s.declare_queryable(keys.every("pose"), self._on_pose),
             s.declare_queryable(keys.every("status"), self._on_status),
-            s.declare_subscriber(keys.every("frame"), self._on_frame),
-            s.declare_subscriber(keys.every("observation"), self._on_observation),
+            # One subscriber for what robots publish: zenoh-python runs each subscriber's callback
+            # on a thread of its own, so with one for frames and one for observations a frame could
+            # reach the tracker before an observation that arrived ahead of it on the link. Remote
+            # only: the session's keys also carry this service's own estimates.
+            s.declare_subscriber(keys.every("*"), self._on_robot_sample, allowed_origin=zenoh.Locality.REMOTE),
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
@@ -261,6 +264,13 @@ class TrackerNode:
         self._reply(query, request if isinstance(request, Error) else self._call("status", request))
 
     @_guarded
+    def _on_robot_sample(self, sample: zenoh.Sample) -> None:
+        kind = Keys.kind_of(sample.key_expr)
+        if kind == "frame":
+            self._on_frame(sample)
+        elif kind == "observation":
+            self._on_observation(sample)
+
     def _on_frame(self, sample: zenoh.Sample) -> None:
         received = time.perf_counter()
         session = self.keys.session_of(sample.key_expr)
@@ -280,7 +290,6 @@ class TrackerNode:
             return
         self._inbox.put(("frame", (frame, received), None))
 
-    @_guarded
     def _on_observation(self, sample: zenoh.Sample) -> None:
         session = self.keys.session_of(sample.key_expr)
         try:
