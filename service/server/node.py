@@ -4,8 +4,8 @@ that builds new populations between the loop's steps, so that an open never free
 
 Keys (protocol/keys.py): a liveliness token ``alive``; queryables ``info``, ``rpc/open``,
 ``rpc/close``, ``s/*/pose`` (latest estimate) and ``s/*/status``; one subscriber on ``s/*/*`` for
-the robots' frames and observations, in the order they arrive; a liveliness subscriber on ``s/*/robot`` that closes a session whose robot is gone past the
-timeout.
+the robots' frames and observations, in the order they arrive; a liveliness subscriber on
+``s/*/robot`` that closes a session whose robot is gone past the timeout.
 """
 
 from __future__ import annotations
