@@ -27,10 +27,15 @@ _SPEED_ABOUT = (
 )
 
 
+def _number(x: float) -> str:
+    """1e-4 rather than 0.0001 or 1e-04: as the settings are written."""
+    return f"{x:.0e}".replace("e-0", "e-") if x < 1e-3 else f"{x:g}"
+
+
 def _solver(r: dict) -> str:
     budget = f"{r['iterations']} / {r['ls_iterations']}"
     if "tolerance" in r:  # files written before the tolerances were settings of `bench speed` lack them
-        budget += f", tolerances {r['tolerance']:g} / {r['ls_tolerance']:g}"
+        budget += f", tolerances {_number(r['tolerance'])} / {_number(r['ls_tolerance'])}"
     return f"{r['solver']} ({budget})"
 
 
