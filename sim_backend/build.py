@@ -105,6 +105,8 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
             ls_tolerance=cfg.ls_tolerance,
             nconmax=cfg.contacts_per_world,
             njmax=cfg.constraints_per_world,
+            # No root is ever switched to kinematic, so no unused weld constraints (two kernels a substep).
+            kinematic_switchable_roots=False,
         )
         # Iteration-limit warnings are printf'd from inside kernels, once per world and step;
         # at thousands of worlds they flood the log. Non-converged steps still finish.

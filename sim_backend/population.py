@@ -197,7 +197,9 @@ class Population:
                           inputs=[self._goal, self._last_goal, (i + 1) / cfg.substeps, self._coords, s["coord_index"]],
                           outputs=[self.control.joint_target_q])  # fmt: skip
             self.pipeline.collide(s_in, self.contacts)
-            self.solver.step(s_in, s_out, self.control, self.contacts, dt, observables=self._observables)
+            # Only the last substep's contact forces are observed: earlier ones would be overwritten.
+            observables = self._observables if i == cfg.substeps - 1 else None
+            self.solver.step(s_in, s_out, self.control, self.contacts, dt, observables=observables)
         b.wrench.zero_()  # a perturbation lasts one frame
         if cfg.ramp_targets:
             wp.copy(self._last_goal, self._goal)
