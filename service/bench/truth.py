@@ -33,11 +33,11 @@ from .mujoco_truth import MujocoScene, export_scene, record_mujoco
 from .palm_motions import make_palm_motion
 from .suites import SensorNoise, Suite, robot_spec
 
-__all__ = ["TRUTH_SOLVER", "ground_truth", "open_loop_disagreement"]
+__all__ = ["ground_truth", "open_loop_disagreement"]
 
 log = logging.getLogger(__name__)
 
-TRUTH_SOLVER = {"tolerance": 1e-6, "ls_tolerance": 0.01}
+_TRUTH_SOLVER = {"tolerance": 1e-6, "ls_tolerance": 0.01}
 """The truth's solver converges as far as the solver's own defaults take it: the tracker's
 looser budget is a speed setting, and a truth recorded with it would move with it (and no
 longer match a cached one)."""
@@ -138,7 +138,7 @@ def _held_newton(
         substeps=suite.gap.substeps,
         impratio=suite.gap.impratio,
         ramp_targets=suite.gap.ramp_targets,
-        **TRUTH_SOLVER,
+        **_TRUTH_SOLVER,
     )
     truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
     return _held_recording(truth, demos, rng, margin)
@@ -156,7 +156,7 @@ def _dropped(
         at[g] = (starts["carry"] + carry_end) // 2
     config = PopulationConfig(
         groups=len(demos), worlds=1, device=device, substeps=suite.gap.substeps, impratio=suite.gap.impratio,
-        ramp_targets=suite.gap.ramp_targets, **TRUTH_SOLVER,
+        ramp_targets=suite.gap.ramp_targets, **_TRUTH_SOLVER,
     )  # fmt: skip
     truth = Population(spec, obj.scaled(suite.gap.object_scale), config)
     return record(truth, demos, held.mass, held.friction, slip_from=at), at
