@@ -1,14 +1,18 @@
 """Simulation backend: K worlds of hand + object per group on Newton, stepped as one graph."""
 
-from .build import BuiltModel, Physics, build_model, make_physics
-from .config import PopulationConfig, SolverSettings, resolve_device
-from .grasp import Grasp, plan_pinch
-from .kinematics import Kinematics, SensorFK
-from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana
-from .observe import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise
-from .params import ObjectParams
-from .population import Population, no_collection
-from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot
+from .config import PopulationConfig, SolverSettings, forward_only_kernels, resolve_device
+
+forward_only_kernels()  # before anything below imports newton: Warp reads the switch per kernel module
+
+# isort: split
+from .build import BuiltModel, Physics, build_model, make_physics  # noqa: E402
+from .grasp import Grasp, plan_pinch  # noqa: E402
+from .kinematics import Kinematics, SensorFK  # noqa: E402
+from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana  # noqa: E402
+from .observe import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise  # noqa: E402
+from .params import ObjectParams  # noqa: E402
+from .population import Population, no_collection  # noqa: E402
+from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot  # noqa: E402
 
 __all__ = [
     "CATALOG",
@@ -35,6 +39,7 @@ __all__ = [
     "add_sensor_noise",
     "build_model",
     "catalog_object",
+    "forward_only_kernels",
     "load_catalog",
     "load_mesh_object",
     "load_robot",

@@ -27,7 +27,8 @@ from .objects import ObjectSpec
 from .params import ObjectParams
 from .robots import RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
-from .separate import object_push
+from .separate import separate_objects
+from .step import simulate
 
 __all__ = ["Population", "no_collection"]
 
@@ -44,35 +45,6 @@ def no_collection() -> Iterator[None]:
     finally:
         if collecting:
             gc.enable()
-
-
-@wp.kernel(enable_backward=False)
-def _ramp_targets(
-    goal: wp.array2d[float],
-    last: wp.array2d[float],
-    fraction: float,
-    coords_per_world: int,
-    coord_index: wp.array[wp.int32],
-    joint_target_q: wp.array[float],
-):
-    """The substep's target: ``fraction`` of the way from last frame's target to this one's. Launch dim (W, D)."""
-    w, d = wp.tid()
-    joint_target_q[w * coords_per_world + coord_index[d]] = last[w, d] + fraction * (goal[w, d] - last[w, d])
-
-
-@wp.kernel(enable_backward=False)
-def _apply_wrench(
-    wrench: wp.array[wp.spatial_vector],
-    bodies_per_world: int,
-    object_body: int,
-    body_f0: wp.array[wp.spatial_vector],
-    body_f1: wp.array[wp.spatial_vector],
-):
-    # Both state buffers: substeps alternate between them.
-    w = wp.tid()
-    b = w * bodies_per_world + object_body
-    body_f0[b] = wrench[w]
-    body_f1[b] = wrench[w]
 
 
 class Population:
@@ -107,27 +79,31 @@ class Population:
         """The replicated model and what one world of it holds (static)."""
         self.model = built.model
         self.layout: RobotLayout = built.layout
-        self._object_body, self._bodies, self._coords, self._dofs = (
+        self.object_body, self.bodies, self.coords, self._dofs = (
             built.object_body, built.bodies, built.coords, built.dofs
         )  # fmt: skip
+        """Per world: the object's body index, and its bodies, joint coordinates and DOFs in all."""
         self.D, self.L = self.layout.dof_count, self.layout.sensor_count
         with turn:
             physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
-        self._observables = physics.observables
+        self.observables = physics.observables
+        """The solver's contact forces, read by the observation kernels."""
         with turn, wp.ScopedDevice(self.device):
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
             self.control = self.model.control()
-            self._buf = observe.allocate_buffers(self.W, self.D, self.L)
+            self.buf = observe.allocate_buffers(self.W, self.D, self.L)
+            """The observation kernels' arrays (:mod:`.observe`)."""
             # With ramped targets the robot's command for the frame, and the last frame's, per world.
-            self._goal = wp.zeros((self.W, self.D), dtype=float)
-            self._last_goal = wp.zeros((self.W, self.D), dtype=float)
-            self._static = self._static_arrays()
+            self.goal = wp.zeros((self.W, self.D), dtype=float)
+            self.last_goal = wp.zeros((self.W, self.D), dtype=float)
+            self.static = self._static_arrays()
+            """Index arrays of the frame's kernels: joints' coordinates, sensors' bodies and offsets, ..."""
             self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
             """The object's mass and friction per world and the solver's constants they set."""
             self._views()
-            self.obs = observe.observation_views(self._buf, self.G, self.K)
+            self.obs = observe.observation_views(self.buf, self.G, self.K)
             self.reset_state()
             mass, friction = (torch.full((self.G, self.K), v) for v in (obj.mass, obj.friction))
             self.set_params(mass=mass, friction=friction)
@@ -138,13 +114,13 @@ class Population:
 
     # ------------------------------------------------------------------ build
     def _static_arrays(self) -> dict[str, wp.array]:
-        lay, W, nb = self.layout, self.W, self._bodies
+        lay, W, nb = self.layout, self.W, self.bodies
         sensor_row = np.full(self.model.body_count, -1, np.int32)
         object_world = np.full(self.model.body_count, -1, np.int32)
         worlds = np.arange(W)
         for l, b in enumerate(lay.sensor_bodies):
             sensor_row[worlds * nb + b] = worlds * self.L + l
-        object_world[worlds * nb + self._object_body] = worlds
+        object_world[worlds * nb + self.object_body] = worlds
         offsets = [wp.transform(wp.vec3(*o[:3]), wp.quat(*o[3:])) for o in lay.sensor_offsets]
         return {
             "coord_index": wp.array(lay.coord_indices.astype(np.int32), dtype=wp.int32),
@@ -156,10 +132,10 @@ class Population:
 
     def _views(self) -> None:
         """Torch views (no copies) of the per-world simulation arrays, leading axes (G, K)."""
-        G, K, nb = self.G, self.K, self._bodies
+        G, K, nb = self.G, self.K, self.bodies
         t = wp.to_torch
-        self._state_views = {
-            "joint_q": lambda s: t(s.joint_q).view(G, K, self._coords),
+        self.state_views = {
+            "joint_q": lambda s: t(s.joint_q).view(G, K, self.coords),
             "joint_qd": lambda s: t(s.joint_qd).view(G, K, self._dofs),
             "body_q": lambda s: t(s.body_q).view(G, K, nb * 7),
             "body_qd": lambda s: t(s.body_qd).view(G, K, nb * 6),
@@ -167,105 +143,31 @@ class Population:
         self._warmstart = t(self.solver.mjw_data.qacc_warmstart).view(G, K, -1)
         # Position targets live in joint-coordinate layout, like joint_q.
         dof = self.layout.coord_indices
-        targets = t(self.control.joint_target_q).view(G, K, self._coords)
+        targets = t(self.control.joint_target_q).view(G, K, self.coords)
         contiguous = np.array_equal(dof, np.arange(dof[0], dof[0] + len(dof)))
         self._target_view = targets[..., dof[0] : dof[0] + len(dof)] if contiguous else None
         self._targets_all = targets
         self._target_index = torch.as_tensor(dof, device=self.torch_device)
-        self._goal_view = t(self._goal).view(G, K, self.D)
-        self._last_goal_view = t(self._last_goal).view(G, K, self.D)
+        self._goal_view = t(self.goal).view(G, K, self.D)
+        self._last_goal_view = t(self.last_goal).view(G, K, self.D)
         self._target_stage = torch.zeros((G, self.D), dtype=torch.float32, device=self.torch_device)
         self._lower = torch.as_tensor(self.layout.lower, dtype=torch.float32, device=self.torch_device)
         self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
-        self._wrench = t(self._buf.wrench).view(G, K, 6)
-
-    # ------------------------------------------------------------------ frame
-    def _simulate(self) -> None:
-        """One control frame: wrench, substeps, observation. Captured once, replayed per frame."""
-        cfg, b, s = self.config, self._buf, self._static
-        wp.launch(
-            _apply_wrench,
-            dim=self.W,
-            inputs=[b.wrench, self._bodies, self._object_body],
-            outputs=[self.state_0.body_f, self.state_1.body_f],
-        )
-        dt = cfg.frame_dt / cfg.substeps
-        for i in range(cfg.substeps):
-            s_in, s_out = (self.state_0, self.state_1) if i % 2 == 0 else (self.state_1, self.state_0)
-            if cfg.ramp_targets:
-                wp.launch(_ramp_targets, dim=(self.W, self.D),
-                          inputs=[self._goal, self._last_goal, (i + 1) / cfg.substeps, self._coords, s["coord_index"]],
-                          outputs=[self.control.joint_target_q])  # fmt: skip
-            self.pipeline.collide(s_in, self.contacts)
-            # Only the last substep's contact forces are observed: earlier ones would be overwritten.
-            observables = self._observables if i == cfg.substeps - 1 else None
-            self.solver.step(s_in, s_out, self.control, self.contacts, dt, observables=observables)
-        b.wrench.zero_()  # a perturbation lasts one frame
-        if cfg.ramp_targets:
-            wp.copy(self._last_goal, self._goal)
-        st = self.state_0
-        wp.launch(observe.gather_joints, dim=(self.W, self.D), inputs=[st.joint_q, self._coords, s["coord_index"]],
-                  outputs=[b.q])  # fmt: skip
-        wp.launch(
-            observe.sensor_poses,
-            dim=(self.W, self.L),
-            inputs=[st.body_q, self._bodies, s["sensor_body"], s["sensor_offset"]],
-            outputs=[b.sensor_pos, b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
-        )
-        c = self.contacts
-        wp.launch(
-            observe.accumulate_contacts,
-            dim=c.rigid_contact_max,
-            inputs=[
-                c.rigid_contact_count,
-                c.rigid_contact_shape0,
-                c.rigid_contact_shape1,
-                c.rigid_contact_point0,
-                c.rigid_contact_normal,
-                self._observables.contact_f,
-                self.model.shape_body,
-                st.body_q,
-                st.body_qd,
-                self.model.body_com,
-                s["sensor_row"],
-                s["object_world"],
-                self.L,
-            ],
-            outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
-        )
-        observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
-        wp.launch(
-            observe.object_health,
-            dim=self.W,
-            inputs=[
-                st.body_q,
-                st.body_qd,
-                st.joint_q,
-                self._bodies,
-                self._coords,
-                self._object_body,
-                b.sensor_pos,
-                self.L,
-                cfg.floor_z,
-                cfg.lost_distance,
-                cfg.lost_speed,
-            ],
-            outputs=[b.object_pose, b.health],
-        )
+        self._wrench = t(self.buf.wrench).view(G, K, 6)
 
     def _capture(self, turn: AbstractContextManager) -> None:
         # Compile every kernel once outside capture, then record; the eager frame is undone.
         with turn, wp.ScopedDevice(self.device):
             saved = self.snapshot()
-            self._simulate()
+            simulate(self)
             self.restore(saved)
         with turn, wp.ScopedDevice(self.device), no_collection(), wp.ScopedCapture(device=self.device) as capture:
-            self._simulate()
+            simulate(self)
         self._graph = capture.graph
 
     def state_tensors(self) -> list[torch.Tensor]:
         """Every tensor that carries a world's dynamic state from one frame to the next."""
-        views = [view(s) for s in (self.state_0, self.state_1) for view in self._state_views.values()]
+        views = [view(s) for s in (self.state_0, self.state_1) for view in self.state_views.values()]
         return [*views, self._warmstart, self._last_goal_view]
 
     def snapshot(self) -> list[torch.Tensor]:
@@ -288,12 +190,12 @@ class Population:
             if self._graph is not None and not self.device.is_capturing:
                 wp.capture_launch(self._graph)
             else:
-                self._simulate()
+                simulate(self)
 
     def step_eager(self) -> None:
         """The same frame launched kernel by kernel (for checking the graph)."""
         with wp.ScopedDevice(self.device):
-            self._simulate()
+            simulate(self)
 
     @contextlib.contextmanager
     def on_stream(self):
@@ -317,9 +219,9 @@ class Population:
                 f"targets: {int(bad.sum())} non-finite values, first at group {g} joint "
                 f"'{self.layout.joint_names[d]}' = {arr[g, d]}"
             )
-        self._write_targets(torch.from_numpy(arr))
+        self.write_targets(torch.from_numpy(arr))
 
-    def _write_targets(self, targets: torch.Tensor) -> None:
+    def write_targets(self, targets: torch.Tensor) -> None:
         """:meth:`set_targets` for targets already checked, (G, D): no host work, so it can run
         inside a captured graph (the tracker's frame)."""
         with self.on_stream():
@@ -374,13 +276,13 @@ class Population:
         coords = torch.as_tensor(self.layout.coord_indices, device=self.torch_device)
         with self.on_stream():
             for state in (self.state_0, self.state_1):
-                jq = self._state_views["joint_q"](state)
+                jq = self.state_views["joint_q"](state)
                 fresh = jq.clone()
-                fresh[..., self._free_coords()] = pose
+                fresh[..., self.free_coords] = pose
                 fresh[..., coords] = q
                 jq.copy_(torch.where(sel, fresh, jq))
                 for name in ("joint_qd", "body_qd"):
-                    view = self._state_views[name](state)
+                    view = self.state_views[name](state)
                     view.masked_fill_(sel, 0.0)
                 wp.to_torch(state.body_f).view(self.G, self.K, -1).masked_fill_(sel, 0.0)
             self._warmstart.masked_fill_(sel, 0.0)
@@ -403,48 +305,7 @@ class Population:
         millimetres inside a palm would otherwise be pushed out by the solver at a speed that
         throws a light object off the hand. ``passes`` rounds of collision detection: a corner
         pushed out of the palm may meet a finger."""
-        worlds = worlds.cpu() if isinstance(worlds, torch.Tensor) else worlds
-        sel = torch.as_tensor(np.asarray(worlds), dtype=torch.bool)
-        if sel.shape != (self.G, self.K):
-            raise ValueError(f"worlds: expected shape ({self.G}, {self.K}), got {tuple(sel.shape)}")
-        flags = sel.reshape(self.W).numpy()
-        moving = sel.to(self.torch_device)[..., None]
-        c, s = self.contacts, self._static
-        with self.on_stream(), wp.ScopedDevice(self.device):
-            articulations = wp.array(flags[self.model.articulation_world.numpy()], dtype=bool)
-            push_sum = wp.zeros(self.W, dtype=wp.vec3)
-            depth_sum = wp.zeros(self.W, dtype=wp.float32)
-            push = wp.to_torch(push_sum).view(self.G, self.K, 3)
-            depth = wp.to_torch(depth_sum).view(self.G, self.K, 1)
-            st = self.state_0
-            for _ in range(passes):
-                newton.eval_fk(self.model, st.joint_q, st.joint_qd, st, mask=articulations)
-                self.pipeline.collide(st, self.contacts)
-                push_sum.zero_()
-                depth_sum.zero_()
-                wp.launch(
-                    object_push,
-                    dim=c.rigid_contact_max,
-                    inputs=[
-                        c.rigid_contact_count,
-                        c.rigid_contact_shape0,
-                        c.rigid_contact_shape1,
-                        c.rigid_contact_point0,
-                        c.rigid_contact_point1,
-                        c.rigid_contact_normal,
-                        c.rigid_contact_margin0,
-                        c.rigid_contact_margin1,
-                        self.model.shape_body,
-                        st.body_q,
-                        s["object_world"],
-                    ],
-                    outputs=[push_sum, depth_sum],
-                )
-                step = torch.where(moving, push / depth.clamp_min(1e-9), 0.0)
-                for state in (self.state_0, self.state_1):
-                    self._state_views["joint_q"](state)[..., self._free_coords()][..., :3] += step
-            for state in (self.state_0, self.state_1):
-                newton.eval_fk(self.model, state.joint_q, state.joint_qd, state, mask=articulations)
+        separate_objects(self, worlds, passes)
 
     def displace_object(self, displacement: torch.Tensor) -> None:
         """Move each world's object by a small rigid displacement, shape (G, K, 6): translation
@@ -455,7 +316,7 @@ class Population:
         if tuple(displacement.shape) != (self.G, self.K, 6):
             raise ValueError(f"displacement: expected shape ({self.G}, {self.K}, 6), got {tuple(displacement.shape)}")
         with self.on_stream():
-            free = self._state_views["joint_q"](self.state_0)[..., self._free_coords()]
+            free = self.state_views["joint_q"](self.state_0)[..., self.free_coords]
             rot = quat_multiply(free[..., 3:], quat_exp(displacement[..., 3:]))
             free[..., :3] += displacement[..., :3]
             free[..., 3:] = torch.nn.functional.normalize(rot, dim=-1)
@@ -464,15 +325,17 @@ class Population:
     def object_coords(self) -> torch.Tensor:
         """Each world's object pose in its state, (G, K, 7): position [m], quaternion (x, y, z, w);
         a writable view (the observed pose, :attr:`obs` ``.object_pose``, follows at the next step)."""
-        return self._state_views["joint_q"](self.state_0)[..., self._free_coords()]
+        return self.state_views["joint_q"](self.state_0)[..., self.free_coords]
 
     @property
     def joint_qd(self) -> torch.Tensor:
         """Each world's joint velocities in its state, (G, K, DOFs per world) [rad/s or m/s]; a writable view."""
-        return self._state_views["joint_qd"](self.state_0)
+        return self.state_views["joint_qd"](self.state_0)
 
-    def _free_coords(self) -> slice:
-        start = self._coords - 7  # the object's free joint is the last joint of a world
+    @property
+    def free_coords(self) -> slice:
+        """Where the object's free joint lies among a world's joint coordinates."""
+        start = self.coords - 7  # the object's free joint is the last joint of a world
         return slice(start, start + 7)
 
     def _check(self, name: str, value, width: int) -> torch.Tensor:
@@ -509,9 +372,9 @@ class Population:
             mass = self._check_param("mass", mass, self.object.mass_range)
         if friction is not None:
             friction = self._check_param("friction", friction, self.object.friction_range)
-        self._write_params(mass, friction)
+        self.write_params(mass, friction)
 
-    def _write_params(
+    def write_params(
         self,
         mass: torch.Tensor | None,
         friction: torch.Tensor | None,
@@ -557,13 +420,13 @@ class Population:
             raise ValueError(
                 f"index: values must lie in [0, {self.K}), got min {int(host.min())} max {int(host.max())}"
             )
-        self._resample(index.to(self.torch_device, torch.int64))
+        self.copy_worlds(index.to(self.torch_device, torch.int64))
 
-    def _resample(self, index: torch.Tensor) -> None:
+    def copy_worlds(self, index: torch.Tensor) -> None:
         """:meth:`resample` for an int64 index on the device already in range: no host work, so
         it can run inside a captured graph (the tracker's update, whose indices never leave the device)."""
         with self.on_stream():
-            tensors = [view(self.state_0) for view in self._state_views.values()]
+            tensors = [view(self.state_0) for view in self.state_views.values()]
             tensors += [self._warmstart, *self.params.tensors]
             for t in tensors:
                 t.copy_(torch.gather(t, 1, index[..., None].expand(-1, -1, t.shape[-1])))

@@ -13,9 +13,17 @@ one kernel turns each world's into a push.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+import newton
+import numpy as np
+import torch
 import warp as wp
 
-__all__ = ["object_push"]
+if TYPE_CHECKING:
+    from .population import Population
+
+__all__ = ["object_push", "separate_objects"]
 
 
 @wp.kernel(enable_backward=False)
@@ -69,3 +77,52 @@ def object_push(
         away = -n
     wp.atomic_add(push_sum, w, (depth * depth) * away)
     wp.atomic_add(depth_sum, w, depth)
+
+
+def separate_objects(pop: Population, worlds: torch.Tensor | np.ndarray, passes: int = 6) -> None:
+    """Move the object of each world in ``worlds`` (G, K) bool out of whatever it overlaps (the
+    hand, the table) by a translation along the contacts' normals, as far as the overlaps go; the
+    robot, the rotation and the velocities stay. ``passes`` rounds of collision detection: a
+    corner pushed out of the palm may meet a finger."""
+    worlds = worlds.cpu() if isinstance(worlds, torch.Tensor) else worlds
+    sel = torch.as_tensor(np.asarray(worlds), dtype=torch.bool)
+    if sel.shape != (pop.G, pop.K):
+        raise ValueError(f"worlds: expected shape ({pop.G}, {pop.K}), got {tuple(sel.shape)}")
+    flags = sel.reshape(pop.W).numpy()
+    moving = sel.to(pop.torch_device)[..., None]
+    c, s = pop.contacts, pop.static
+    with pop.on_stream(), wp.ScopedDevice(pop.device):
+        articulations = wp.array(flags[pop.model.articulation_world.numpy()], dtype=bool)
+        push_sum = wp.zeros(pop.W, dtype=wp.vec3)
+        depth_sum = wp.zeros(pop.W, dtype=wp.float32)
+        push = wp.to_torch(push_sum).view(pop.G, pop.K, 3)
+        depth = wp.to_torch(depth_sum).view(pop.G, pop.K, 1)
+        st = pop.state_0
+        for _ in range(passes):
+            newton.eval_fk(pop.model, st.joint_q, st.joint_qd, st, mask=articulations)
+            pop.pipeline.collide(st, pop.contacts)
+            push_sum.zero_()
+            depth_sum.zero_()
+            wp.launch(
+                object_push,
+                dim=c.rigid_contact_max,
+                inputs=[
+                    c.rigid_contact_count,
+                    c.rigid_contact_shape0,
+                    c.rigid_contact_shape1,
+                    c.rigid_contact_point0,
+                    c.rigid_contact_point1,
+                    c.rigid_contact_normal,
+                    c.rigid_contact_margin0,
+                    c.rigid_contact_margin1,
+                    pop.model.shape_body,
+                    st.body_q,
+                    s["object_world"],
+                ],
+                outputs=[push_sum, depth_sum],
+            )
+            step = torch.where(moving, push / depth.clamp_min(1e-9), 0.0)
+            for state in (pop.state_0, pop.state_1):
+                pop.state_views["joint_q"](state)[..., pop.free_coords][..., :3] += step
+        for state in (pop.state_0, pop.state_1):
+            newton.eval_fk(pop.model, state.joint_q, state.joint_qd, state, mask=articulations)

@@ -1,9 +1,6 @@
 import pytest
 
-from service.cli import forward_only_kernels
-
-# Before collection imports a test module that imports newton: Warp reads it per kernel module.
-forward_only_kernels()
+import sim_backend  # noqa: F401  (before collection imports newton: it switches Warp's adjoints off)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from protocol import TrackState
-from service.bench import SUITES, ground_truth, run_suite
+from service.bench import SUITES, AccuracyRun, ground_truth, run_suite
 from service.bench.report import write_report
 from service.evaluation import CHI2_6DOF_95
 from service.paths import DATA_DIR
@@ -53,15 +53,13 @@ def test_optimizers_beat_eye_and_eye_beats_olp(tmp_path):
 def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
     # OLP simulates its noisy initial estimate alone with the nominal physics: its ADD is decided
     # by the initial pose drawn, so it shows which start each run got.
-    run = lambda repeats, config=None: run_suite(  # noqa: E731
-        SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True, repeats=repeats,
-        config=config,
-    )  # fmt: skip
-    once = run(1)
-    thrice = run_suite(
+    once = run_suite(
+        AccuracyRun(SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True)
+    )
+    thrice = run_suite(AccuracyRun(
         SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True, repeats=3,
-        config=TrackerConfig(jitter_bandwidth=0.5), frames_to=tmp_path / "frames.npz",
-    )  # fmt: skip
+        config=TrackerConfig.of(jitter_bandwidth=0.5), frames_to=tmp_path / "frames.npz",
+    ))  # fmt: skip
     assert once["tracker"] == {} and thrice["tracker"] == {"jitter_bandwidth": 0.5}  # the settings are reported
     assert thrice["repeats"] == 3 and len(thrice["tracks"]) == 3 * len(once["tracks"]) == 6
     first = [t for t in thrice["tracks"] if t["repeat"] == 0]

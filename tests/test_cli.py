@@ -65,12 +65,12 @@ def test_bad_suite_options_are_refused_before_anything_runs():
 
 
 def test_settings_split_into_the_tracker_and_its_physics():
-    from service.cli import _settings
+    from service.bench import parse_settings
 
-    config, physics = _settings(["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"])
+    config, physics = parse_settings(["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"])
     assert config.optimizer.pbo_keep == 0.5 and physics == {"impratio": 30.0, "contact_gap": 0.004}
-    assert _settings(["optimizer.keep_best=no"])[0].optimizer.keep_best is False
-    assert _settings([])[1] == {}
+    assert parse_settings(["optimizer.keep_best=no"])[0].optimizer.keep_best is False
+    assert parse_settings([])[1] == {}
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():

@@ -12,23 +12,25 @@ def test_the_shipped_config_is_the_defaults():
 
 
 def test_environment_then_overrides(monkeypatch):
-    monkeypatch.setenv("INHAND_SUBSTEPS", "4")
+    monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "4")
     monkeypatch.setenv("INHAND_LISTEN", "tcp/127.0.0.1:7500,tcp/127.0.0.1:7501")
     monkeypatch.setenv("INHAND_SCOUTING", "yes")
     config = load_config(device="cpu", listen=None)
-    assert config.substeps == 4 and config.device == "cpu" and config.scouting is True
+    assert config.physics.substeps == 4 and config.device == "cpu" and config.scouting is True
     assert config.listen == ("tcp/127.0.0.1:7500", "tcp/127.0.0.1:7501")
     assert load_config(name="lab").name == "lab"
 
 
 def test_bad_values_name_the_key_and_the_value(monkeypatch, tmp_path):
-    monkeypatch.setenv("INHAND_SUBSTEPS", "3")
-    with pytest.raises(ValueError, match="service config substeps: Input should be a multiple of 2, got '3'"):
+    monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "3")
+    with pytest.raises(ValueError, match=r"service config physics\.substeps: Input should be a multiple of 2, got '3'"):
         load_config()
-    monkeypatch.setenv("INHAND_SUBSTEPS", "eight")
-    with pytest.raises(ValueError, match=r"service config substeps: Input should be a valid integer.*got 'eight'"):
+    monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "eight")
+    with pytest.raises(
+        ValueError, match=r"service config physics.substeps: Input should be a valid integer.*got 'eight'"
+    ):
         load_config()
-    monkeypatch.delenv("INHAND_SUBSTEPS")
+    monkeypatch.delenv("INHAND_PHYSICS__SUBSTEPS")
     bad = tmp_path / "service.toml"
     bad.write_text('name = "x"\ngpus = 2\n')
     with pytest.raises(ValueError, match="service config gpus: Extra inputs are not permitted, got 2"):

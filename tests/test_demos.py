@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from service.bench.demos import DEMO_KINDS, make_demo, record, sensitivity
+from service.bench.demos import DEMO_KINDS, make_demo
+from service.bench.recorder import record, sensitivity
 from sim_backend import Population, PopulationConfig, catalog_object
 from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 

@@ -124,7 +124,7 @@ def test_an_observation_the_worlds_all_miss_by_a_little_draws_a_share_of_them_ar
     manager.observe(_observation(traj.truth.initial_pose, session=info.session, token=info.token))
     _step(manager, pool, traj, info, 1)  # the observation is used at the session's next frame
     drawn = int(near().sum())
-    assert drawn >= round(tracker.config.inject_share * 64) - 1, "drawn around the observation"
+    assert drawn >= round(tracker.config.observations.inject_share * 64) - 1, "drawn around the observation"
     after = _step(manager, pool, traj, info, 2)
     error = lambda e: np.linalg.norm(e.pose[:3] - traj.truth.pose[e.seq, :3])  # noqa: E731
     assert manager.status(info.session, info.token).reseeds_by_observation == 0
@@ -160,13 +160,13 @@ def test_observations_over_zenoh_are_used_and_a_malformed_one_is_counted(traj):
 
 
 def test_the_accuracy_benchmark_scores_with_camera_observations_adds_and_coverage():
-    from service.bench import run_suite
+    from service.bench import AccuracyRun, run_suite
     from service.bench.suites import SUITES
 
-    run = lambda schedule: run_suite(  # noqa: E731
+    run = lambda schedule: run_suite(AccuracyRun(  # noqa: E731
         SUITES["smoke"], methods=("PBO",), noises=("high",), device="cpu", cache=None, quiet=True,
         observations=schedule, vision_sigma=(0.003, 0.03),
-    )  # fmt: skip
+    ))  # fmt: skip
     blind, seen = run("none"), run("1hz")
     assert blind["observations"] == {"schedule": "none"}
     assert seen["observations"] == {"schedule": "1hz", "vision_sigma": [0.003, 0.03]}
@@ -200,13 +200,12 @@ def test_adds_forgives_what_a_symmetry_hides_and_coverage_reads_the_covariance()
 def test_a_dropped_object_is_flagged_and_a_camera_brings_the_estimate_back():
     """The loss suite (short): the object slips out of the hand mid-carry, which neither the robot's
     commands nor the tracker's physics foresee."""
-    from service.bench import run_suite
-    from service.cli import _suite
+    from service.bench import SUITES, AccuracyRun, run_suite
 
-    run = lambda schedule: run_suite(  # noqa: E731
-        _suite("loss", True), methods=("REPS",), noises=("med",), device="cpu", cache=None, quiet=True,
+    run = lambda schedule: run_suite(AccuracyRun(  # noqa: E731
+        SUITES["loss"].short(), methods=("REPS",), noises=("med",), device="cpu", cache=None, quiet=True,
         observations=schedule,
-    )["summary"]["REPS"]["med"]  # fmt: skip
+    ))["summary"]["REPS"]["med"]  # fmt: skip
     blind, seen = run("none"), run("1hz")
     print("loss, REPS:", {k: v for k, v in seen.items() if "after" in k or "never" in k})
     for s in (blind, seen):

@@ -108,7 +108,7 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
     session of our own, decoded by rosbags' ROS 2 type store."""
     from rosbags.typesys import Stores, get_typestore
 
-    from protocol import Estimate
+    from protocol import Estimate, SessionInfo
     from service.server.ros2 import RosTopics
 
     store = get_typestore(Stores.ROS2_HUMBLE)
@@ -122,13 +122,24 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
         tokens = [str(r.ok.key_expr) for r in z.liveliness().get("@ros2_lv/**", timeout=1) if r.ok]
         assert tokens == []
         ros = RosTopics(z, domain_id=7, frame_id="base")
-        ros.open("0a1b2c", "foam_brick")
+        ros.open(
+            SessionInfo(
+                session="0a1b2c",
+                token="t",
+                robot="allegro",
+                object="foam_brick",
+                joint_names=[],
+                sensor_names=[],
+                worlds=1,
+                method="PBO",
+            )
+        )
         est = Estimate(
             session="0a1b2c", seq=3, stamp=12.25, pose=np.array([0.1, -0.2, 0.3, 0, 0, 0.6, 0.8]),
             mean_pose=np.array([0, 0, 0, 0, 0, 0, 1.0]), covariance=np.diag(np.arange(1, 7) * 1e-6),
             cost=0.5, mass=0.1, friction=0.8, status="tracking", latency_ms=1.0,
         )  # fmt: skip
-        ros.publish(est)
+        ros.estimate(est)
         deadline = time.monotonic() + 5
         while not got and time.monotonic() < deadline:
             time.sleep(0.05)

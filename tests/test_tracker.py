@@ -9,7 +9,8 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from protocol import TrackState as Status
-from service.bench.demos import make_demo, record
+from service.bench.demos import make_demo
+from service.bench.recorder import record
 from service.evaluation import add_error
 from service.tracker import Frame, Tracker, TrackerConfig
 from service.tracker.cost import CostConfig
@@ -43,7 +44,7 @@ def _noisy_start(rec, seed: int = 1) -> np.ndarray:
 def _tracker(hand, worlds: int, groups: int = 2, **cfg) -> Tracker:
     spec, _ = hand
     pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=groups, worlds=worlds, device="cpu"))
-    return Tracker(pop, TrackerConfig(**cfg))
+    return Tracker(pop, TrackerConfig.of(**cfg))
 
 
 def test_tracks_the_pick_with_sane_estimates_and_is_deterministic(hand, recording):
@@ -122,7 +123,7 @@ def test_a_real_drop_puts_the_hypotheses_on_the_table(hand, recording):
         tr.step(_frame(recording, f))
     assert (tr.pop.obs.force.norm(dim=-1) > 0.2).any(-1).all(), "every world holds the object"
     lifted = tr.pop.obs.object_pose[..., 2].min().item()
-    for f in range(held, held + tr.config.contact_loss_frames):
+    for f in range(held, held + tr.config.recovery.contact_loss_frames):
         numb = _frame(recording, f)
         numb.force = np.zeros_like(numb.force)
         status = tr.step(numb).status
@@ -217,10 +218,10 @@ def test_the_reported_covariance_adds_the_unexplained_cost_and_the_start_regions
     tr.start(_noisy_start(recording), recording.initial_q, sigma_t=np.array([0.005, 0.01]), sigma_r=0.1)
     cfg, floor = tr.config, np.array([0.002**2] * 3 + [0.05**2] * 3)
     seeded = np.array([[0.005**2] * 3 + [0.1**2] * 3, [0.01**2] * 3 + [0.1**2] * 3])
-    resolution = seeded * cfg.covariance_resolution / 8
+    resolution = seeded * cfg.estimate.covariance_resolution / 8
     # A world that explains everything leaves the start region's resolution; at the reference cost
     # the floor is the configured one; a lost population's huge or NaN cost is capped at 4x it.
-    at_reference = tr._unresolved(np.array([0.0, cfg.covariance_cost_ref]))
+    at_reference = tr._unresolved(np.array([0.0, cfg.estimate.covariance_cost_ref]))
     np.testing.assert_allclose(at_reference, resolution + np.stack([0 * floor, floor]), rtol=1e-6)
     np.testing.assert_allclose(tr._unresolved(np.array([1e9, np.nan])), resolution + 16 * floor, rtol=1e-6)
     assert (tr._unresolved(np.array([2.0, 0.0]))[0] > tr._unresolved(np.array([1.0, 0.0]))[0]).all()
@@ -297,7 +298,7 @@ def test_an_object_left_away_from_the_open_hand_is_tracked_not_lost(hand, record
     tr.pop.reset_state(pose, np.tile(recording.q[9][:, None], (1, tr.K, 1)))
     numb = _frame(recording, 10)
     numb.force = np.zeros_like(numb.force)  # the real fingers touch nothing
-    for _ in range(2 * tr.config.contact_loss_frames):
+    for _ in range(2 * tr.config.recovery.contact_loss_frames):
         est = tr.step(numb)
         assert (est.lost == 0).all() and (est.status != Status.DIVERGED).all()
     kept = tr.pop.object_coords[..., 1].numpy()
@@ -314,7 +315,7 @@ def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, reco
     pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
     tr = Tracker(
         pop,
-        TrackerConfig(contact_gate_cost=0.0, contact_worlds=8, update_every=3),
+        TrackerConfig.of(contact_gate_cost=0.0, contact_worlds=8, update_every=3),
         methods=["PBO", "OLP"],
     )
     tr.start(_noisy_start(recording), recording.initial_q)
@@ -376,7 +377,7 @@ def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(h
     spec, _ = hand
     for gate, opened in ((1e9, [False, False]), (1e-9, [True, False])):
         pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
-        config = TrackerConfig(contact_gate_cost=gate, contact_gate_updates=2, contact_worlds=8, update_every=3)
+        config = TrackerConfig.of(contact_gate_cost=gate, contact_gate_updates=2, contact_worlds=8, update_every=3)
         tr = Tracker(pop, config, ["PBO", "OLP"])
         tr.start(_noisy_start(recording), recording.initial_q)
         nominal = np.array([pop.params.nominal_timeconst, pop.params.nominal_impratio])

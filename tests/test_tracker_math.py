@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -336,7 +335,7 @@ def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
     statuses, anchors = [], []
     config = TrackerConfig()
     recoveries = [Recovery(config, groups=4, sensors=4, moment=np.eye(3) * 1e-3)]
-    recoveries.append(Recovery(dataclasses.replace(config, surprise_ratio=0.0), 4, 4, np.eye(3) * 1e-3))
+    recoveries.append(Recovery(config.but(surprise_ratio=0.0), 4, 4, np.eye(3) * 1e-3))
     for r in recoveries:
         r.start(pose, np.ones(4, bool))
     for f, cost in enumerate(costs):
@@ -360,4 +359,4 @@ def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
     for bad, words in [({"surprise_frames": 0}, "surprise_frames: expected >= 1 frame, got 0"),
                        ({"surprise_ratio": -1.0}, "surprise_ratio: expected >= 0, got -1.0")]:  # fmt: skip
         with pytest.raises(ValueError, match=words):
-            TrackerConfig(**bad)
+            TrackerConfig.of(**bad)

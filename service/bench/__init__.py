@@ -3,12 +3,14 @@ the whole tracker against its physics, the physics alone, and their reports.
 
 Nothing outside this package imports it but the command line."""
 
-from .accuracy import TrackResult, TrackSetting, run_suite, run_tracks
-from .demos import DEMO_KINDS, Demo, Recording, make_demo, record, sensitivity
+from .accuracy import AccuracyRun, parse_settings, run_suite
+from .demos import DEMO_KINDS, Demo, make_demo
+from .recorder import Recording, record, sensitivity
 from .report import write_report
 from .sim import SimBenchResult, bench_sim
 from .speed import SpeedResult, bench_speed
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, SUITES, PhysicsGap, SensorNoise, Suite
+from .tracks import TrackResult, TrackSetting, run_tracks
 from .truth import ground_truth
 
 __all__ = [
@@ -17,6 +19,7 @@ __all__ = [
     "K_ABLATION",
     "NOISE_LEVELS",
     "SUITES",
+    "AccuracyRun",
     "Demo",
     "PhysicsGap",
     "Recording",
@@ -30,6 +33,7 @@ __all__ = [
     "bench_speed",
     "ground_truth",
     "make_demo",
+    "parse_settings",
     "record",
     "run_suite",
     "run_tracks",

@@ -88,31 +88,7 @@ def bench_load(
             received = [[] for _ in clients]
             for c, got in zip(clients, received, strict=True):
                 c.on_pose(lambda est, got=got: got.append(est.latency_ms))
-            sent = [0] * sessions
-            start = threading.Barrier(sessions)
-
-            def robot(i: int) -> None:
-                # Each robot replays the trajectory forth and back (no jump at the end) at its rate.
-                c, period = clients[i], 2 * traj.frames - 2
-                start.wait()
-                t0 = time.perf_counter()
-                n = 0
-                while (now := time.perf_counter()) - t0 < seconds:
-                    time.sleep(max(0.0, t0 + n / rate - now))
-                    k = n % period
-                    row = k if k < traj.frames else period - k
-                    c.send(traj.frame(row, c.info.session, seq=n).model_copy(update={"stamp": n / rate}))
-                    n += 1
-                sent[i] = n
-
-            threads = [threading.Thread(target=robot, args=(i,)) for i in range(sessions)]
-            for t in threads:
-                t.start()
-            threads[0].join(timeout=0.1 * seconds)
-            rss_early = _rss_mib()
-            for t in threads:
-                t.join()
-            rss_end = _rss_mib()
+            sent, (rss_early, rss_end) = _stream(clients, traj, rate, seconds)
             time.sleep(1.0)  # the last estimates in flight
             out = []
             for i, (c, got) in enumerate(zip(clients, received, strict=True)):
@@ -139,6 +115,38 @@ def bench_load(
         finally:
             for c in clients:
                 c.close()
+
+
+def _stream(
+    clients: list[TrackerClient], traj: Trajectory, rate: float, seconds: float
+) -> tuple[list[int], tuple[float, float]]:
+    """Every client a robot on a thread of its own, replaying ``traj`` forth and back (no jump at
+    the end) at ``rate`` [Hz] for ``seconds``; the frames each sent, and this process's resident
+    memory early in the run and at its end [MiB]."""
+    sent = [0] * len(clients)
+    start = threading.Barrier(len(clients))
+
+    def robot(i: int) -> None:
+        c, period = clients[i], 2 * traj.frames - 2
+        start.wait()
+        t0 = time.perf_counter()
+        n = 0
+        while (now := time.perf_counter()) - t0 < seconds:
+            time.sleep(max(0.0, t0 + n / rate - now))
+            k = n % period
+            row = k if k < traj.frames else period - k
+            c.send(traj.frame(row, c.info.session, seq=n).model_copy(update={"stamp": n / rate}))
+            n += 1
+        sent[i] = n
+
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(len(clients))]
+    for t in threads:
+        t.start()
+    threads[0].join(timeout=0.1 * seconds)
+    rss_early = _rss_mib()
+    for t in threads:
+        t.join()
+    return sent, (rss_early, _rss_mib())
 
 
 def format_table(results: list[LoadResult]) -> str:

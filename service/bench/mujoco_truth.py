@@ -26,7 +26,8 @@ from sim_backend import PopulationConfig, RobotSpec, observe
 from sim_backend.build import build_model
 from sim_backend.objects import ObjectSpec
 
-from .demos import FRAME_RATE, Demo, Recording
+from .demos import FRAME_RATE, Demo
+from .recorder import Recording
 
 __all__ = ["MujocoScene", "export_scene", "record_mujoco"]
 

@@ -54,6 +54,16 @@ def palm_rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
     return np.array([PALM_CENTRE[0] + offset[0], PALM_CENTRE[1] + offset[1], z, *quat])
 
 
+def _shadow_joints(lay) -> dict[str, int]:
+    """Each of the Shadow Hand's joints the motions move, by its short name, in the robot's order."""
+    index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}
+    needed = {"WRJ0", "WRJ1", *(f"{f}J{k}" for f in _FINGERS for k in range(3)), "THJ4", "THJ3", "THJ1", "THJ0"}
+    missing = sorted(needed - set(index))
+    if missing:
+        raise ValueError(f"palm motions need the Shadow Hand's joints; robot '{lay.name}' lacks {missing}")
+    return index
+
+
 def make_palm_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 20.0) -> Demo:
     """Script a ``kind`` motion (see :data:`PALM_MOTION_KINDS`) of about ``seconds`` for ``obj``
     lying on the palm; ``variant`` seeds where it lies and how far each move goes."""
@@ -62,11 +72,7 @@ def make_palm_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int =
     if not (6.0 <= seconds <= 120.0):
         raise ValueError(f"palm motion seconds: expected 6 to 120, got {seconds}")
     lay = kin.layout
-    index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}
-    needed = {"WRJ0", "WRJ1", *(f"{f}J{k}" for f in _FINGERS for k in range(3)), "THJ4", "THJ3", "THJ1", "THJ0"}
-    missing = sorted(needed - set(index))
-    if missing:
-        raise ValueError(f"palm motions need the Shadow Hand's joints; robot '{lay.name}' lacks {missing}")
+    index = _shadow_joints(lay)
     j = lambda *names: [index[n] for n in names]  # noqa: E731
     rng = np.random.default_rng([variant, 200 + PALM_MOTION_KINDS.index(kind)])
     pose = palm_rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.15, 0.15)]))

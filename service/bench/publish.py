@@ -89,23 +89,44 @@ def _chart(path: Path, title: str, chart: dict) -> Path:
 
 
 def render(results: Path, out: Path) -> Path:
-    """Write ``out`` (the page) and its charts beside the results; returns the page's path."""
+    """Write ``out`` (the page) and its charts beside the results; returns the page's path. Result
+    files named ``*-tracks.json`` (per-track detail) go to a page of their own beside it,
+    ``out``'s name with ``-tracks``, which the main page links."""
+    files = sorted(results.glob("*.json"))
+    tracks = [p for p in files if p.stem.endswith("-tracks")]
+    detail = out.with_name(f"{out.stem}-tracks.md")
     lines = [_HEAD]
-    for path in sorted(results.glob("*.json")):
-        r = json.loads(path.read_text())
-        lines += [f"## {r['title']}", "", f"{r['device']}, {r['date']}: `{r['command']}`", "", r["about"], ""]
-        lines += ["| " + " | ".join(r["columns"]) + " |", "|" + "---|" * len(r["columns"])]
-        lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in r["rows"]]
-        if chart := r.get("chart"):
-            png = _chart(results / f"{path.stem}.png", r["title"], chart)
-            lines += ["", f"![{r['title']}]({png.relative_to(out.parent).as_posix()})"]
-        lines.append("")
+    for path in (p for p in files if p not in tracks):
+        lines += _section(path, results, out)
     for path in sorted((results / "speed").glob("*.json")):
         r = json.loads(path.read_text())
         lines += [f"## Speed: {r['device']}", "", f"{r['date']}: `{r['command']}`", "", _SPEED_ABOUT, ""]
         lines += ["| " + " | ".join(SPEED_COLUMNS) + " |", "|" + "---|" * len(SPEED_COLUMNS)]
         lines += ["| " + " | ".join(map(str, row)) + " |" for row in speed_rows(r["results"])]
         lines.append("")
+    if tracks:
+        lines += [f"Per-track figures of the accuracy suites: [{detail.name}]({detail.name}).", ""]
+        page = [
+            "# Benchmarks per track",
+            "",
+            f"The per-track detail of [{out.name}]({out.name}), generated with it.",
+            "",
+        ]
+        for path in tracks:
+            page += _section(path, results, detail)
+        detail.write_text("\n".join(page))
     lines.append(_TAIL)
     out.write_text("\n".join(lines))
     return out
+
+
+def _section(path: Path, results: Path, page: Path) -> list[str]:
+    """One result file's section: its title, provenance, what it shows, its table and chart."""
+    r = json.loads(path.read_text())
+    lines = [f"## {r['title']}", "", f"{r['device']}, {r['date']}: `{r['command']}`", "", r["about"], ""]
+    lines += ["| " + " | ".join(r["columns"]) + " |", "|" + "---|" * len(r["columns"])]
+    lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in r["rows"]]
+    if chart := r.get("chart"):
+        png = _chart(results / f"{path.stem}.png", r["title"], chart)
+        lines += ["", f"![{r['title']}]({png.relative_to(page.parent).as_posix()})"]
+    return [*lines, ""]

@@ -21,10 +21,10 @@ from service.tracker.cost import TERM_NAMES
 from service.tracker.sampling import sample_poses
 from sim_backend import HandSpec, Population, PopulationConfig, catalog_object
 
-from .demos import Recording
+from .recorder import Recording
 from .suites import NOISE_LEVELS
 
-__all__ = ["cost_ranking", "rank_correlation"]
+__all__ = ["cost_ranking", "format_table", "rank_correlation"]
 
 
 def rank_correlation(cost: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -87,3 +87,18 @@ def cost_ranking(
         }
         for i, name in enumerate(names)
     }
+
+
+def format_table(results: dict[str, dict], title: str) -> str:
+    """:func:`cost_ranking`'s results per object as a table: a row per cost term, each cell the
+    correlation and the share of frames on which it was defined."""
+    objects = list(results)
+    lines = [f"Spearman rho of cost against true ADD over each group's worlds ({title})"]
+    lines.append(f"{'term':<18}" + "".join(f"{o:>22}" for o in objects))
+    for term in next(iter(results.values())):
+        cells = []
+        for o in objects:
+            r = results[o][term]
+            cells.append("-" if r["rho"] is None else f"{r['rho']:+.2f} ({100 * r['defined']:.0f} %)")
+        lines.append(f"{term:<18}" + "".join(f"{c:>22}" for c in cells))
+    return "\n".join(lines)

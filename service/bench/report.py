@@ -30,8 +30,31 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
     summary = results["summary"]
     methods = [m for m in METHODS if m in summary]
     noises = [n for n in NOISE_LEVELS if any(n in summary[m] for m in methods)]
+    lines = _head(results, command)
+    lines += _fig2(results, methods, noises, out)
+    lines += _uncertainty(summary, methods, noises)
+    lines += _loss(summary, methods)
+    if best_world := results.get("summary_best_world"):
+        lines += [
+            "## ADD of the lowest-cost world",
+            "",
+            "The same tracks scored on the lowest-cost world's pose (the paper's estimate) instead of"
+            " the estimate reported.",
+            "",
+            *_table(best_world, methods, noises),
+            "",
+        ]
+    lines += _ablations(results["ablations"], out)
+    lines += _per_trajectory(results, methods, noises, out)
+    path = out / "report.md"
+    path.write_text("\n".join(line for line in lines if line is not None) + "\n")
+    return path
+
+
+def _head(results: dict, command: str) -> list[str | None]:
+    """What was run, on what, with which settings."""
     suite = results["suite"]
-    lines = [
+    return [
         f"# Accuracy: suite `{suite['name']}`",
         "",
         f"- command: `{command}`" if command else "",
@@ -55,6 +78,13 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
             else "- no camera: the tracker sees only what the robot senses (the paper)"
         ),
         "",
+    ]
+
+
+def _fig2(results: dict, methods: list[str], noises: list[str], out: Path) -> list[str]:
+    """The paper's Fig. 2: ADD per method and initial noise, as a table and a chart."""
+    summary = results["summary"]
+    lines = [
         "## ADD per method and initial noise (the paper's Fig. 2)",
         "",
         "Mean over tracks of each track's mean ADD over its frames, its std over tracks, and the max over all"
@@ -70,9 +100,13 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
     lines += _table(summary, methods, noises)
     mean = np.array([[summary[m].get(n, {}).get("mean_mm", np.nan) for m in methods] for n in noises])
     std = np.array([[summary[m].get(n, {}).get("std_mm", 0.0) for m in methods] for n in noises])
-    bar_chart(out / "fig2.png", f"ADD {suite['name']}", [n.upper() for n in noises], methods, mean, std)
-    lines += ["", "![ADD per method and noise](fig2.png)", ""]
-    lines += [
+    bar_chart(out / "fig2.png", f"ADD {results['suite']['name']}", [n.upper() for n in noises], methods, mean, std)
+    return [*lines, "", "![ADD per method and noise](fig2.png)", ""]
+
+
+def _uncertainty(summary: dict, methods: list[str], noises: list[str]) -> list[str]:
+    """ADD-S, and how honest the reported uncertainty and the status were."""
+    lines = [
         "## ADD-S and the reported uncertainty",
         "",
         "ADD-S (each estimated surface point to the nearest true one, every tenth frame) scores a turned"
@@ -92,39 +126,38 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
             for n in noises
         ]  # fmt: skip
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
-    lines.append("")
-    if any("flag_after_s" in c for m in methods for c in summary[m].values()):
-        lines += [
-            "## Loss and recovery",
-            "",
-            "The object slips out of the hand mid-carry, unseen: seconds from the loss to the status"
-            " saying anything but tracking, and to the estimate back within 10 mm for 0.5 s (mean over"
-            " the tracks that got there; how many never did in brackets).",
-            "",
-            "| method | noise | status says so after s | back within 10 mm after s |",
-            "|---|---|---|---|",
-        ]
-        for m in methods:
-            for n, c in summary[m].items():
-                if "flag_after_s" in c:
-                    cells = [
-                        ("-" if c[k] is None else f"{c[k]:.2f}") + f" [{c[k.replace('_after_s', '_never')]}]"
-                        for k in ("flag_after_s", "back_within_10mm_after_s")
-                    ]
-                    lines.append(f"| {m} | {n} | " + " | ".join(cells) + " |")
-        lines.append("")
-    if best_world := results.get("summary_best_world"):
-        lines += [
-            "## ADD of the lowest-cost world",
-            "",
-            "The same tracks scored on the lowest-cost world's pose (the paper's estimate) instead of"
-            " the estimate reported.",
-            "",
-            *_table(best_world, methods, noises),
-            "",
-        ]
+    return [*lines, ""]
 
-    for study, rows in results["ablations"].items():
+
+def _loss(summary: dict, methods: list[str]) -> list[str]:
+    """On a loss suite: how soon the status said so, and how soon the estimate came back."""
+    if not any("flag_after_s" in c for m in methods for c in summary[m].values()):
+        return []
+    lines = [
+        "## Loss and recovery",
+        "",
+        "The object slips out of the hand mid-carry, unseen: seconds from the loss to the status"
+        " saying anything but tracking, and to the estimate back within 10 mm for 0.5 s (mean over"
+        " the tracks that got there; how many never did in brackets).",
+        "",
+        "| method | noise | status says so after s | back within 10 mm after s |",
+        "|---|---|---|---|",
+    ]
+    for m in methods:
+        for n, c in summary[m].items():
+            if "flag_after_s" in c:
+                cells = [
+                    ("-" if c[k] is None else f"{c[k]:.2f}") + f" [{c[k.replace('_after_s', '_never')]}]"
+                    for k in ("flag_after_s", "back_within_10mm_after_s")
+                ]
+                lines.append(f"| {m} | {n} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def _ablations(ablations: dict, out: Path) -> list[str]:
+    """The paper's Fig. 3: a table and a chart per ablation study."""
+    lines: list[str] = []
+    for study, rows in ablations.items():
         labels = list(rows)
         lines += [
             f"## Ablation: {_STUDY_TITLES.get(study, study)} (PBO, med noise)",
@@ -142,11 +175,15 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
             np.array([[rows[k]["std_mm"]] for k in labels]),
         )
         lines += ["", f"![{study}](ablation_{study}.png)", ""]
+    return lines
 
+
+def _per_trajectory(results: dict, methods: list[str], noises: list[str], out: Path) -> list[str]:
+    """A row and an ADD-over-time chart per trajectory, at medium noise (or the one run)."""
     tracks = [t for t in results["tracks"] if t["study"] == "main"]
     noise = "med" if "med" in noises else noises[0]
     names = sorted({t["trajectory"] for t in tracks})
-    lines += [
+    lines = [
         f"## Per trajectory ({noise} noise): mean ADD [mm], frames the tracker re-seeded in brackets"
         + (", one entry per run" if results.get("repeats", 1) > 1 else ""),
         "",
@@ -176,10 +213,7 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
         series = {m: np.asarray(runs[m][0]["add_mm"]) for m in methods if m in runs}  # the first run's
         line_chart(out / f"add_{name}.png", f"{name} {noise}", series, x_step=1 / 30)
     first = " (the first run)" if results.get("repeats", 1) > 1 else ""
-    lines += ["", f"ADD over time per trajectory{first}:", ""] + [f"![{n}](add_{n}.png)" for n in names]
-    path = out / "report.md"
-    path.write_text("\n".join(line for line in lines if line is not None) + "\n")
-    return path
+    return [*lines, "", f"ADD over time per trajectory{first}:", ""] + [f"![{n}](add_{n}.png)" for n in names]
 
 
 def _table(summary: dict, methods: list[str], noises: list[str]) -> list[str]:

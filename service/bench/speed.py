@@ -121,59 +121,64 @@ def bench_speed(
         p0 = np.repeat(traj.truth.initial_pose[None], g, axis=0)
         q0 = np.repeat(traj.truth.initial_q[None], g, axis=0)
         for w in worlds:
-            sync()
-            before = used_bytes(dev)
             config = PopulationConfig(
                 groups=g, worlds=w // g, substeps=n, device=dev.alias, jacobian=jacobian,
                 iterations=iterations, ls_iterations=ls_iterations, **overrides,
             )  # fmt: skip
-            pop = Population(HandSpec(), obj, config)
-            tracker = Tracker(pop, TrackerConfig())
-            tracker.start(p0, q0)
-            for frame in recorded[:warmup]:
-                tracker.step(frame)
-            timed = recorded[warmup : warmup + frames]
-            track = _timed(tracker.step, timed, sync)
-            used = used_bytes(dev) - before
-
-            # The same motion again with nothing but the physics graph.
-            tracker.start(p0, q0)
-            for frame in recorded[:warmup]:
-                pop.set_targets(frame.controls)
-                pop.step()
-            physics = np.empty(len(timed))
-            for i, frame in enumerate(timed):
-                pop.set_targets(frame.controls)
-                sync()
-                t = time.perf_counter()
-                pop.step()
-                sync()
-                physics[i] = (time.perf_counter() - t) * 1e3
-            results.append(
-                SpeedResult(
-                    device=dev.alias,
-                    worlds=w,
-                    groups=g,
-                    substeps=n,
-                    solver=config.solver_settings.name,
-                    iterations=config.solver_settings.iterations,
-                    ls_iterations=config.solver_settings.ls_iterations,
-                    tolerance=config.tolerance,
-                    ls_tolerance=config.ls_tolerance,
-                    frames=len(timed),
-                    tracker_median_ms=float(np.median(track)),
-                    tracker_p99_ms=float(np.percentile(track, 99)),
-                    physics_median_ms=float(np.median(physics)),
-                    physics_p99_ms=float(np.percentile(physics, 99)),
-                    bytes_per_world=used / w,
-                    captured=tracker._frame_graph.captured,
-                )
-            )
+            results.append(_measure(config, obj, recorded, (p0, q0), warmup, frames, sync))
             if progress:
                 progress(results[-1])
-            del tracker, pop
             release_memory(dev)
     return results
+
+
+def _measure(
+    config: PopulationConfig, obj, recorded: list, start: tuple, warmup: int, frames: int, sync
+) -> SpeedResult:
+    """One row: ``frames`` tracker steps of a population of ``config`` after ``warmup``, then the
+    same motion again with nothing but the physics graph; ``start`` is the initial (p0, q0)."""
+    dev = resolve_device(config.device)
+    sync()
+    before = used_bytes(dev)
+    pop = Population(HandSpec(), obj, config)
+    tracker = Tracker(pop, TrackerConfig())
+    tracker.start(*start)
+    for frame in recorded[:warmup]:
+        tracker.step(frame)
+    timed = recorded[warmup : warmup + frames]
+    track = _timed(tracker.step, timed, sync)
+    used = used_bytes(dev) - before
+    tracker.start(*start)
+    for frame in recorded[:warmup]:
+        pop.set_targets(frame.controls)
+        pop.step()
+    physics = np.empty(len(timed))
+    for i, frame in enumerate(timed):
+        pop.set_targets(frame.controls)
+        sync()
+        t = time.perf_counter()
+        pop.step()
+        sync()
+        physics[i] = (time.perf_counter() - t) * 1e3
+    s = config.solver_settings
+    return SpeedResult(
+        device=dev.alias,
+        worlds=config.world_count,
+        groups=config.groups,
+        substeps=config.substeps,
+        solver=s.name,
+        iterations=s.iterations,
+        ls_iterations=s.ls_iterations,
+        tolerance=config.tolerance,
+        ls_tolerance=config.ls_tolerance,
+        frames=len(timed),
+        tracker_median_ms=float(np.median(track)),
+        tracker_p99_ms=float(np.percentile(track, 99)),
+        physics_median_ms=float(np.median(physics)),
+        physics_p99_ms=float(np.percentile(physics, 99)),
+        bytes_per_world=used / config.world_count,
+        captured=tracker.captured,
+    )
 
 
 def format_table(results: list[SpeedResult]) -> str:

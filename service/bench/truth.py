@@ -27,10 +27,11 @@ from sim_backend import (
 from sim_backend.objects import ObjectSpec
 from sim_backend.robots import RobotSpec
 
-from .demos import Demo, Recording, make_demo, record
+from .demos import Demo, make_demo
 from .motions import make_motion
 from .mujoco_truth import MujocoScene, export_scene, record_mujoco
 from .palm_motions import make_palm_motion
+from .recorder import Recording, record
 from .suites import SensorNoise, Suite, robot_spec
 
 __all__ = ["ground_truth", "open_loop_disagreement"]
@@ -188,7 +189,7 @@ def _draw_prior(nominal: float, bounds: tuple[float, float], rng: np.random.Gene
     """The tracker's prior over a physics parameter (its nominal value, a quarter of the range as
     standard deviation, clipped to the range): the truth is one draw from what the tracker believes."""
     lo, hi = bounds
-    return np.clip(rng.normal(nominal, TrackerConfig().mass_sigma0 * (hi - lo), n), lo, hi)
+    return np.clip(rng.normal(nominal, TrackerConfig().seeding.mass_sigma0 * (hi - lo), n), lo, hi)
 
 
 _CANDIDATES = 4

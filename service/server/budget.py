@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FrameTimes", "affordable_worlds", "device_name", "ladder"]
+__all__ = ["FrameTimes", "affordable_worlds", "calibrate", "device_name", "ladder"]
 
 log = logging.getLogger(__name__)
 
@@ -124,3 +124,26 @@ def affordable_worlds(
     fits in the budget beside ``load_ms`` of populations already stepping; 0 when none does."""
     fits = [k for k in sizes if k <= at_most and load_ms + times.predict(groups * k) <= budget_ms]
     return max(fits, default=0)
+
+
+def calibrate(tracker, traj, q0: np.ndarray, rest: np.ndarray, frames: int = 120) -> float:
+    """The p99 of a tracker's steps [ms] over ``frames`` of the trajectory ``traj`` replayed in every
+    group (the first third untimed: the hand reaches the object), or, with ``traj`` None, holding
+    the joints ``q0`` (D,) with the object at ``rest`` (7,)."""
+    from service.tracker import Frame  # torch: only where a service calibrates
+
+    g = tracker.G
+    tile = lambda a: np.repeat(np.asarray(a, np.float32)[None], g, axis=0)  # noqa: E731
+    if traj is None:
+        pose = rest
+        sensing = [{"controls": tile(q0), "q": tile(q0)}] * frames
+    else:
+        pose, frames = traj.truth.initial_pose, min(frames, traj.frames)
+        sensing = [{n: tile(v[f]) for n, v in traj.sensing.items() if v is not None} for f in range(frames)]
+    tracker.start(tile(pose), sensing[0]["q"])
+    times = []
+    for fields in sensing:
+        began = time.perf_counter()
+        tracker.step(Frame(**fields))
+        times.append((time.perf_counter() - began) * 1e3)
+    return float(np.percentile(times[frames // 3 :], 99))

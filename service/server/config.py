@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_settings import (
     BaseSettings,
     NoDecode,
@@ -20,7 +20,7 @@ from pydantic_settings import (
 from service.paths import CONFIG_DIR
 from sim_backend import PopulationConfig
 
-__all__ = ["DEFAULT_CONFIG", "ServiceConfig", "load_config"]
+__all__ = ["DEFAULT_CONFIG", "PhysicsSettings", "ServiceConfig", "load_config"]
 
 DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 
@@ -28,8 +28,33 @@ DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 Endpoints = Annotated[tuple[str, ...], NoDecode]
 
 
+class PhysicsSettings(BaseModel):
+    """How every population simulates: the solver's budget per frame. The frame budget's cached
+    step times are kept per physics setting."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)
+    """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
+    iterations: int | None = Field(None, ge=1)
+    """The constraint solver's iteration cap per substep (None: the solver's own, 20 for Newton).
+    A world that has not converged stops there; the frame waits for its slowest world."""
+    ls_iterations: int | None = Field(None, ge=1)
+    """The solver's line-search iteration cap (None: the solver's own, 10 for Newton)."""
+    tolerance: float = Field(PopulationConfig.tolerance, gt=0, lt=1)
+    """The solver's convergence tolerance on the scaled cost improvement and gradient."""
+    ls_tolerance: float = Field(PopulationConfig.ls_tolerance, gt=0, lt=1)
+    """Its line search's tolerance: the search stops once the slope has fallen to this share of its start."""
+
+    def population(self, groups: int, worlds: int, device: str) -> PopulationConfig:
+        """The population's config for ``groups`` x ``worlds`` worlds with these physics."""
+        return PopulationConfig(groups=groups, worlds=worlds, device=device, **self.model_dump())
+
+
 class ServiceConfig(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="INHAND_", extra="forbid", frozen=True, toml_file=DEFAULT_CONFIG)
+    model_config = SettingsConfigDict(
+        env_prefix="INHAND_", env_nested_delimiter="__", extra="forbid", frozen=True, toml_file=DEFAULT_CONFIG
+    )
 
     name: str = "default"
     """The service's name: its keys live under inhand/v3/{name}."""
@@ -80,17 +105,9 @@ class ServiceConfig(BaseSettings):
     and counted stale; a younger one is scored against the worlds at the next step [s]."""
     max_wait_s: float = Field(0.05, ge=0)
     """A population steps when every session sent a frame, or when a frame waited this long [s]."""
-    substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)
-    """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
-    iterations: int | None = Field(None, ge=1)
-    """The constraint solver's iteration cap per substep (None: the solver's own, 20 for Newton).
-    A world that has not converged stops there; the frame waits for its slowest world."""
-    ls_iterations: int | None = Field(None, ge=1)
-    """The solver's line-search iteration cap (None: the solver's own, 10 for Newton)."""
-    tolerance: float = Field(PopulationConfig.tolerance, gt=0, lt=1)
-    """The solver's convergence tolerance on the scaled cost improvement and gradient."""
-    ls_tolerance: float = Field(PopulationConfig.ls_tolerance, gt=0, lt=1)
-    """Its line search's tolerance: the search stops once the slope has fallen to this share of its start."""
+    physics: PhysicsSettings = PhysicsSettings()
+    """The tracker's physics, shared by every population (``[physics]`` in the TOML file,
+    INHAND_PHYSICS__<KEY> in the environment)."""
     rate_hz: float = Field(30.0, ge=0)
     """The robots' frame rate the service keeps up with [Hz]: a new population is admitted only
     while the p99 steps of all populations together fit in ``budget_share`` of one frame period.

@@ -10,13 +10,11 @@ the robots' frames and observations, in the order they arrive; a liveliness subs
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
-import queue
 import threading
 import time
-from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
 
@@ -32,6 +30,7 @@ from protocol import (
     PoseObservation,
     RobotFrame,
     ServiceInfo,
+    SessionInfo,
     decode,
     encode,
 )
@@ -39,39 +38,25 @@ from service.paths import resolve
 from service.tracker import METHODS
 from sim_backend import load_catalog, load_robot, resolve_device
 
+from .admission import Admission, ServiceError
 from .config import ServiceConfig
+from .inbox import Inbox, Request, answer, guarded
+from .outputs import Outputs
+from .pools import PoolKey
 from .recording import SessionRecorder
 from .ros2 import RosTopics
-from .sessions import Admission, ServiceError, SessionManager
+from .sessions import SessionManager
 
 __all__ = ["TrackerNode"]
 
 log = logging.getLogger(__name__)
 
 _ESTIMATE = zenoh_encoding(Estimate)
+_ROBOT_MESSAGES = {"frame": RobotFrame, "observation": PoseObservation}
+"""What a robot publishes on its session's keys, by the key's last chunk."""
 _STALL_S = 1.0
 """A turn of the service's loop longer than this [s] was the service's own stall: the sessions'
 idle time counts again from its end."""
-
-
-def _guarded(handler):
-    """A Zenoh callback that raises is printed to stderr by Zenoh, past the service's log, and its
-    query is left unanswered until the client times out: log it, and answer with the reason."""
-
-    @functools.wraps(handler)
-    def run(self, arg) -> None:
-        try:
-            handler(self, arg)
-        except Exception as exc:
-            log.exception("%s on %s failed", handler.__name__, getattr(arg, "key_expr", "?"))
-            if isinstance(arg, zenoh.Query):
-                error = encode(Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
-                # A query answered before it raised takes no more; `with` finalises it now (the
-                # traceback holds it, so the client would wait for its timeout).
-                with contextlib.suppress(Exception), arg:
-                    arg.reply_err(error, encoding=zenoh_encoding(Error))
-
-    return run
 
 
 class TrackerNode:
@@ -86,7 +71,7 @@ class TrackerNode:
             robots[spec.name] = spec
         self.device = str(resolve_device(config.device))
         self.manager = SessionManager(config, robots, load_catalog(resolve(config.objects)))
-        self._inbox: queue.Queue = queue.Queue()
+        self._inbox = Inbox()
         self._latest: dict[str, bytes] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._robot_gone: dict[str, float] = {}
@@ -98,11 +83,9 @@ class TrackerNode:
         """Kernels compiled and the liveliness token declared: sessions may open."""
         self._beat = time.monotonic()
         """When the loop last came round [s, monotonic]."""
-        self._in_flight: Future | None = None
-        """The request the loop is handling now."""
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
         """Builds populations off the loop thread."""
-        self._waiting: dict[tuple, list[tuple[OpenSession, Future | None, str | None]]] = {}
+        self._waiting: dict[PoolKey, list[tuple[OpenSession, Future | None, str | None]]] = {}
         """Opens waiting for their population's build, by population key: the request with the
         worlds granted, and why fewer than asked (when so)."""
         self._token = None
@@ -112,12 +95,10 @@ class TrackerNode:
         this one has no room for."""
         self._room = (0.0, 0)
         """The loop's latest (load_ms, free_worlds), for the info queryable."""
-        self._ros: RosTopics | None = None
-        """The sessions' estimates as ROS 2 topics (setting ``ros2``)."""
-        self._recorder = SessionRecorder(config.record, config.name, config.ros2_frame_id) if config.record else None
-        """Every session recorded to MCAP (setting ``record``)."""
-        self._view = None
-        """The live view in a browser (setting ``view_port``)."""
+        self.outputs = Outputs()
+        """ROS 2 topics (setting ``ros2``), recordings (``record``) and the live view (``view_port``)."""
+        if config.record:
+            self.outputs.add(SessionRecorder(config.record, config.name, config.ros2_frame_id))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> TrackerNode:
@@ -139,11 +120,11 @@ class TrackerNode:
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
         if cfg.ros2:
-            self._ros = RosTopics(s, cfg.ros2_domain_id, cfg.ros2_frame_id, cfg.ros2_tf)
+            self.outputs.add(RosTopics(s, cfg.ros2_domain_id, cfg.ros2_frame_id, cfg.ros2_tf))
         if cfg.view_port:
             from .viewer import LiveView  # viser, only where a view is asked for
 
-            self._view = LiveView(cfg.view_host, cfg.view_port)
+            self.outputs.add(LiveView(cfg.view_host, cfg.view_port))
         self._loop.start()  # it warms up, then declares the service's liveliness token
         self._watchdog = threading.Thread(target=self._watch, name="inhand-watchdog", daemon=True)
         self._watchdog.start()
@@ -157,19 +138,10 @@ class TrackerNode:
         # A loop still busy (a population build) or dead leaves requests unanswered, and Zenoh's
         # close waits for the handlers that wait on them: answer them, so the service can go.
         self._builder.shutdown(wait=False, cancel_futures=True)
-        pending = [self._in_flight, *(done for waits in self._waiting.values() for _, done, _ in waits)]
-        while not self._inbox.empty():
-            pending.append(self._inbox.get_nowait()[2])
-        for done in pending:
-            _answer(done, Error(code=ErrorCode.INTERNAL, message="the service is stopping"))
-        if self._recorder is not None:
-            self._recorder.close_all()
-        if self._ros is not None:
-            self._ros.close()
-            self._ros = None
-        if self._view is not None:
-            self._view.close()
-            self._view = None
+        self._inbox.cancel(
+            (done for waits in self._waiting.values() for _, done, _ in waits), "the service is stopping"
+        )
+        self.outputs.close()
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -181,12 +153,6 @@ class TrackerNode:
         self.close()
 
     # ------------------------------------------------------------------ zenoh handlers (decode, queue)
-    def _call(self, kind: str, payload) -> object:
-        """Hand a request to the loop and wait for its answer (opening may build a population)."""
-        done: Future = Future()
-        self._inbox.put((kind, payload, done))
-        return done.result(timeout=300)
-
     def _reply(self, query: zenoh.Query, answer) -> None:
         with query:
             if isinstance(answer, Error):
@@ -194,7 +160,7 @@ class TrackerNode:
             else:
                 query.reply(query.key_expr, encode(answer), encoding=zenoh_encoding(type(answer)))
 
-    @_guarded
+    @guarded
     def _on_info(self, query: zenoh.Query) -> None:
         m = self.manager
         info = ServiceInfo(
@@ -215,21 +181,21 @@ class TrackerNode:
         )
         self._reply(query, info)
 
-    @_guarded
+    @guarded
     def _on_open(self, query: zenoh.Query) -> None:
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
         except DecodeError as exc:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._call("open", (request, None)))
+        self._reply(query, self._inbox.call("open", functools.partial(self._open, request, None)))
 
-    @_guarded
+    @guarded
     def _on_close(self, query: zenoh.Query) -> None:
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", CloseSession)
         except DecodeError as exc:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._call("close", request))
+        self._reply(query, self._inbox.call("close", lambda _: self._close(request)))
 
     def _session_request(self, query: zenoh.Query) -> CloseSession | Error:
         """The session and token a status or pose query carries; the session is the key's."""
@@ -239,7 +205,7 @@ class TrackerNode:
             return Error(code=ErrorCode.BAD_REQUEST, message=f"{exc} (the payload carries the session's token)")
         return request.model_copy(update={"session": self.keys.session_of(query.key_expr)})
 
-    @_guarded
+    @guarded
     def _on_pose(self, query: zenoh.Query) -> None:
         """The latest estimate of every open session the selector matches, one reply each. No token:
         the same estimates are published on the pose keys, so Zenoh's access control decides who
@@ -258,52 +224,36 @@ class TrackerNode:
                 if wanted.intersects(key):
                     query.reply(key, payload, encoding=_ESTIMATE)
 
-    @_guarded
+    @guarded
     def _on_status(self, query: zenoh.Query) -> None:
         request = self._session_request(query)
-        self._reply(query, request if isinstance(request, Error) else self._call("status", request))
+        if isinstance(request, Error):
+            return self._reply(query, request)
+        self._reply(query, self._inbox.call("status", lambda _: self.manager.status(request.session, request.token)))
 
-    @_guarded
+    @guarded
     def _on_robot_sample(self, sample: zenoh.Sample) -> None:
-        kind = Keys.kind_of(sample.key_expr)
-        if kind == "frame":
-            self._on_frame(sample)
-        elif kind == "observation":
-            self._on_observation(sample)
-
-    def _on_frame(self, sample: zenoh.Sample) -> None:
+        """A frame or an observation: decoded and checked against its key here, applied on the loop."""
         received = time.perf_counter()
+        kind = Keys.kind_of(sample.key_expr)
+        message_type = _ROBOT_MESSAGES.get(kind)
+        if message_type is None:
+            return
         session = self.keys.session_of(sample.key_expr)
         try:
-            frame = decode(bytes(sample.payload.to_bytes()), RobotFrame)
+            message = decode(bytes(sample.payload.to_bytes()), message_type)
         except DecodeError as exc:
-            self._inbox.put(("bad_frame", (session, str(exc)), None))
-            return
-        if frame.session != session:
-            self._inbox.put(
-                (
-                    "bad_frame",
-                    (session, f"RobotFrame.session: '{frame.session}' sent on the key of session '{session}'"),
-                    None,
-                )
-            )
-            return
-        self._inbox.put(("frame", (frame, received), None))
+            text = str(exc)
+            return self._inbox.post("bad input", lambda _: self.manager.count_error(session, text))
+        if message.session != session:
+            text = f"{message_type.__name__}.session: '{message.session}' sent on the key of session '{session}'"
+            return self._inbox.post("bad input", lambda _: self.manager.count_error(session, text))
+        if kind == "frame":
+            self._inbox.post("frame", lambda _: self._frame(message, received))
+        else:
+            self._inbox.post("observation", lambda _: self._observation(message))
 
-    def _on_observation(self, sample: zenoh.Sample) -> None:
-        session = self.keys.session_of(sample.key_expr)
-        try:
-            observation = decode(bytes(sample.payload.to_bytes()), PoseObservation)
-        except DecodeError as exc:
-            self._inbox.put(("bad_frame", (session, str(exc)), None))
-            return
-        if observation.session != session:
-            text = f"PoseObservation.session: '{observation.session}' sent on the key of session '{session}'"
-            self._inbox.put(("bad_frame", (session, text), None))
-            return
-        self._inbox.put(("observation", observation, None))
-
-    @_guarded
+    @guarded
     def _on_service(self, sample: zenoh.Sample) -> None:
         name = Keys.service_of(sample.key_expr)
         if name != self.keys.service:
@@ -312,11 +262,11 @@ class TrackerNode:
             else:
                 self._others.add(name)
 
-    @_guarded
+    @guarded
     def _on_robot(self, sample: zenoh.Sample) -> None:
         session = self.keys.session_of(sample.key_expr)
-        gone = sample.kind == zenoh.SampleKind.DELETE
-        self._inbox.put(("robot", (session, gone, time.monotonic()), None))
+        gone, when = sample.kind == zenoh.SampleKind.DELETE, time.monotonic()
+        self._inbox.post("robot", lambda _: self._robot_seen(session, gone, when))
 
     # ------------------------------------------------------------------ the loop
     def _guarded_run(self) -> None:
@@ -358,16 +308,10 @@ class TrackerNode:
         while not self._stop.is_set():
             self._beat = time.monotonic()
             idle = not any(s.pending for s in m.sessions.values())
-            try:
-                item = self._inbox.get(timeout=0.01 if idle else 0.0005)
-            except queue.Empty:
-                item = None
-            while item is not None:
-                self._handle(*item)
-                try:
-                    item = self._inbox.get_nowait()
-                except queue.Empty:
-                    item = None
+            request = self._inbox.next(0.01 if idle else 0.0005)
+            while request is not None:
+                self._inbox.handle(request, self._refusal)
+                request = self._inbox.next(0)
             for pool in m.ready(cfg.max_wait_s):
                 try:
                     estimates = m.step(pool)
@@ -383,14 +327,8 @@ class TrackerNode:
                     pub = self._publishers.get(estimate.session)
                     if pub is not None:
                         pub.put(payload)  # the publisher's encoding: Estimate's
-                    self._share(estimate)
-            if self._view is not None:
-                try:
-                    self._view.update(m.sessions)
-                except Exception:  # a view is not worth the service: log it and stop drawing
-                    log.exception("the live view failed; it is closed")
-                    self._view.close()
-                    self._view = None
+                    self.outputs.estimate(estimate)  # after the robot's own: an output's failure is its own
+            self.outputs.tick(m.sessions)
             now = time.monotonic()
             if now - self._beat > _STALL_S:
                 # The service itself was busy (a first step compiling kernels on a cold cache can
@@ -410,44 +348,32 @@ class TrackerNode:
         if m.frame_times.points:
             m.frame_times.save(cfg.frame_time_cache)
 
-    def _handle(self, kind: str, payload, done: Future | None) -> None:
-        m = self.manager
-        self._in_flight = done
-        try:
-            if kind == "frame":
-                frame, received = payload
-                m.submit(frame, received)
-                if self._recorder is not None:
-                    self._recorder.frame(frame)
-            elif kind == "observation":
-                m.observe(payload)
-                if self._recorder is not None:
-                    self._recorder.observation(payload)
-            elif kind == "bad_frame":
-                m.count_error(*payload)
-            elif kind == "robot":
-                session, gone, when = payload
-                if gone and session in m.sessions:
-                    self._robot_gone[session] = when
-                else:
-                    self._robot_gone.pop(session, None)
-            elif kind == "open":
-                self._open(*payload, done)
-            elif kind == "built":
-                self._adopt(*payload)
-            elif kind == "close":
-                m.authorize(payload.session, payload.token)
-                self._drop(payload.session)
-                _answer(done, CloseSession(session=payload.session))
-            elif kind == "status":
-                _answer(done, m.status(payload.session, payload.token))
-        except ServiceError as exc:
-            _answer(done, exc.to_message(sorted(self._others) if exc.code == ErrorCode.CAPACITY else None))
-        except Exception as exc:  # the loop never dies of a request; the caller gets the reason
-            log.exception("request '%s' failed", kind)
-            _answer(done, Error(code=ErrorCode.INTERNAL, message=f"{type(exc).__name__}: {exc}"))
+    def _refusal(self, exc: ServiceError) -> Error:
+        """A refused request's answer; one refused for capacity names the other services there are."""
+        return exc.to_message(sorted(self._others) if exc.code == ErrorCode.CAPACITY else None)
 
-    def _open(self, request: OpenSession, notice: str | None, done: Future | None) -> None:
+    # ------------------------------------------------------------------ requests, on the loop thread
+    def _frame(self, frame: RobotFrame, received: float) -> None:
+        self.manager.submit(frame, received)
+        self.outputs.frame(frame)
+
+    def _observation(self, observation: PoseObservation) -> None:
+        self.manager.observe(observation)
+        self.outputs.observation(observation)
+
+    def _robot_seen(self, session: str, gone: bool, when: float) -> None:
+        """A robot's liveliness token came or went: a session whose robot is gone past the timeout closes."""
+        if gone and session in self.manager.sessions:
+            self._robot_gone[session] = when
+        else:
+            self._robot_gone.pop(session, None)
+
+    def _close(self, request: CloseSession) -> CloseSession:
+        self.manager.authorize(request.session, request.token)
+        self._drop(request.session)
+        return CloseSession(session=request.session)
+
+    def _open(self, request: OpenSession, notice: str | None, done: Future | None) -> SessionInfo | None:
         """Open in a population with room, or queue the open behind the build of its population
         on the builder thread, so that the running sessions keep stepping meanwhile."""
         m = self.manager
@@ -457,12 +383,12 @@ class TrackerNode:
             self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice))
             if admission.key not in m.building:
                 m.reserve(admission)
-                robot, obj, worlds = admission.key[:3]
+                robot, obj, worlds = admission.key.robot, admission.key.object, admission.key.worlds
                 log.info("building a population of %d x %d worlds (%s, %s)", self.config.groups, worlds, robot, obj)
                 build = self._builder.submit(m.build, admission)
                 began = time.monotonic()
-                build.add_done_callback(lambda f: self._inbox.put(("built", (admission, f, began), None)))
-            return
+                build.add_done_callback(lambda f: self._inbox.post("built", lambda _: self._adopt(admission, f, began)))
+            return None
         info = m.attach(admission)
         # Gone until its robot's liveliness token shows up: a robot that never declares one
         # does not hold a session for ever.
@@ -473,11 +399,8 @@ class TrackerNode:
             express=True,
             priority=zenoh.Priority.REAL_TIME,
         )
-        if self._ros is not None:
-            self._ros.open(info.session, info.object)
-        if self._recorder is not None:
-            self._recorder.open(info, request)
-        _answer(done, info)
+        self.outputs.open(info, request)
+        return info
 
     def _adopt(self, admission: Admission, build: Future, began: float) -> None:
         """A build finished: its population joins the loop and the opens that waited for it go on."""
@@ -486,14 +409,14 @@ class TrackerNode:
             pool = build.result()
         except Exception as exc:
             self.manager.building.pop(admission.key, None)
-            log.error("building a population for %s failed", admission.key[:3], exc_info=exc)
+            log.error("building a population for %s failed", admission.key, exc_info=exc)
             for _, done, _ in waiting:
-                _answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
+                answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
             return
         self.manager.adopt(pool)
         log.info("population built in %.1f s", time.monotonic() - began)
         for request, done, notice in waiting:
-            self._handle("open", (request, notice), done)
+            self._inbox.handle(Request("open", functools.partial(self._open, request, notice), done), self._refusal)
 
     def _drop(self, session: str) -> None:
         if session not in self.manager.sessions:
@@ -504,25 +427,4 @@ class TrackerNode:
         pub = self._publishers.pop(session, None)
         if pub is not None:
             pub.undeclare()
-        if self._ros is not None:
-            self._ros.drop(session)
-        if self._recorder is not None:
-            self._recorder.close(session)
-
-    def _share(self, estimate) -> None:
-        """An estimate to ROS 2 and the recording. Their failure is logged and theirs alone: the
-        robot's own estimate went out already."""
-        try:
-            if self._ros is not None:
-                self._ros.publish(estimate)
-            if self._recorder is not None:
-                self._recorder.estimate(estimate)
-        except Exception:
-            log.exception("publishing session %s's estimate to ROS 2 or its recording failed", estimate.session)
-
-
-def _answer(done: Future | None, value) -> None:
-    """Answer a request once: a stopping service may have answered it already."""
-    if done is not None:
-        with contextlib.suppress(InvalidStateError):
-            done.set_result(value)
+        self.outputs.drop(session)

@@ -16,6 +16,7 @@ from mcap.writer import CompressionType, Writer
 from protocol import CHANNELS, PROTOCOL_VERSION, Estimate, OpenSession, PoseObservation, RobotFrame, SessionInfo
 from protocol.recording import SESSION_FIELDS, SESSION_METADATA
 
+from .outputs import Output
 from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, tf_message, to_ros_time
 
 __all__ = ["SessionRecorder"]
@@ -72,8 +73,10 @@ class _File:
         self.stream.close()
 
 
-class SessionRecorder:
+class SessionRecorder(Output):
     """The recordings of every open session, written by the service's loop thread."""
+
+    name = "recorder"
 
     def __init__(self, folder: str | Path, service: str, frame_id: str = "world"):
         self.folder = Path(folder).expanduser()
@@ -81,11 +84,10 @@ class SessionRecorder:
         self.service, self.frame_id = service, frame_id
         self._files: dict[str, _File] = {}
 
-    def open(self, info: SessionInfo, request: OpenSession) -> Path:
+    def open(self, info: SessionInfo, request: OpenSession) -> None:
         path = self.folder / f"{info.session}.mcap"
         self._files[info.session] = _File(path, info, request, self.service, self.frame_id)
         log.info("recording session %s to %s", info.session, path)
-        return path
 
     def frame(self, frame: RobotFrame) -> None:
         f = self._files.get(frame.session)
@@ -120,12 +122,12 @@ class SessionRecorder:
         f.ros("pose", pose_message(estimate, f.frame_id), estimate.stamp)
         f.ros("tf", tf_message(estimate, f.frame_id, object_frame(f.info.object, estimate.session)), estimate.stamp)
 
-    def close(self, session: str) -> None:
+    def drop(self, session: str) -> None:
         f = self._files.pop(session, None)
         if f is not None:
             f.close()
             log.info("recording of session %s closed: %s", session, f.path)
 
-    def close_all(self) -> None:
+    def close(self) -> None:
         for session in list(self._files):
-            self.close(session)
+            self.drop(session)

@@ -32,7 +32,9 @@ import numpy as np
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from protocol import Estimate
+from protocol import Estimate, OpenSession, SessionInfo
+
+from .outputs import Output
 
 __all__ = [
     "POSE_TYPE",
@@ -140,9 +142,11 @@ class RosPublisher:
         self.publisher.undeclare()
 
 
-class RosTopics:
+class RosTopics(Output):
     """The service as one ROS 2 node (``inhand_tracker``, root namespace), with a pose publisher
     per session and, when ``tf`` is on, one ``/tf`` publisher for all of them."""
+
+    name = "ROS 2 topics"
 
     def __init__(self, session: zenoh.Session, domain_id: int = 0, frame_id: str = "world", tf: bool = False):
         self.session, self.domain_id, self.frame_id = session, domain_id, frame_id
@@ -173,13 +177,12 @@ class RosTopics:
             secrets.token_bytes(16),
         )
 
-    def open(self, session: str, object_name: str) -> str:
-        """Start publishing ``session``'s estimates; its ROS 2 pose topic."""
-        self._poses[session] = self._declare(ros_topic(session), POSE_TYPE)
-        self._children[session] = object_frame(object_name, session)
-        return self._poses[session].topic
+    def open(self, info: SessionInfo, request: OpenSession | None = None) -> None:
+        """Start publishing the session's estimates on its ROS 2 pose topic."""
+        self._poses[info.session] = self._declare(ros_topic(info.session), POSE_TYPE)
+        self._children[info.session] = object_frame(info.object, info.session)
 
-    def publish(self, estimate: Estimate) -> None:
+    def estimate(self, estimate: Estimate) -> None:
         pub = self._poses.get(estimate.session)
         if pub is None:
             return

@@ -18,6 +18,8 @@ import warp as wp
 
 from protocol import Estimate
 
+from .outputs import Output
+
 __all__ = ["LiveView"]
 
 log = logging.getLogger(__name__)
@@ -30,8 +32,10 @@ _FAINTEST = 0.08
 """The opacity of a world whose weight is nil: faded, still visible."""
 
 
-class LiveView:
+class LiveView(Output):
     """A browser view of the service's sessions, on ``host:port``."""
+
+    name = "live view"
 
     def __init__(self, host: str, port: int, rate_hz: float = 10.0):
         from newton.viewer import ViewerViser
@@ -55,7 +59,7 @@ class LiveView:
         target = self._look_at if self._look_at is not None else np.zeros(3)
         self.viewer.set_camera(wp.vec3(*(target + _CAMERA_OFFSET)), pitch=-25.0, yaw=135.0)
 
-    def update(self, sessions: dict) -> None:
+    def tick(self, sessions: dict) -> None:
         """Draw the chosen session's worlds and latest estimate (``sessions``: the manager's, by id)."""
         now = time.monotonic()
         if now - self._last < self.period:

@@ -3,10 +3,11 @@ on the population's device memory (cost, optimizers, sampling), captured as grap
 
 from .config import TrackerConfig, setting_types
 from .cost import TERM_NAMES, WEIGHTS, Cost, CostConfig, RealObservation
+from .estimate import pose_modes
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .optimizers import METHODS, OptimizerConfig
 from .recovery import Recovery
-from .tracker import Tracker, pose_modes
+from .tracker import Tracker
 
 __all__ = [
     "ESTIMATE",

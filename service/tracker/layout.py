@@ -149,7 +149,7 @@ class GroupEstimates:
     frame: int
     pose: np.ndarray
     """The estimate, (G, 7): position [m], quaternion (x, y, z, w); the mean pose or the best
-    world's (``TrackerConfig.mean_estimate``)."""
+    world's (``EstimateConfig.mean_estimate``)."""
     best_pose: np.ndarray
     """The lowest-cost world's object pose, (G, 7)."""
     cost: np.ndarray
@@ -175,7 +175,7 @@ class GroupEstimates:
     """The share of the cost weights in each mode, (G, 2)."""
     contacts_explored: np.ndarray | None = None
     """Whether each group's worlds explore their contacts, (G,) bool: its lowest cost said the
-    model's contacts are wrong (:attr:`.TrackerConfig.contact_gate_cost`)."""
+    model's contacts are wrong (:attr:`.ContactExploration.contact_gate_cost`)."""
 
     @classmethod
     def unpack(cls, rows: np.ndarray, frame: int, status: np.ndarray) -> GroupEstimates:

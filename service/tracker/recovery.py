@@ -89,7 +89,7 @@ class Recovery:
         self.trusted[mask] = anchor[mask]
         self._trusted_held[mask] = False
         self.status[mask] = TrackState.RECOVERING
-        self._recovering[mask] = self.config.recover_frames
+        self._recovering[mask] = self.config.recovery.recover_frames
         self._contact_loss[mask] = 0
 
     def watch(self, est: GroupEstimates, force: np.ndarray | None, felt: np.ndarray, hand: np.ndarray) -> list[Reseed]:
@@ -101,10 +101,10 @@ class Recovery:
         recovering = self._recovering > 0
         lost_contact = ~recovering & (est.contact_disagreement >= 0.5 * self.L)
         self._contact_loss = np.where(lost_contact, self._contact_loss + 1, 0)
-        diverged = (est.lost > cfg.lost_fraction) | (self._contact_loss >= cfg.contact_loss_frames)
+        diverged = (est.lost > cfg.recovery.lost_fraction) | (self._contact_loss >= cfg.recovery.contact_loss_frames)
         spread = point_spread(est.covariance, self.moment)
-        unsure = spread > cfg.uncertain_spread
-        ambiguous = est.mode_weights[:, 1] >= cfg.ambiguous_weight
+        unsure = spread > cfg.recovery.uncertain_spread
+        ambiguous = est.mode_weights[:, 1] >= cfg.recovery.ambiguous_weight
         status = np.where(unsure | self._surprised(est.cost), TrackState.UNCERTAIN, TrackState.TRACKING)
         status = np.where(ambiguous, TrackState.AMBIGUOUS, status)
         status = np.where(recovering, TrackState.RECOVERING, status)
@@ -130,7 +130,7 @@ class Recovery:
         # would catch it again, so those hypotheses go onto the table below it.
         dropped = diverged & felt & ~touching & self.falls
         held = diverged & ~dropped
-        sigma_r = cfg.sigma_r * cfg.reseed_scale
+        sigma_r = cfg.seeding.sigma_r * cfg.recovery.reseed_scale
         out = []
         if held.any():
             # An object held when last trusted went where the hand went since. Re-seeding at the
@@ -138,11 +138,11 @@ class Recovery:
             # out, were lost and re-seeded there again, frame after frame.
             anchor = self.trusted.copy()
             anchor[:, :3] += self._trusted_held[:, None] * (hand - self._trusted_hand)
-            out.append(Reseed(held, anchor, cfg.sigma_t * cfg.reseed_scale, sigma_r))
+            out.append(Reseed(held, anchor, cfg.seeding.sigma_t * cfg.recovery.reseed_scale, sigma_r))
         if dropped.any():
-            out.append(Reseed(dropped, self.trusted, cfg.drop_sigma_t, sigma_r, on_table=True))
+            out.append(Reseed(dropped, self.trusted, cfg.recovery.drop_sigma_t, sigma_r, on_table=True))
         if diverged.any():
-            self._recovering[diverged] = cfg.recover_frames
+            self._recovering[diverged] = cfg.recovery.recover_frames
             self._contact_loss[diverged] = 0
         self.status[:] = status
         return out
@@ -153,8 +153,14 @@ class Recovery:
         cfg = self.config
         fresh = np.isnan(self._cost_level)
         level = np.where(fresh, cost, self._cost_level)
-        surprised = (cfg.surprise_ratio > 0) & (cost > cfg.surprise_ratio * level) & (cost > cfg.surprise_cost)
+        surprised = (
+            (cfg.recovery.surprise_ratio > 0)
+            & (cost > cfg.recovery.surprise_ratio * level)
+            & (cost > cfg.recovery.surprise_cost)
+        )
         # A group whose worlds all lost the object scores inf: the lost-fraction rule's case, and
         # no level to learn.
-        self._cost_level = np.where(np.isfinite(cost), level + (cost - level) / cfg.surprise_frames, self._cost_level)
+        self._cost_level = np.where(
+            np.isfinite(cost), level + (cost - level) / cfg.recovery.surprise_frames, self._cost_level
+        )
         return surprised & ~fresh

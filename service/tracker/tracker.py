@@ -27,8 +27,11 @@ from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_
 
 from .capture import CapturedOps
 from .config import TrackerConfig
+from .contacts import ContactExplorer
 from .cost import Cost, RealObservation
+from .estimate import pose_modes
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
+from .observations import PoseObserver
 from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, update
 from .recovery import Recovery
 from .sampling import (
@@ -40,12 +43,7 @@ from .sampling import (
     silverman_bandwidth,
 )
 
-__all__ = ["Tracker", "pose_modes"]
-
-_CONTACT_SPAN = float(np.log(4.0))
-"""How far the worlds' contact parameters may stray from the model's, in their logarithm: a
-factor of 4 either way spans soft rubber pads to rigid fingertips and MuJoCo's impratio from 2.5
-to 40."""
+__all__ = ["Tracker"]
 
 _MISMATCH_CAP = 16.0
 """The most the floor's variance grows with the cost (4x its deviation): a population that lost its
@@ -56,28 +54,6 @@ def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
     shape = (*quat.shape[:-1], len(vertices))
     return quat_rotate(quat[..., None, :].expand(*shape, 4), vertices.expand(*shape, 3))[..., 2].amin(-1)
-
-
-def pose_modes(
-    poses: torch.Tensor, best: torch.Tensor, weights: torch.Tensor, angle: float, distance: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The two heaviest pose modes of each group's worlds ``poses`` (G, K, 7) under ``weights``
-    (G, K): the one around the lowest-cost world's pose ``best`` (G, 7), and the one around the
-    heaviest world outside it. A mode is the worlds within ``angle`` [rad] and ``distance`` [m]
-    of its seed (a quaternion and its negative are one rotation). Returns the seeds (G, 2, 7) and
-    the modes' shares of the weights (G, 2)."""
-
-    def near(seed: torch.Tensor) -> torch.Tensor:  # (G, 7) -> (G, K) bool
-        dot = (poses[..., 3:] * seed[:, None, 3:]).sum(-1).abs().clamp(max=1.0)
-        close = (poses[..., :3] - seed[:, None, :3]).norm(dim=-1) < distance
-        return close & (2 * torch.acos(dot) < angle)
-
-    first = near(best)
-    heaviest_away = weights.masked_fill(first, -1.0).argmax(-1)
-    second_seed = poses.gather(1, heaviest_away[:, None, None].expand(-1, 1, 7))[:, 0]
-    second = near(second_seed) & ~first
-    shares = torch.stack([(weights * first).sum(-1), (weights * second).sum(-1)], -1)
-    return torch.stack([best, second_seed], 1), shares
 
 
 class Tracker:
@@ -105,18 +81,9 @@ class Tracker:
         self.methods = tuple(methods) if methods is not None else (cfg.optimizer.method,) * self.G
         if len(self.methods) != self.G or not set(self.methods) <= set(METHODS):
             raise ValueError(f"tracker methods: expected {self.G} of {METHODS}, got {self.methods}")
-        self._olp = torch.tensor([m == "OLP" for m in self.methods], device=dev)
-        params = population.params
-        self._nominal_contacts = torch.tensor([params.nominal_timeconst, params.nominal_impratio], device=dev)
-        """The model's contact time constant [s] and impratio, (2,)."""
-        self._contact_sigma0 = torch.tensor([cfg.softness_sigma0, cfg.impratio_sigma0], device=dev)
-        self._contact_sigma = torch.tensor([cfg.softness_sigma, cfg.impratio_sigma], device=dev)
-        spreads = (cfg.softness_sigma0, cfg.impratio_sigma0, cfg.softness_sigma, cfg.impratio_sigma)
-        self._explores_contacts = max(spreads) > 0 and self.K >= max(2, cfg.contact_worlds)  # one world is the model
-        self._contacts_open = torch.zeros(self.G, dtype=torch.bool, device=dev)
-        """Whether each group's worlds explore their contacts, (G,) bool (:attr:`TrackerConfig.contact_gate_cost`)."""
-        self._mismatched_updates = torch.zeros(self.G, dtype=torch.int32, device=dev)
-        """Updates in a row on which each group's lowest window cost was above the gate, (G,)."""
+        self.olp = torch.tensor([m == "OLP" for m in self.methods], device=dev)
+        """Which groups run the open-loop baseline, (G,) bool."""
+        self.contacts = ContactExplorer(cfg.contacts, pop, self.gen)
         scale = np.ones(self.G) if exploration is None else np.asarray(exploration, dtype=np.float64)
         if scale.shape != (self.G,) or (scale < 0).any():
             raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
@@ -131,25 +98,32 @@ class Tracker:
         """Sum of each world's cost since the last update, (G, K)."""
         self._window_frames = torch.zeros((), device=dev)
         """Frames in the window, on the device (the captured frame counts them)."""
-        self._evidence = torch.zeros(self.G, self.K, device=dev)
+        self.evidence = torch.zeros(self.G, self.K, device=dev)
         """Each world's disagreement with the pose observations of this window, (G, K), in units of
-        the spread of the group's contact costs (:meth:`observe`)."""
+        the spread of the group's contact costs (:mod:`.observations`)."""
         self.window_frames = 0
         """The same count on the host, which schedules the update."""
         self.frame = 0
         self._rows = method_rows(self.methods, dev)
         # Made here, not in the captured update: a tensor from host numbers is a copy a graph cannot hold.
-        self._jitter_floor = torch.tensor([cfg.jitter_t] * 3 + [cfg.jitter_r] * 3, device=dev).view(1, 1, 6)
-        ceiling = [max(cfg.sigma_t, cfg.jitter_t), max(cfg.sigma_r, cfg.jitter_r)]
+        self._jitter_floor = torch.tensor(
+            [cfg.exploration.jitter_t] * 3 + [cfg.exploration.jitter_r] * 3, device=dev
+        ).view(1, 1, 6)
+        ceiling = [
+            max(cfg.seeding.sigma_t, cfg.exploration.jitter_t),
+            max(cfg.seeding.sigma_r, cfg.exploration.jitter_r),
+        ]
         self._jitter_ceiling = torch.tensor(ceiling, device=dev)
         self._diagonal = np.arange(6)
-        self._floor = np.array([cfg.covariance_floor_t**2] * 3 + [cfg.covariance_floor_r**2] * 3, np.float32)
+        self._floor = np.array(
+            [cfg.estimate.covariance_floor_t**2] * 3 + [cfg.estimate.covariance_floor_r**2] * 3, np.float32
+        )
         self._seeded = np.zeros((self.G, 6), np.float32)
         """Each group's variance of its latest seeding, (G, 6) [m^2, rad^2]: what its worlds sample."""
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
-        self._bandwidth = cfg.jitter_bandwidth * silverman_bandwidth(self.K)
-        shrinks = 0 < cfg.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
+        self._bandwidth = cfg.exploration.jitter_bandwidth * silverman_bandwidth(self.K)
+        shrinks = 0 < cfg.exploration.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
         self._shrink = 1.0 - math.sqrt(1.0 - self._bandwidth**2) if shrinks else 0.0
         self._frame_graph = CapturedOps(self._frame_ops, pop.device)
         self._update_graph = CapturedOps(self._update_ops, pop.device, generator=self.gen, pool=self._frame_graph)
@@ -161,6 +135,7 @@ class Tracker:
         )
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
+        self.observations = PoseObserver(self)
 
     # ------------------------------------------------------------------ start
     def start(
@@ -180,12 +155,9 @@ class Tracker:
             self.frame = self.window_frames = 0
             self._window_frames.zero_()
         self.cost.reset(torch.as_tensor(mask, device=self.device))
-        started = torch.as_tensor(mask, device=self.device)
-        ungated = self._explores_contacts and cfg.contact_gate_cost <= 0
-        self._contacts_open.masked_fill_(started, False).logical_or_(started & ~self._olp & ungated)
-        self._mismatched_updates.masked_fill_(started, 0)
-        self._seed(mask, p0, q0, cfg.sigma_t if sigma_t is None else sigma_t,
-                   cfg.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
+        self.contacts.start(torch.as_tensor(mask, device=self.device), self.olp)
+        self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
+                   cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
     def capture(self) -> None:
         """Record the frame's and the update's graphs now instead of at the first frame and the
@@ -196,6 +168,11 @@ class Tracker:
                 self._frame_graph()
                 self._update_graph()
 
+    @property
+    def captured(self) -> bool:
+        """Whether a frame is one graph replay (the frame's graph was captured)."""
+        return self._frame_graph.captured
+
     def set_method(self, group: int, method: str) -> None:
         """Change one group's optimizer (a service reusing a group for another session)."""
         if method not in METHODS:
@@ -205,11 +182,11 @@ class Tracker:
         if set(methods) != set(self.methods):
             self._update_graph.invalidate()  # the update runs other optimizers now
         self.methods = tuple(methods)
-        self._olp[group] = method == "OLP"
+        self.olp[group] = method == "OLP"
         for name, rows in method_rows(self.methods, self.device).items():
             self._rows[name].copy_(rows)
 
-    def _seed(
+    def seed_groups(
         self, groups: np.ndarray, mean: np.ndarray, q: np.ndarray, sigma_t, sigma_r, on_table: bool = False
     ) -> None:
         """Sample poses and physics for the worlds of ``groups`` (G,) bool and reset them.
@@ -225,10 +202,10 @@ class Tracker:
         obj = self.pop.object
         nominal_mass = torch.full((self.G, self.K), obj.mass, device=dev)
         nominal_friction = torch.full((self.G, self.K), obj.friction, device=dev)
-        mass = clipped_normal(nominal_mass, cfg.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
-        friction = clipped_normal(nominal_friction, cfg.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
+        mass = clipped_normal(nominal_mass, cfg.seeding.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
+        friction = clipped_normal(nominal_friction, cfg.seeding.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
         # OLP (and any single world) simulates the estimate itself with the nominal physics.
-        open_loop = (self._olp | (self.K == 1))[:, None]
+        open_loop = (self.olp | (self.K == 1))[:, None]
         poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
         if on_table:
             poses[..., 2] = 0.002 - _lowest_point(poses[..., 3:], self._hull)
@@ -237,97 +214,20 @@ class Tracker:
         sel = torch.as_tensor(groups, device=dev)[:, None]
         mass = torch.where(sel, mass, self.pop.mass)
         friction = torch.where(sel, friction, self.pop.friction)
-        # A re-seeded group whose contacts were found wrong draws them again; the others keep the model's.
-        drawn = self._contacts_around_model().masked_fill(~self._contacts_open[:, None, None], 0.0).exp()
-        timeconst, impratio = torch.where(sel[..., None], drawn * self._nominal_contacts, self._contacts()).unbind(-1)
+        timeconst, impratio = self.contacts.seeded(sel)
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
         self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
-        self.pop._write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
+        self.pop.write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
         self.window.masked_fill_(sel, 0.0)
-        self._evidence.masked_fill_(sel, 0.0)
+        self.evidence.masked_fill_(sel, 0.0)
 
-    # ------------------------------------------------------------------ pose observations
     def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
         """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``
-        (6, 6; position [m^2], rotation vector [rad^2]): each world's Mahalanobis distance joins
-        the window's cost until the next update. When no world lies within ``observation_gate`` of
-        a confident observation, the group is re-seeded around it instead (the worlds lost the
-        object; contact alone would not bring them back); when the nearest lies beyond
-        ``inject_gate``, a share of the worlds is drawn around it (:meth:`_inject`). Returns
-        whether it re-seeded.
-
-        A few torch ops over the group's K worlds, outside the captured frame, on the population's
-        stream (behind the update the last frame may have queued); the gate reads one number back,
-        on the frames an observation arrives only."""
-        with self.pop.on_stream():
-            return self._observe(group, pose, covariance)
-
-    def _observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
-        cfg, dev = self.config, self.device
-        observed = torch.as_tensor(np.asarray(pose, np.float32), device=dev)
-        cov = torch.as_tensor(np.asarray(covariance, np.float64), device=dev)
-        chol = torch.linalg.cholesky(cov)
-        d2 = self._observed_distance(group, observed, chol)  # (K,)
-        host = np.asarray(covariance, np.float64)
-        largest = lambda block: float(np.sqrt(np.linalg.eigvalsh(block).max()))  # noqa: E731
-        position_sigma, rotation_sigma = largest(host[:3, :3]), largest(host[3:, 3:])
-        confident = position_sigma < cfg.observation_confident
-        nearest = float(d2.min())
-        reseed = confident and nearest > cfg.observation_gate
-        if reseed:
-            anchor = np.tile(np.asarray(pose, np.float32), (self.G, 1))
-            mask = np.zeros(self.G, bool)
-            mask[group] = True
-            self._seed(mask, anchor, self.real.q.detach().cpu().numpy(), position_sigma, rotation_sigma)
-            self.recovery.reseeded(anchor, mask)
-            return True
-        may_draw = cfg.inject_share > 0 and self.K > 1 and not bool(self._olp[group])  # OLP simulates its start alone
-        if confident and may_draw and nearest > cfg.inject_gate:
-            self._inject(group, observed, position_sigma, rotation_sigma)
-            d2 = self._observed_distance(group, observed, chol)
-        chi2_95 = 12.59  # 6 dof
-        self._evidence[group] += (cfg.observation_weight / chi2_95) * d2.float()
-        return False
-
-    def _inject(self, group: int, observed: torch.Tensor, sigma_t: float, sigma_r: float) -> None:
-        """Draw the least likely ``inject_share`` of ``group``'s worlds around an observed pose
-        (7,): the worlds agree with it less than its noise allows, yet not so little that every
-        one of them is wrong (sensor resetting, as in mixture Monte Carlo localisation). Each new
-        world is a copy of the group's best, hand, velocities and physics, with its object moved:
-        reset to the real joints at rest instead, a new world's hand lagged the moving ones and
-        its cost lost to theirs. Without it nothing moves a group that sits a few noise widths off
-        an object at rest: every world stayed 15 mm off one lying on the table under a camera at
-        1 Hz."""
-        scored = self._scored()[group]
-        count = max(1, round(self.config.inject_share * self.K))
-        worst = scored.topk(count).indices
-        index = torch.arange(self.K, device=self.device).expand(self.G, self.K).clone()
-        index[group, worst] = scored.argmin()
-        held = self.window[group] < HELD_COST
-        typical = self.window[group][held].median() if bool(held.any()) else self.window.new_tensor(0.0)
-        self.pop.resample(index)
-        poses = sample_poses(observed[None], sigma_t, sigma_r, count, self.gen)[0]
-        coords = self.pop.object_coords
-        coords[group, worst] = poses
-        drawn = torch.zeros(self.G, self.K, dtype=torch.bool, device=self.device)
-        drawn[group, worst] = True
-        self.pop.separate_object(drawn)
-        # The new worlds join the window at its typical cost: their source's would make them the
-        # best before they scored a frame.
-        self.window[group, worst] = typical
-        self._evidence[group, worst] = 0.0
-
-    def _observed_distance(self, group: int, observed: torch.Tensor, chol: torch.Tensor) -> torch.Tensor:
-        """Each of ``group``'s worlds' Mahalanobis distance squared from an observed pose (7,)
-        under its covariance's Cholesky factor (6, 6), (K,); large for a NaN world."""
-        poses = self.pop.object_coords[group]  # (K, 7), the state as it will step next
-        q_obs = observed[3:].expand_as(poses[:, 3:])
-        delta = torch.cat(
-            [poses[:, :3] - observed[:3], quat_log(quat_multiply(quat_conjugate(q_obs), poses[:, 3:]))], -1
-        )
-        delta = torch.nan_to_num(delta.double(), nan=1e3)  # a NaN world agrees with nothing
-        return torch.cholesky_solve(delta.T, chol).T.mul(delta).sum(-1)
+        (6, 6; position [m^2], rotation vector [rad^2]) until the next update, re-seeding or
+        drawing worlds around it where they disagree (:class:`.PoseObserver`). Returns whether it re-seeded."""
+        with self.pop.on_stream():  # behind the update the last frame may have queued
+            return self.observations.observe(group, pose, covariance)
 
     # ------------------------------------------------------------------ frame
     def _allocate_io(self) -> None:
@@ -371,7 +271,7 @@ class Tracker:
         felt = self.inputs.columns.view(self._staged, "has_force") > 0
         reseeds = self.recovery.watch(estimate, frame.force, felt, hand=ESTIMATE.view(packed, "hand"))
         for r in reseeds:
-            self._seed(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
+            self.seed_groups(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
         estimate.status = self.recovery.status.copy()
         estimate.covariance[:, self._diagonal, self._diagonal] += self._unresolved(estimate.cost)
         return estimate
@@ -381,14 +281,14 @@ class Tracker:
         covariance (reported, not judged): the model's mismatch, growing with the lowest window
         ``cost`` (G,) that no world explains, and the resolution of K worlds over the seeded region."""
         cfg = self.config
-        mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / cfg.covariance_cost_ref, 0.0, _MISMATCH_CAP)
-        return self._floor * mismatch[:, None] + self._seeded * (cfg.covariance_resolution / self.K)
+        mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / cfg.estimate.covariance_cost_ref, 0.0, _MISMATCH_CAP)
+        return self._floor * mismatch[:, None] + self._seeded * (cfg.estimate.covariance_resolution / self.K)
 
     def _frame_ops(self) -> None:
         """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
         window and the packed estimate out."""
         pop = self.pop
-        pop._write_targets(self._controls)
+        pop.write_targets(self._controls)
         pop.step()
         self.fk.update(self.real.q)
         cost = self.cost(pop.obs, self.real)
@@ -399,7 +299,7 @@ class Tracker:
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
         self._window_frames += 1
-        self._packed.copy_(self._summary(self._scored(), lost))
+        self._packed.copy_(self._summary(self.scored(), lost))
 
     def _lost(self) -> torch.Tensor:
         """Which worlds lost their object, (G, K) bool. An object far from the hand is lost only
@@ -414,7 +314,7 @@ class Tracker:
     def weights(self) -> torch.Tensor:
         """Each world's share of the estimate now, (G, K), from the window's cost
         (uniform right after an update, before any frame was scored)."""
-        return estimate_pmf(torch.nan_to_num(self._scored(), nan=0.0), self.config.estimate_lambda)
+        return estimate_pmf(torch.nan_to_num(self.scored(), nan=0.0), self.config.estimate.estimate_lambda)
 
     def _window(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The window's mean cost per world, (G, K), and its highest and lowest among the worlds
@@ -425,7 +325,7 @@ class Tracker:
         bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
         return window, top, bottom
 
-    def _scored(self) -> torch.Tensor:
+    def scored(self) -> torch.Tensor:
         """The window's mean cost per world with the pose observations' evidence added, (G, K).
         The evidence is scaled by the spread of the contact costs of the worlds that still hold
         the object (a lost world's 1e9 would swamp it): the optimizers rank by cost relative to its
@@ -437,7 +337,7 @@ class Tracker:
         # contact does not separate the worlds (before the grasp, or with the object left on the
         # table) the observation alone must be able to move them.
         spread = torch.nan_to_num(top - bottom, nan=0.0, posinf=0.0, neginf=0.0)
-        return window + self._evidence * spread.clamp_min(self.config.optimizer.min_spread)
+        return window + self.evidence * spread.clamp_min(self.config.optimizer.min_spread)
 
     def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
@@ -448,7 +348,7 @@ class Tracker:
         # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
         poses = torch.where(torch.isfinite(obs.object_pose).all(-1, keepdim=True), obs.object_pose, self._origin)
         pose = take(poses)
-        weights = estimate_pmf(window, self.config.estimate_lambda)  # (G, K)
+        weights = estimate_pmf(window, self.config.estimate.estimate_lambda)  # (G, K)
         position = poses[..., :3]
         quat = poses[..., 3:]
         # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
@@ -464,10 +364,12 @@ class Tracker:
         )
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         mean_pose = torch.cat([mean_p, mean_q], dim=-1)
-        modes, mode_weights = pose_modes(poses, pose, weights, self.config.mode_angle, self.config.mode_distance)
+        modes, mode_weights = pose_modes(
+            poses, pose, weights, self.config.estimate.mode_angle, self.config.estimate.mode_distance
+        )
         return ESTIMATE.pack(
             {
-                "pose": mean_pose if self.config.mean_estimate else pose,
+                "pose": mean_pose if self.config.estimate.mean_estimate else pose,
                 "best_pose": pose,
                 "mean_pose": mean_pose,
                 "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
@@ -479,46 +381,32 @@ class Tracker:
                 "hand": self.real.sensor_pos.mean(1),
                 "modes": modes,
                 "mode_weights": mode_weights,
-                "contacts_explored": self._contacts_open.float(),
+                "contacts_explored": self.contacts.open.float(),
             }
         )
-
-    def _gate_contacts(self, explores: torch.Tensor) -> torch.Tensor:
-        """Count the updates in a row on which each group's lowest window cost among the worlds
-        that hold the object stayed above the gate, and open the contact exploration of the groups
-        ``explores`` (G,) bool where that count is reached. Returns the groups opened now, (G,)."""
-        cfg = self.config
-        lowest = self._window()[2][:, 0]
-        mismatched = torch.isfinite(lowest) & (lowest > cfg.contact_gate_cost)
-        self._mismatched_updates.add_(1).mul_(mismatched)
-        opens = (self._mismatched_updates >= cfg.contact_gate_updates) & explores & ~self._contacts_open
-        self._contacts_open.logical_or_(opens)
-        return opens
 
     def _update_ops(self) -> None:
         """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
-        upd = update(self._scored(), cfg.optimizer, self.gen, self.methods, self._rows)
+        upd = update(self.scored(), cfg.optimizer, self.gen, self.methods, self._rows)
         opens = None
-        if self._explores_contacts:
-            opens = self._gate_contacts(upd.explore.any(-1) & ~self._olp & (self._exploration > 0))
-        self.pop._resample(upd.index)
+        if self.contacts.enabled:
+            explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
+            opens = self.contacts.gate(self._window()[2][:, 0], explores)
+        self.pop.copy_worlds(upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
-            mass = self._explore(self.pop.mass, cfg.mass_sigma * scale, self._mass_range, explore)
-            friction = self._explore(self.pop.friction, cfg.friction_sigma * scale, self._friction_range, explore)
-            contacts = None
-            if opens is not None:
-                model = (self._contacts() / self._nominal_contacts).log()
-                sigma = self._contact_sigma * scale[..., None]
-                step = clipped_normal(model, sigma, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
-                logs = torch.where((explore & self._contacts_open[:, None])[..., None], step, model)
-                logs = torch.where(opens[:, None, None], self._contacts_around_model(), logs)
-                contacts = (logs.exp() * self._nominal_contacts).unbind(-1)
-            self.pop._write_params(mass, friction, *(contacts or ()))
-            wrench = sample_wrenches((self.G, self.K), cfg.wrench_force, cfg.wrench_torque, self.gen, self.device)
+            mass = self._explore(self.pop.mass, cfg.exploration.mass_sigma * scale, self._mass_range, explore)
+            friction = self._explore(
+                self.pop.friction, cfg.exploration.friction_sigma * scale, self._friction_range, explore
+            )
+            contacts = () if opens is None else self.contacts.explored(explore, scale, opens)
+            self.pop.write_params(mass, friction, *contacts)
+            wrench = sample_wrenches(
+                (self.G, self.K), cfg.exploration.wrench_force, cfg.exploration.wrench_torque, self.gen, self.device
+            )
             self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
-            if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
+            if cfg.exploration.jitter_t > 0 or cfg.exploration.jitter_r > 0 or self._bandwidth > 0:
                 unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
                 pose = self.pop.obs.object_pose.gather(1, upd.index[..., None].expand(-1, -1, 7))  # resampled
                 shift = unit * self._jitter_sigma(pose)
@@ -529,20 +417,8 @@ class Tracker:
                 moved = explore & duplicates(upd.index)
                 self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         self.window.zero_()
-        self._evidence.zero_()
+        self.evidence.zero_()
         self._window_frames.zero_()
-
-    def _contacts(self) -> torch.Tensor:
-        """Each world's contact time constant [s] and impratio, (G, K, 2)."""
-        return torch.stack([self.pop.params.timeconst, self.pop.params.impratio], -1)
-
-    def _contacts_around_model(self) -> torch.Tensor:
-        """Logarithms of each world's contact time constant and impratio relative to the model's,
-        drawn with their initial spreads and clipped to a factor of 4, (G, K, 2)."""
-        zero = torch.zeros(self.G, self.K, 2, device=self.device)
-        if not self._explores_contacts or (self.config.softness_sigma0 <= 0 and self.config.impratio_sigma0 <= 0):
-            return zero  # draws nothing: the generator's stream is what it was without them
-        return clipped_normal(zero, self._contact_sigma0, -_CONTACT_SPAN, _CONTACT_SPAN, self.gen)
 
     def _jitter_sigma(self, pose: torch.Tensor) -> torch.Tensor:
         """Standard deviations of the roughening of the resampled worlds' object poses (G, K, 7), (G, 1, 6)."""

@@ -1,0 +1,253 @@
+"""`inhand-tracker bench ...`: accuracy, speed, load, the physics alone, cost ranking, the docs page."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .common import Device, IntList, Json, bench, command_line, fail, gpu_stack, names, suite_named
+
+log = logging.getLogger("inhand_tracker")
+
+
+@bench.command("sim")
+def bench_sim(
+    worlds: IntList = "40,256,1024,4096",
+    substeps: IntList = None,
+    solver: Annotated[str, typer.Option(help="MuJoCo solvers: auto (newton), cg, newton")] = "auto",
+    frames: Annotated[int, typer.Option(help="timed frames per K")] = 60,
+    object: Annotated[str, typer.Option(help="catalog object held in the grasp")] = "foam_brick",
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """The physics population alone: ms per 30 Hz frame and memory per world."""
+    gpu_stack()
+    from service.bench.sim import as_dicts, bench_sim
+    from service.bench.sim import format_table as table
+    from sim_backend import PopulationConfig
+
+    results = []
+    for name in solver.split(","):
+        for n in substeps or [PopulationConfig.substeps]:
+            results += bench_sim(worlds, substeps=n, frames=frames, obj=object, device=device, solver=name)
+    typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else table(results))
+
+
+@bench.command("speed")
+def bench_speed(
+    ctx: typer.Context,
+    worlds: IntList = "40,256,1024,4096,8192",
+    groups: IntList = "1",
+    substeps: IntList = None,
+    jacobian: Annotated[str | None, typer.Option(help="constraint Jacobians, e.g. dense,sparse")] = None,
+    caps: Annotated[
+        str, typer.Option(help="solver caps ITERATIONSxLINE_SEARCH, comma-separated; default: the solver's own")
+    ] = "default",
+    frames: Annotated[int, typer.Option(help="timed frames per size (after 30 warm-up frames)")] = 200,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", metavar="population.NAME=VALUE", help="a physics setting: population.tolerance=1e-4"),
+    ] = None,
+    device: Device = "auto",
+    json_: Annotated[bool, typer.Option("--json", help="print JSON (device, date, command, results)")] = False,
+) -> None:
+    """The whole tracker frame (frame in, estimate out) against the physics alone."""
+    gpu_stack()
+    from service.bench import parse_settings
+    from service.bench.speed import as_dicts, bench_speed, format_table
+    from service.server.budget import device_name
+    from service.tracker import TrackerConfig
+    from sim_backend import PopulationConfig, resolve_device
+
+    try:
+        solver_caps = [(None, None) if c == "default" else tuple(int(v) for v in c.split("x")) for c in names(caps)]
+        if any(len(c) != 2 for c in solver_caps):
+            raise ValueError
+    except ValueError:
+        text = f"bench speed: caps: expected ITERATIONSxLINE_SEARCH or default, comma-separated, got {caps!r}"
+        raise fail(text) from None
+    try:
+        config, physics = parse_settings(set_ or [])
+        if config != TrackerConfig():
+            raise ValueError(f"expected population.NAME=VALUE (the physics), got {set_}")
+    except ValueError as exc:
+        raise fail(f"bench speed: --set: {exc}") from None
+
+    def show(r) -> None:
+        log.info(
+            "W=%d G=%d substeps=%d %s: tracker %.2f ms (p99 %.2f), physics %.2f ms, ratio %.2f",
+            r.worlds, r.groups, r.substeps, r.solver, r.tracker_median_ms, r.tracker_p99_ms,
+            r.physics_median_ms, r.ratio,
+        )  # fmt: skip
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the table or JSON
+            results = bench_speed(
+                worlds,
+                groups,
+                substeps or [PopulationConfig.substeps],
+                frames=frames,
+                device=device,
+                caps=solver_caps,
+                physics=physics,
+                progress=show,
+                **({"jacobians": jacobian.split(",")} if jacobian else {}),
+            )
+    except ValueError as exc:
+        raise fail(f"bench speed: {exc}") from None
+    if json_:
+        head = {"device": device_name(resolve_device(device)), "date": time.strftime("%Y-%m-%d")}
+        head["command"] = command_line(ctx)
+        typer.echo(json.dumps({**head, "results": as_dicts(results)}, indent=1))
+    else:
+        typer.echo(format_table(results))
+
+
+@bench.command("load")
+def bench_load(
+    sessions: Annotated[int, typer.Option(help="robots streaming at once, one session each")] = 4,
+    worlds: Annotated[int, typer.Option(help="K per session")] = 40,
+    rate: Annotated[float, typer.Option(help="each robot's frames per second")] = 30.0,
+    seconds: Annotated[float, typer.Option(help="how long the robots stream")] = 10.0,
+    connect: Annotated[
+        str, typer.Option(help="a running service's endpoints, comma-separated (default: embed one)")
+    ] = "",
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """The service under load: N robots at a fixed rate; estimates per second, latency, late frames."""
+    gpu_stack()
+    from service.bench.load import as_dicts, bench_load, format_table
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            results = bench_load(sessions, worlds, rate, seconds, device, connect=tuple(names(connect)))
+    except ValueError as exc:
+        raise fail(f"bench load: {exc}") from None
+    typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
+
+
+@bench.command("accuracy")
+def bench_accuracy(
+    ctx: typer.Context,
+    suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap, cross-engine (+ -shadow) or loss")] = "smoke",
+    short: Annotated[bool, typer.Option(help="the suite in short form: one object, two kinds, 10 s tracks")] = False,
+    methods: Annotated[str, typer.Option(help="comma-separated: OLP, EYE, WRS, REPS, PBO")] = "OLP,EYE,WRS,REPS,PBO",
+    noise: Annotated[str, typer.Option(help="initial pose noise levels: low, med, high")] = "low,med,high",
+    worlds: Annotated[int | None, typer.Option(help="K, worlds per track (default: the protocol's)")] = None,
+    ablations: Annotated[str, typer.Option(help="comma-separated: exploration, worlds, contact, slip, or all")] = "",
+    ablation_worlds: IntList = None,
+    substeps: Annotated[int | None, typer.Option(help="the tracker's physics substeps per frame")] = None,
+    repeats: Annotated[int, typer.Option(help="independent runs of every track, batched; each run's mean")] = 1,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", metavar="NAME=VALUE", help="a tracker or physics setting, e.g. population.impratio=30"),
+    ] = None,
+    observations: Annotated[
+        str, typer.Option(help="a camera's pose estimates: none, ends (first and last frame), 1hz, visible")
+    ] = "none",
+    vision_sigma: Annotated[
+        str, typer.Option(help="their noise, position [m] and rotation [rad], comma-separated")
+    ] = "0.005,0.05",
+    device: Device = "auto",
+    out: Annotated[Path | None, typer.Option(help="output folder (default bench-results/accuracy-SUITE)")] = None,
+    cache: Annotated[Path | None, typer.Option(help="where generated trajectories are kept")] = None,
+    save_frames: Annotated[
+        bool, typer.Option(help="also write frames.npz: each frame's error, reported covariance and cost")
+    ] = False,
+    json_: Json = False,
+) -> None:
+    """Tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A."""
+    gpu_stack()
+    from service.bench import K_ABLATION, AccuracyRun, parse_settings, run_suite, write_report
+    from service.bench.accuracy import ABLATIONS
+    from service.paths import CACHE_DIR
+
+    try:
+        config, population = parse_settings(set_ or [])
+    except ValueError as exc:
+        raise fail(f"--set: {exc}") from None
+    try:
+        sigma_t, sigma_r = (float(v) for v in vision_sigma.split(","))
+    except ValueError:
+        raise fail(f"bench accuracy: vision-sigma: expected POSITION,ROTATION, got {vision_sigma!r}") from None
+    out = out or Path(f"bench-results/accuracy-{suite}")
+    command = command_line(ctx)
+    chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps}.items() if v}
+    try:
+        run = AccuracyRun(
+            suite_named(suite, short),
+            methods=tuple(names(methods)),
+            noises=tuple(names(noise)),
+            ablations=tuple(ABLATIONS if ablations == "all" else names(ablations)),
+            k_ablation=tuple(ablation_worlds or K_ABLATION),
+            repeats=repeats,
+            config=config,
+            population=population,
+            observations=observations,
+            vision_sigma=(sigma_t, sigma_r),
+            device=device,
+            cache=cache or CACHE_DIR,
+            frames_to=out / "frames.npz" if save_frames else None,
+            **chosen,
+        )
+        with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the report or JSON
+            results = run_suite(run, checkpoint=lambda part: write_report(part, out, command=command + "  (partial)"))
+    except ValueError as exc:
+        raise fail(f"bench accuracy: {exc}") from None
+    report = write_report(results, out, command=command)
+    if json_:
+        typer.echo(json.dumps({"summary": results["summary"], "ablations": results["ablations"]}, indent=2))
+    else:
+        typer.echo(report.read_text().split("\n## Ablation")[0].split("\n## Per trajectory")[0])
+        typer.echo(f"report: {report}")
+
+
+@bench.command("cost-ranking")
+def bench_cost_ranking(
+    suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap, cross-engine (+ -shadow) or loss")] = "smoke",
+    short: Annotated[bool, typer.Option(help="the suite in short form")] = False,
+    method: Annotated[str, typer.Option(help="the optimizer that runs the population")] = "PBO",
+    worlds: Annotated[int, typer.Option(help="K, worlds per track")] = 40,
+    noise: Annotated[str, typer.Option(help="initial pose noise: low, med or high")] = "med",
+    device: Device = "auto",
+    cache: Annotated[Path | None, typer.Option(help="where generated trajectories are kept")] = None,
+    json_: Json = False,
+) -> None:
+    """How well each cost term ranks the worlds by their true pose error (Spearman's rho)."""
+    gpu_stack()
+    from service.bench import ground_truth
+    from service.bench.ranking import cost_ranking, format_table
+    from service.paths import CACHE_DIR
+
+    chosen = suite_named(suite, short)
+    with contextlib.redirect_stdout(sys.stderr):
+        by_object: dict[str, list] = {}
+        for t in ground_truth(chosen, device, cache or CACHE_DIR):
+            by_object.setdefault(t.object, []).append(t)
+        try:
+            results = {o: cost_ranking(ts, worlds, method, noise, device) for o, ts in by_object.items()}
+        except ValueError as exc:
+            raise fail(f"bench cost-ranking: {exc}") from None
+    if json_:
+        typer.echo(json.dumps({"suite": chosen.name, "method": method, "worlds": worlds, "objects": results}))
+        return
+    typer.echo(format_table(results, f"{chosen.name}, {method}, K={worlds}"))
+
+
+@bench.command("publish")
+def bench_publish(
+    results: Annotated[Path, typer.Option(help="folder of result JSON files")] = Path("docs/results"),
+    out: Annotated[Path, typer.Option(help="the page to write")] = Path("docs/benchmarks.md"),
+) -> None:
+    """docs/benchmarks.md and its charts from the results in docs/results/."""
+    from service.bench.publish import render
+
+    typer.echo(render(results, out))

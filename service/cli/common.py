@@ -1,0 +1,116 @@
+"""What every command shares: the command line's Typer apps, option types and helpers."""
+
+from __future__ import annotations
+
+import shlex
+from typing import Annotated
+
+import typer
+
+__all__ = ["Device", "IntList", "Json", "app", "bench", "command_line", "fail", "gpu_stack", "names", "suite_named"]
+
+
+app = typer.Typer(
+    name="inhand-tracker",
+    help="Track an object held in a robot hand from the robot's commands and touch, with GPU physics.",
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # plain errors: one line a log or a test can read
+)
+bench = typer.Typer(
+    help="Benchmarks: accuracy, speed, the physics alone, and the docs page.",
+    no_args_is_help=True,
+    rich_markup_mode=None,
+)
+app.add_typer(bench, name="bench")
+
+
+def int_list(text: str | None) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        values = [int(v) for v in text.split(",") if v]
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated integers, got '{text}'") from None
+    if not values or min(values) < 1:
+        raise typer.BadParameter(f"expected positive integers, got '{text}'")
+    return values
+
+
+def names(text: str | None) -> list[str] | None:
+    return None if text is None else [t for t in text.split(",") if t]
+
+
+IntList = Annotated[str | None, typer.Option(callback=int_list, metavar="N,N,...")]
+Device = Annotated[str, typer.Option(help="auto (CUDA when present), cpu, cuda or cuda:N")]
+Json = Annotated[bool, typer.Option("--json", help="print JSON instead of a table")]
+
+
+def gpu_stack() -> None:
+    """What every command that simulates needs first; on the robot side's light install, a clear
+    word on what to install instead of an import traceback."""
+    import importlib.util
+
+    # Looked up, not imported: newton must not be imported before forward_only_kernels.
+    missing = [name for name in ("torch", "warp", "newton") if importlib.util.find_spec(name) is None]
+    if missing:
+        raise fail(
+            f"this command simulates, and the GPU stack is not installed (missing: {', '.join(missing)}):"
+            " install torch first (pip install torch==2.13.0 for the CPU build, or your CUDA build), then"
+            " pip install 'inhand-tracker[service]'. The robot side (replay, the client) needs neither."
+        )
+    import sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)
+    from service.logs import quiet_warp, watch_kernel_compiles
+
+    quiet_warp()
+    watch_kernel_compiles()
+
+
+def command_line(ctx: typer.Context) -> str:
+    """The running command as a user would type it, for a result file: its options that differ
+    from their defaults, read from the parsed command (sys.argv is not the command's when it is
+    invoked from Python)."""
+    root = ctx.find_root().command_path  # "inhand-tracker", or "python -m service.cli"
+    words = ["inhand-tracker", *ctx.command_path[len(root) :].split()]
+    for param in ctx.command.params:
+        value = ctx.params.get(param.name)
+        if value is None or value == () or param.name == "json_":
+            continue
+        if isinstance(value, bool):
+            if value != param.default:
+                words.append(param.opts[0] if value else param.secondary_opts[0])
+            continue
+        repeated = isinstance(value, tuple) or getattr(param, "multiple", False)  # e.g. --set, once per value
+        for v in value if repeated else (value,):
+            shown = ",".join(map(str, v)) if isinstance(v, list) else str(v)
+            if shown != str(param.default):
+                words += [param.opts[0], shlex.quote(shown)]
+    return " ".join(words)
+
+
+def fail(message: str, code: int = 2) -> typer.Exit:
+    typer.echo(message, err=True)
+    return typer.Exit(code)
+
+
+def version_callback(show: bool) -> None:
+    if show:
+        from importlib.metadata import PackageNotFoundError, version
+
+        from protocol import PROTOCOL_VERSION
+
+        try:
+            typer.echo(f"inhand-tracker {version('inhand-tracker')} (protocol v{PROTOCOL_VERSION})")
+        except PackageNotFoundError:  # run from a source tree that was never installed
+            typer.echo(f"inhand-tracker (not installed; protocol v{PROTOCOL_VERSION})")
+        raise typer.Exit()
+
+
+def suite_named(name: str, short: bool):
+    """The benchmark suite called ``name`` (in short form), or exit 2 naming the suites there are."""
+    from service.bench import SUITES
+
+    if name not in SUITES:
+        raise fail(f"--suite: expected one of {sorted(SUITES)}, got '{name}'")
+    return SUITES[name].short() if short else SUITES[name]

@@ -1,0 +1,164 @@
+"""A user's robot from a URDF or MJCF file: imported into a world's builder, its actuated joints
+given the spec's position servos, its touch sensors found on their links. Paths may name files in
+an installed Python package as ``python://PACKAGE/...``, the way ``package://`` names a ROS package."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import newton
+import numpy as np
+import warp as wp
+
+from .robot_specs import FileRobotSpec, RobotLayout, joint_coord_dof
+
+__all__ = ["add_file_robot"]
+
+_PYTHON_URI = re.compile(r"python://([A-Za-z_][\w.]*)/")
+
+
+def _python_package_path(uri: str) -> str:
+    """``python://PACKAGE/rel/path`` as a path inside the installed Python package (found without
+    importing it); any other path unchanged. This is how robot models shipped in a package from
+    PyPI are named, the way ``package://`` names a ROS package."""
+    if not uri.startswith("python://"):
+        return uri
+    return _PYTHON_URI.sub(lambda m: _package_folder(m.group(1), uri), uri, count=1)
+
+
+def _package_folder(package: str, uri: str) -> str:
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        raise ValueError(f"'{uri}' names the Python package '{package}', which is not installed")
+    return spec.submodule_search_locations[0] + os.sep
+
+
+def _mjcf_source(spec: FileRobotSpec) -> str:
+    """The MJCF to parse: its path, or, where it names files as ``python://PACKAGE/...`` (an
+    include or a ``meshdir``), its text with those made absolute (its other paths must then be
+    absolute too). Newton's importer resolves only plain paths, and its custom resolvers drop the
+    including file's ``meshdir``."""
+    text = Path(spec.path).read_text()
+    if "python://" not in text:
+        return spec.path
+    try:
+        return _PYTHON_URI.sub(lambda m: _package_folder(m.group(1), m.group(0)), text)
+    except ValueError as exc:
+        raise ValueError(f"robot '{spec.name}' path: '{spec.path}' {exc}") from None
+
+
+def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLayout:
+    spec = replace(spec, path=_python_package_path(spec.path))
+    if not os.path.isfile(spec.path):
+        raise ValueError(f"robot '{spec.name}' path: no such file '{spec.path}'")
+    body_start, joint_start = builder.body_count, builder.joint_count
+    ext = os.path.splitext(spec.path)[1].lower()
+    if len(spec.base) != 7:
+        raise ValueError(f"robot '{spec.name}' base: expected 7 values (x, y, z, qx, qy, qz, qw), got {len(spec.base)}")
+    _import(builder, spec, ext)
+
+    labels = [builder.joint_label[j] for j in range(joint_start, builder.joint_count)]
+    by_name = {_short(lbl): joint_start + i for i, lbl in enumerate(labels)}
+    missing = [n for n in spec.joints if n not in by_name]
+    if missing:
+        raise ValueError(f"robot '{spec.name}' joints: {missing} not in {spec.path} (has {sorted(by_name)})")
+    joints = [by_name[n] for n in spec.joints]
+    single = (newton.JointType.REVOLUTE, newton.JointType.PRISMATIC)
+    for j in joints:
+        if builder.joint_type[j] not in single:
+            raise ValueError(
+                f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a revolute or prismatic joint"
+            )
+    coord, dof = joint_coord_dof(builder, joints)
+    gains = {name: _per_joint(spec, name) for name in ("ke", "kd", "effort")}
+    for i, d in enumerate(dof):
+        builder.joint_target_ke[d] = gains["ke"][i]
+        builder.joint_target_kd[d] = gains["kd"][i]
+        builder.joint_effort_limit[d] = gains["effort"][i]
+        builder.joint_target_mode[d] = int(newton.JointTargetMode.POSITION)
+    lower = np.asarray([builder.joint_limit_lower[d] for d in dof])
+    upper = np.asarray([builder.joint_limit_upper[d] for d in dof])
+
+    body_names = {_short(builder.body_label[b]): b for b in range(body_start, builder.body_count)}
+    missing = [n for n in spec.sensor_links if n not in body_names]
+    if missing:
+        raise ValueError(f"robot '{spec.name}' sensor_links: {missing} not in {spec.path} (has {sorted(body_names)})")
+    for link in spec.sensor_links:
+        shapes = builder.body_shapes.get(body_names[link], [])
+        if not any(builder.shape_flags[sh] & newton.ShapeFlags.COLLIDE_SHAPES for sh in shapes):
+            raise ValueError(
+                f"robot '{spec.name}' sensor_links: '{link}' in '{spec.path}' has no collision shape, so its "
+                f"sensor could never touch the object"
+            )
+    offsets = np.zeros((len(spec.sensor_links), 7))
+    offsets[:, 6] = 1.0
+    if spec.sensor_offsets:
+        off = np.asarray(spec.sensor_offsets, dtype=np.float64)
+        if off.shape != offsets.shape:
+            raise ValueError(f"robot '{spec.name}' sensor_offsets: expected shape {offsets.shape}, got {off.shape}")
+        offsets = off
+    default_q = np.asarray(spec.default_q, dtype=np.float64) if spec.default_q else np.clip(0.0, lower, upper)
+    if default_q.shape != lower.shape:
+        raise ValueError(f"robot '{spec.name}' default_q: expected {lower.shape[0]} values, got {default_q.shape[0]}")
+    return RobotLayout(
+        name=spec.name,
+        joint_names=tuple(spec.joints),
+        coord_indices=coord,
+        lower=lower,
+        upper=upper,
+        default_q=default_q,
+        sensor_names=tuple(spec.sensor_links),
+        sensor_bodies=np.asarray([body_names[n] for n in spec.sensor_links]) - body_start,
+        sensor_offsets=offsets,
+        carries_on_palm=spec.carries_on_palm,
+    )
+
+
+def _per_joint(spec: FileRobotSpec, name: str) -> np.ndarray:
+    """A controller setting of ``spec`` as one value per joint, (D,)."""
+    value = np.atleast_1d(np.asarray(getattr(spec, name), dtype=np.float64))
+    if value.shape not in ((1,), (len(spec.joints),)):
+        raise ValueError(
+            f"robot '{spec.name}' {name}: expected one value or {len(spec.joints)} (one per joint), got {value.size}"
+        )
+    if not (np.isfinite(value).all() and (value >= 0).all()):
+        raise ValueError(f"robot '{spec.name}' {name}: expected finite values >= 0, got {value.tolist()}")
+    return np.broadcast_to(value, (len(spec.joints),))
+
+
+def _short(label: str) -> str:
+    """Last path element of a Newton label (importers prefix labels with their parents)."""
+    return label.rsplit("/", 1)[-1]
+
+
+def _import(builder: newton.ModelBuilder, spec: FileRobotSpec, ext: str) -> None:
+    """Import the robot's file into ``builder`` at its base pose; a ValueError names the file and
+    the cause, and a mesh path that does not resolve is one (the importers would drop its shape)."""
+    base = wp.transform(wp.vec3(*spec.base[:3]), wp.normalize(wp.quat(*spec.base[3:])))
+    packages = {"package_dirs": list(spec.package_dirs)} if spec.package_dirs else {}
+    try:
+        # The importers warn and carry on when a mesh path does not resolve, dropping the shape:
+        # a hand whose fingertips cannot touch anything would "track" on joints alone.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if ext == ".urdf":
+                builder.add_urdf(spec.path, xform=base, floating=spec.floating, **packages)
+            elif ext in (".xml", ".mjcf"):
+                builder.add_mjcf(_mjcf_source(spec), xform=base, floating=spec.floating)
+            else:
+                raise ValueError(f"robot '{spec.name}' path: expected .urdf, .xml or .mjcf, got '{ext}'")
+    except ValueError:
+        raise
+    except Exception as exc:  # parsers raise many kinds; the user needs the file and the cause
+        raise ValueError(f"robot '{spec.name}' path: cannot load '{spec.path}': {exc}") from exc
+    unresolved = [str(w.message) for w in caught if "resolve" in str(w.message).lower()]
+    if unresolved:
+        raise ValueError(
+            f"robot '{spec.name}' path: '{spec.path}' names files that were not found, so their shapes would be "
+            f"dropped: {unresolved[0]} (set package_dirs to the folder that holds the package)"
+        )

@@ -1,0 +1,150 @@
+"""What a robot is: its spec as a user writes it (the procedural hand, or a URDF/MJCF file with
+its servos and touch sensors), read from a robot config, and its layout once it is in a world."""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import newton
+import numpy as np
+
+__all__ = ["FileRobotSpec", "HandSpec", "RobotLayout", "RobotSpec", "joint_coord_dof", "load_robot"]
+
+
+@dataclass(frozen=True)
+class RobotLayout:
+    """What the backend needs to know about a robot once it is in a world's builder.
+
+    Indices are local to one world: world ``w``'s copy is offset by ``w`` times the per-world count.
+    """
+
+    name: str
+    joint_names: tuple[str, ...]
+    """Actuated joints, shape (D,)."""
+    coord_indices: np.ndarray
+    """Index of each actuated joint in a world's ``joint_q``, shape (D,), int."""
+    lower: np.ndarray
+    """Lower joint limits, shape (D,) [rad or m]."""
+    upper: np.ndarray
+    """Upper joint limits, shape (D,) [rad or m]."""
+    default_q: np.ndarray
+    """Joint positions the robot starts in, shape (D,) [rad or m]."""
+    sensor_names: tuple[str, ...]
+    """Touch sensor names, shape (L,)."""
+    sensor_bodies: np.ndarray
+    """Body index of the link carrying each sensor, shape (L,), int."""
+    sensor_offsets: np.ndarray
+    """Sensor frame in its link's frame, shape (L, 7): position [m] then quaternion (x, y, z, w)."""
+    carries_on_palm: bool = False
+    """The hand carries objects on a palm that has no touch sensor (see :class:`FileRobotSpec`)."""
+
+    @property
+    def dof_count(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def sensor_count(self) -> int:
+        return len(self.sensor_names)
+
+
+@dataclass(frozen=True)
+class HandSpec:
+    """The procedural Allegro-like hand on a 6-DoF position-controlled wrist.
+
+    The wrist stands in for the arm: one joint of six axes, sliding along world x, y, z, then
+    turning by yaw about world z, pitch about the turned y and roll about the palm's normal, so
+    demos can reach, pick and place. With all wrist angles at zero the palm faces down (world -z)
+    and the fingers point along world +x. Fingers flex towards the palm's face; the
+    thumb's first joint swings it from beside the palm to in front of it, so it opposes the fingers.
+    """
+
+    name: str = "allegro"
+    wrist_ke: float = 2.0e4
+    """Wrist position gain [N/m for the slides, N m/rad for the hinges]."""
+    wrist_kd: float = 4.0e2
+    finger_ke: float = 3.0
+    """Finger position gain [N m/rad]; the real hand's PD gains are of this order."""
+    finger_kd: float = 0.1
+    finger_effort: float = 0.7
+    """Finger torque limit [N m] (the Allegro's motors give ~0.7 N m)."""
+    armature: float = 0.002
+    """Rotor inertia added to every finger joint [kg m^2]; keeps light links stable."""
+    palm_mass: float = 0.4
+    gravity_compensation: bool = True
+    """Cancel gravity on the robot's links, as the arm's and hand's controllers do."""
+    default_q: tuple[float, ...] = field(default=())
+    """Start joints (D=22); empty means wrist at 0.3 m height and an open hand."""
+
+
+@dataclass(frozen=True)
+class FileRobotSpec:
+    """A user's robot from a local URDF or MJCF file.
+
+    ``joints`` names the actuated joints in control order; ``sensor_links`` the links that carry
+    touch sensors, each with a sensor-frame offset (position [m] and quaternion x, y, z, w).
+    """
+
+    name: str
+    path: str
+    joints: tuple[str, ...]
+    sensor_links: tuple[str, ...]
+    sensor_offsets: tuple[tuple[float, ...], ...] = ()
+    ke: float | tuple[float, ...] = 3.0
+    """Position gain of each joint's controller [N m/rad or N/m]: one value, or one per joint."""
+    kd: float | tuple[float, ...] = 0.1
+    """Damping gain [N m s/rad or N s/m]: one value, or one per joint."""
+    effort: float | tuple[float, ...] = 1.0
+    """Torque or force limit [N m or N]: one value, or one per joint."""
+    floating: bool = False
+    base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    """Pose of the robot's root in the world: position [m], quaternion (x, y, z, w)."""
+    default_q: tuple[float, ...] = ()
+    carries_on_palm: bool = False
+    """The hand carries objects on its palm, which has no touch sensor: fingertips that feel
+    nothing then do not say the object fell, so a lost track is re-seeded where the object was,
+    not on the table below it."""
+    package_dirs: tuple[str, ...] = ()
+    """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
+    NAME folder); the URDF's own package folder is found without it."""
+
+
+RobotSpec = HandSpec | FileRobotSpec
+
+
+def load_robot(path: str | os.PathLike) -> RobotSpec:
+    """A robot from a TOML file (see configs/robots/): ``kind = "hand"`` for the procedural hand,
+    ``kind = "file"`` for a URDF/MJCF robot whose ``path`` is relative to the TOML file."""
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"robot config: cannot read '{path}': {exc}") from exc
+    kind = table.pop("kind", None)
+    cls = {"hand": HandSpec, "file": FileRobotSpec}.get(kind)
+    if cls is None:
+        raise ValueError(f"robot config '{path}' kind: expected 'hand' or 'file', got {kind!r}")
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ValueError(f"robot config '{path}': unknown keys {unknown} for kind '{kind}' (known: {sorted(known)})")
+    if kind == "file":
+        if not str(table.get("path", "")).startswith("python://"):
+            table["path"] = str(path.parent / table["path"])
+        table["package_dirs"] = tuple(str(path.parent / d) for d in table.get("package_dirs", ()))
+        table["sensor_offsets"] = tuple(tuple(o) for o in table.get("sensor_offsets", ()))
+    table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
+    try:
+        return cls(**table)
+    except TypeError as exc:
+        raise ValueError(f"robot config '{path}': {exc}") from exc
+
+
+def joint_coord_dof(builder: newton.ModelBuilder, joints: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinate and dof index of each degree of freedom of ``joints`` (hinges, slides, D6s)."""
+    n = [sum(builder.joint_dof_dim[j]) for j in joints]
+    coord = np.concatenate([builder.joint_q_start[j] + np.arange(k) for j, k in zip(joints, n, strict=True)])
+    dof = np.concatenate([builder.joint_qd_start[j] + np.arange(k) for j, k in zip(joints, n, strict=True)])
+    return coord.astype(np.int64), dof.astype(np.int64)

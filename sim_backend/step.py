@@ -1,0 +1,119 @@
+"""One control frame of every world: the perturbation wrench, the substeps (targets ramped
+between frames, collision, the solver), and the observation kernels. Captured once as a graph by
+the population and replayed per frame."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import warp as wp
+
+from . import observe
+
+if TYPE_CHECKING:
+    from .population import Population
+
+__all__ = ["simulate"]
+
+
+@wp.kernel(enable_backward=False)
+def ramp_targets(
+    goal: wp.array2d[float],
+    last: wp.array2d[float],
+    fraction: float,
+    coords_per_world: int,
+    coord_index: wp.array[wp.int32],
+    joint_target_q: wp.array[float],
+):
+    """The substep's target: ``fraction`` of the way from last frame's target to this one's. Launch dim (W, D)."""
+    w, d = wp.tid()
+    joint_target_q[w * coords_per_world + coord_index[d]] = last[w, d] + fraction * (goal[w, d] - last[w, d])
+
+
+@wp.kernel(enable_backward=False)
+def apply_wrench(
+    wrench: wp.array[wp.spatial_vector],
+    bodies_per_world: int,
+    object_body: int,
+    body_f0: wp.array[wp.spatial_vector],
+    body_f1: wp.array[wp.spatial_vector],
+):
+    # Both state buffers: substeps alternate between them.
+    w = wp.tid()
+    b = w * bodies_per_world + object_body
+    body_f0[b] = wrench[w]
+    body_f1[b] = wrench[w]
+
+
+def simulate(pop: Population) -> None:
+    """One control frame of ``pop``: wrench, substeps, observation."""
+    cfg, b, s = pop.config, pop.buf, pop.static
+    wp.launch(
+        apply_wrench,
+        dim=pop.W,
+        inputs=[b.wrench, pop.bodies, pop.object_body],
+        outputs=[pop.state_0.body_f, pop.state_1.body_f],
+    )
+    dt = cfg.frame_dt / cfg.substeps
+    for i in range(cfg.substeps):
+        s_in, s_out = (pop.state_0, pop.state_1) if i % 2 == 0 else (pop.state_1, pop.state_0)
+        if cfg.ramp_targets:
+            wp.launch(ramp_targets, dim=(pop.W, pop.D),
+                      inputs=[pop.goal, pop.last_goal, (i + 1) / cfg.substeps, pop.coords, s["coord_index"]],
+                      outputs=[pop.control.joint_target_q])  # fmt: skip
+        pop.pipeline.collide(s_in, pop.contacts)
+        # Only the last substep's contact forces are observed: earlier ones would be overwritten.
+        observables = pop.observables if i == cfg.substeps - 1 else None
+        pop.solver.step(s_in, s_out, pop.control, pop.contacts, dt, observables=observables)
+    b.wrench.zero_()  # a perturbation lasts one frame
+    if cfg.ramp_targets:
+        wp.copy(pop.last_goal, pop.goal)
+    st = pop.state_0
+    wp.launch(observe.gather_joints, dim=(pop.W, pop.D), inputs=[st.joint_q, pop.coords, s["coord_index"]],
+              outputs=[b.q])  # fmt: skip
+    wp.launch(
+        observe.sensor_poses,
+        dim=(pop.W, pop.L),
+        inputs=[st.body_q, pop.bodies, s["sensor_body"], s["sensor_offset"]],
+        outputs=[b.sensor_pos, b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
+    )
+    c = pop.contacts
+    wp.launch(
+        observe.accumulate_contacts,
+        dim=c.rigid_contact_max,
+        inputs=[
+            c.rigid_contact_count,
+            c.rigid_contact_shape0,
+            c.rigid_contact_shape1,
+            c.rigid_contact_point0,
+            c.rigid_contact_normal,
+            pop.observables.contact_f,
+            pop.model.shape_body,
+            st.body_q,
+            st.body_qd,
+            pop.model.body_com,
+            s["sensor_row"],
+            s["object_world"],
+            pop.L,
+        ],
+        outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
+    )
+    observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
+    wp.launch(
+        observe.object_health,
+        dim=pop.W,
+        inputs=[
+            st.body_q,
+            st.body_qd,
+            st.joint_q,
+            pop.bodies,
+            pop.coords,
+            pop.object_body,
+            b.sensor_pos,
+            pop.L,
+            cfg.floor_z,
+            cfg.lost_distance,
+            cfg.lost_speed,
+        ],
+        outputs=[b.object_pose, b.health],
+    )
