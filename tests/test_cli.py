@@ -67,7 +67,9 @@ def test_bad_suite_options_are_refused_before_anything_runs():
 def test_settings_split_into_the_tracker_and_its_physics():
     from service.bench import parse_settings
 
-    config, physics = parse_settings(["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"])
+    config, physics = parse_settings(
+        ["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"]
+    )
     assert config.optimizer.pbo_keep == 0.5 and physics == {"impratio": 30.0, "contact_gap": 0.004}
     assert parse_settings(["optimizer.keep_best=no"])[0].optimizer.keep_best is False
     assert parse_settings([])[1] == {}

@@ -138,6 +138,34 @@ def test_a_real_drop_puts_the_hypotheses_on_the_table(hand, recording):
     assert pose[..., 2].max().item() < lifted, "the hypotheses stayed up in the hand"
 
 
+def test_the_open_loop_baseline_never_re_seeds(hand, recording):
+    """OLP is the paper's baseline, pure open loop: a diverged OLP group says so in its status but
+    keeps simulating its start, and a camera's pose does not move it either; a PBO group beside it
+    in the same population is re-seeded on the same frames."""
+    spec, _ = hand
+    pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=4, device="cpu"))
+    tr = Tracker(pop, TrackerConfig(), methods=["OLP", "PBO"])
+    tr.start(recording.initial_pose, recording.initial_q)
+    held = recording.frames - 20
+    for f in range(held):
+        assert not tr.step(_frame(recording, f)).reseeded.any()
+    before = tr.pop.object_coords[0].clone()
+    reseeded, statuses = np.zeros(2, int), []
+    for f in range(held, held + 3 * tr.config.recovery.contact_loss_frames):
+        numb = _frame(recording, f)
+        numb.force = np.zeros_like(numb.force)
+        est = tr.step(numb)
+        reseeded += est.reseeded
+        statuses.append(est.status[0])
+    assert reseeded[0] == 0 and reseeded[1] >= 1, reseeded
+    assert Status.DIVERGED in statuses, "the open-loop group's status still says it diverged"
+    far = recording.initial_pose[0].copy()
+    far[2] += 0.3
+    assert not tr.observe(0, far, np.eye(6) * 1e-6), "a confident observation far off does not re-seed OLP"
+    moved = (tr.pop.object_coords[0, :, :3] - before[:, :3]).norm(dim=-1).max().item()
+    assert moved < 0.1, f"the open-loop world jumped {moved:.3f} m: it was re-seeded"
+
+
 def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):
     """Diverged while recovering from an earlier divergence, the tracker has not trusted a pose
     since the hand began to lift: the new hypotheses go where the hand carried the object, not

@@ -67,7 +67,7 @@ class TrackResult:
     add_best: np.ndarray = field(repr=False)
     """ADD of the lowest-cost world's pose (the paper's estimate) per frame, (F,) [m]."""
     diverged: int = 0
-    """Frames on which the tracker re-seeded the group."""
+    """Frames after which the tracker re-seeded the group (never for OLP, the pure open loop)."""
     add_s: np.ndarray | None = field(default=None, repr=False)
     """ADD-S of the estimate on every tenth frame, [m]."""
     covered: np.ndarray | None = field(default=None, repr=False)
@@ -264,7 +264,7 @@ def _follow(
         est = tracker.step(Frame(**{name: v[f, rows] for name, v in rec.sensing.items()}))
         for name, series in said.items():
             series[f] = getattr(est, name)
-        diverged += est.status == TrackState.DIVERGED
+        diverged += est.reseeded
         for g in np.flatnonzero(seen[f]):
             noisy = _noisy(torch.tensor(rec.object_pose[f, rows[g]][None]), *run.vision_sigma, vision)[0]
             tracker.observe(int(g), noisy, cov)

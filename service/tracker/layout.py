@@ -176,6 +176,8 @@ class GroupEstimates:
     contacts_explored: np.ndarray | None = None
     """Whether each group's worlds explore their contacts, (G,) bool: its lowest cost said the
     model's contacts are wrong (:attr:`.ContactExploration.contact_gate_cost`)."""
+    reseeded: np.ndarray | None = None
+    """Whether each group was re-seeded after this frame, (G,) bool (never an open-loop group)."""
 
     @classmethod
     def unpack(cls, rows: np.ndarray, frame: int, status: np.ndarray) -> GroupEstimates:

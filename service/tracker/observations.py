@@ -40,8 +40,10 @@ class PoseObserver:
         ``observation_gate`` of a confident observation the group is re-seeded around it instead
         (the worlds lost the object; contact alone would not bring them back); when the nearest
         lies beyond ``inject_gate``, a share of the worlds is drawn around it (:meth:`_inject`).
-        Returns whether it re-seeded."""
+        Returns whether it re-seeded. An open-loop group (OLP) ignores it: it simulates its start alone."""
         t, cfg = self.tracker, self.config
+        if bool(t.olp[group]):
+            return False
         observed = torch.as_tensor(np.asarray(pose, np.float32), device=t.device)
         cov = torch.as_tensor(np.asarray(covariance, np.float64), device=t.device)
         chol = torch.linalg.cholesky(cov)
@@ -58,7 +60,7 @@ class PoseObserver:
             t.seed_groups(mask, anchor, t.real.q.detach().cpu().numpy(), position_sigma, rotation_sigma)
             t.recovery.reseeded(anchor, mask)
             return True
-        may_draw = cfg.inject_share > 0 and t.K > 1 and not bool(t.olp[group])  # OLP simulates its start alone
+        may_draw = cfg.inject_share > 0 and t.K > 1
         if confident and may_draw and nearest > cfg.inject_gate:
             self._inject(group, observed, position_sigma, rotation_sigma)
             d2 = self._distance(group, observed, chol)

@@ -72,6 +72,9 @@ class Recovery:
         self._cost_level = np.full(groups, np.nan)
         """The best world's window cost, averaged over the last ``surprise_frames``, (G,); NaN
         before a group's first frame."""
+        self.open_loop = np.zeros(groups, bool)
+        """Groups that run open loop (OLP, the paper's baseline), (G,) bool: their state is judged
+        like any other's, but they are never re-seeded."""
 
     def start(self, p0: np.ndarray, mask: np.ndarray) -> None:
         """Groups ``mask`` (G,) start tracking from ``p0`` (G, 7)."""
@@ -128,8 +131,9 @@ class Recovery:
         # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
         # go with the worlds' object stuck). Around the last in-hand pose the closed simulated hand
         # would catch it again, so those hypotheses go onto the table below it.
-        dropped = diverged & felt & ~touching & self.falls
-        held = diverged & ~dropped
+        reseeds = diverged & ~self.open_loop
+        dropped = reseeds & felt & ~touching & self.falls
+        held = reseeds & ~dropped
         sigma_r = cfg.seeding.sigma_r * cfg.recovery.reseed_scale
         out = []
         if held.any():
@@ -141,9 +145,9 @@ class Recovery:
             out.append(Reseed(held, anchor, cfg.seeding.sigma_t * cfg.recovery.reseed_scale, sigma_r))
         if dropped.any():
             out.append(Reseed(dropped, self.trusted, cfg.recovery.drop_sigma_t, sigma_r, on_table=True))
-        if diverged.any():
-            self._recovering[diverged] = cfg.recovery.recover_frames
-            self._contact_loss[diverged] = 0
+        if reseeds.any():
+            self._recovering[reseeds] = cfg.recovery.recover_frames
+            self._contact_loss[reseeds] = 0
         self.status[:] = status
         return out
 

@@ -136,6 +136,7 @@ class Tracker:
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self.observations = PoseObserver(self)
+        self.recovery.open_loop[:] = self.olp.cpu().numpy()
 
     # ------------------------------------------------------------------ start
     def start(
@@ -183,6 +184,7 @@ class Tracker:
             self._update_graph.invalidate()  # the update runs other optimizers now
         self.methods = tuple(methods)
         self.olp[group] = method == "OLP"
+        self.recovery.open_loop[group] = method == "OLP"
         for name, rows in method_rows(self.methods, self.device).items():
             self._rows[name].copy_(rows)
 
@@ -270,8 +272,10 @@ class Tracker:
         estimate = GroupEstimates.unpack(packed, self.frame, self.recovery.status.copy())
         felt = self.inputs.columns.view(self._staged, "has_force") > 0
         reseeds = self.recovery.watch(estimate, frame.force, felt, hand=ESTIMATE.view(packed, "hand"))
+        estimate.reseeded = np.zeros(self.G, bool)
         for r in reseeds:
             self.seed_groups(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
+            estimate.reseeded |= r.groups
         estimate.status = self.recovery.status.copy()
         estimate.covariance[:, self._diagonal, self._diagonal] += self._unresolved(estimate.cost)
         return estimate
