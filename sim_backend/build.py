@@ -118,7 +118,9 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
             broad_phase=cfg.broad_phase,
         )
         contacts = pipeline.contacts()
-        observables = solver.observables(kinds=["contact_f"], contacts=contacts)
+        # Overflow: a per-world bitmask of what the last substep dropped (contacts past nconmax or
+        # the pipeline's capacity, constraint rows past njmax), so that no overflow is silent.
+        observables = solver.observables(kinds=["contact_f", "overflow"], contacts=contacts)
     return Physics(solver, pipeline, contacts, observables)
 
 

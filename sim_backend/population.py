@@ -88,7 +88,7 @@ class Population:
             physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
         self.observables = physics.observables
-        """The solver's contact forces, read by the observation kernels."""
+        """The solver's contact forces, read by the observation kernels, and its overflow bitmask."""
         with turn, wp.ScopedDevice(self.device):
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
@@ -154,6 +154,9 @@ class Population:
         self._lower = torch.as_tensor(self.layout.lower, dtype=torch.float32, device=self.torch_device)
         self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
         self._wrench = t(self.buf.wrench).view(G, K, 6)
+        self.overflow = t(self.observables.overflow).view(G, K)
+        """What each world's last substep dropped for want of room, (G, K) int32 bitmask
+        (newton.solvers.SolverMuJoCo.OverflowBits): 0 when nothing was."""
 
     def _capture(self, turn: AbstractContextManager) -> None:
         # Compile every kernel once outside capture, then record; the eager frame is undone.

@@ -166,6 +166,23 @@ def test_the_open_loop_baseline_never_re_seeds(hand, recording):
     assert moved < 0.1, f"the open-loop world jumped {moved:.3f} m: it was re-seeded"
 
 
+def test_a_contact_overflow_is_reported_with_the_numbers(hand, recording, caplog):
+    """Worlds that make more contacts than they hold drop the excess from their physics: never
+    silently. The estimate flags the groups, and the log names the capacity and the setting."""
+    spec, _ = hand
+    config = PopulationConfig(groups=2, worlds=2, device="cpu", contacts_per_world=2)
+    tr = Tracker(Population(spec, catalog_object(OBJECT), config), TrackerConfig())
+    tr.start(recording.initial_pose, recording.initial_q)
+    with caplog.at_level("WARNING", logger="service.tracker.tracker"):
+        flagged = [tr.step(_frame(recording, f)).overflow for f in range(recording.frames)]
+    assert np.asarray(flagged).all(), "a box on the table, then in the hand, makes more than 2 contacts a world"
+    warnings = [r.getMessage() for r in caplog.records if "contacts" in r.getMessage()]
+    assert len(warnings) == 1 and "the 2 a world holds" in warnings[0] and "contacts_per_world" in warnings[0]
+    roomy = Tracker(Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=2, device="cpu")))
+    roomy.start(recording.initial_pose, recording.initial_q)
+    assert not any(roomy.step(_frame(recording, f)).overflow.any() for f in range(recording.frames))
+
+
 def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):
     """Diverged while recovering from an earlier divergence, the tracker has not trusted a pose
     since the hand began to lift: the new hypotheses go where the hand carried the object, not

@@ -77,6 +77,8 @@ class Session:
     failed: str | None = None
     """Why the session's population failed; it takes no more frames then."""
     notice: str | None = None
+    overflow_said: bool = False
+    """Whether the session was told its worlds ran out of contact room."""
     """Said to the robot with its next estimate, then cleared."""
     heard: float = field(default_factory=time.monotonic)
     """When the session last received a frame (or opened) [s, monotonic]."""
@@ -341,6 +343,13 @@ class SessionManager:
             s.frames += 1
             latency = (done - received) * 1e3
             s.latencies.append(latency)
+            if est.overflow is not None and est.overflow[g] and not s.overflow_said:
+                s.overflow_said, cfg = True, pool.tracker.pop.config
+                s.last_error = s.notice = (
+                    f"contacts: worlds made more contacts than the {cfg.contacts_per_world} a world holds (or more"
+                    f" than its {cfg.constraints_per_world} constraint rows) and dropped the excess: set the service's"
+                    " [physics] contacts_per_world higher"
+                )
             s.latest = _estimate(s, frame, est, latency)
             s.notice = None
             s.contacts_explored = bool(est.contacts_explored[g])

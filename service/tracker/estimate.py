@@ -1,11 +1,17 @@
-"""What an estimate says beyond the pose: the modes of the worlds' poses, where contact cannot
-tell two poses apart."""
+"""What the worlds' object poses say, weighted by their costs: the estimate (the weighted mean, or
+the lowest-cost world's pose), its covariance, and the two heaviest modes, where contact cannot tell
+two poses apart. Torch ops inside the captured frame."""
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["pose_modes"]
+from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
+
+from .config import EstimateConfig
+from .optimizers import estimate_pmf
+
+__all__ = ["pose_modes", "pose_statistics"]
 
 
 def pose_modes(
@@ -28,3 +34,37 @@ def pose_modes(
     second = near(second_seed) & ~first
     shares = torch.stack([(weights * first).sum(-1), (weights * second).sum(-1)], -1)
     return torch.stack([best, second_seed], 1), shares
+
+
+def pose_statistics(
+    object_pose: torch.Tensor, window: torch.Tensor, origin: torch.Tensor, config: EstimateConfig
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The lowest-cost world of each group, (G,), and the estimate's pose fields from every world's
+    ``object_pose`` (G, K, 7) weighted by its ``window`` cost (G, K): ``pose``, ``best_pose``,
+    ``mean_pose`` (G, 7), ``covariance`` (G, 6, 6), ``modes`` (G, 2, 7), ``mode_weights`` (G, 2).
+    ``origin`` (7,) stands in for a NaN world's pose."""
+    best = window.argmin(-1)
+    # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
+    poses = torch.where(torch.isfinite(object_pose).all(-1, keepdim=True), object_pose, origin)
+    pose = torch.gather(poses, 1, best[:, None, None].expand(-1, 1, 7))[:, 0]
+    weights = estimate_pmf(window, config.estimate_lambda)  # (G, K)
+    position = poses[..., :3]
+    quat = poses[..., 3:]
+    # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
+    quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
+    mean_p = (weights[..., None] * position).sum(1)
+    mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
+    delta = torch.cat(
+        [position - mean_p[:, None], quat_log(quat_multiply(quat_conjugate(mean_q)[:, None].expand_as(quat), quat))],
+        dim=-1,
+    )
+    mean_pose = torch.cat([mean_p, mean_q], dim=-1)
+    modes, mode_weights = pose_modes(poses, pose, weights, config.mode_angle, config.mode_distance)
+    return best, {
+        "pose": mean_pose if config.mean_estimate else pose,
+        "best_pose": pose,
+        "mean_pose": mean_pose,
+        "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
+        "modes": modes,
+        "mode_weights": mode_weights,
+    }

@@ -87,6 +87,7 @@ ESTIMATE = Columns.of(
         "modes": (2, 7),
         "mode_weights": (2,),
         "contacts_explored": (),
+        "overflow": (),
     }
 )
 """The packed estimate: what one device-to-host copy per frame carries for every group."""
@@ -176,6 +177,9 @@ class GroupEstimates:
     contacts_explored: np.ndarray | None = None
     """Whether each group's worlds explore their contacts, (G,) bool: its lowest cost said the
     model's contacts are wrong (:attr:`.ContactExploration.contact_gate_cost`)."""
+    overflow: np.ndarray | None = None
+    """Whether a world of each group dropped contacts or constraint rows for want of room this
+    frame, (G,) bool: its physics is then not the robot's (PopulationConfig.contacts_per_world)."""
     reseeded: np.ndarray | None = None
     """Whether each group was re-seeded after this frame, (G,) bool (never an open-loop group)."""
 
@@ -198,4 +202,5 @@ class GroupEstimates:
             modes=v("modes"),
             mode_weights=v("mode_weights"),
             contacts_explored=v("contacts_explored") > 0.5,
+            overflow=v("overflow") > 0.5,
         )

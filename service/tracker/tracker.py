@@ -16,6 +16,7 @@ second graph, enqueued behind that copy: its indices never leave the device.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 
@@ -23,13 +24,13 @@ import numpy as np
 import torch
 
 from sim_backend import HEALTH_AWAY, HEALTH_NAN, HEALTH_OK, Population, SensorFK
-from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
+from sim_backend.rotations import quat_rotate
 
 from .capture import CapturedOps
 from .config import TrackerConfig
 from .contacts import ContactExplorer
 from .cost import Cost, RealObservation
-from .estimate import pose_modes
+from .estimate import pose_statistics
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
 from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, update
@@ -44,6 +45,8 @@ from .sampling import (
 )
 
 __all__ = ["Tracker"]
+
+log = logging.getLogger(__name__)
 
 _MISMATCH_CAP = 16.0
 """The most the floor's variance grows with the cost (4x its deviation): a population that lost its
@@ -136,6 +139,8 @@ class Tracker:
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self.observations = PoseObserver(self)
+        self.overflows = 0
+        """Frames on which a world dropped contacts for want of room (:meth:`_overflowed`)."""
         self.recovery.open_loop[:] = self.olp.cpu().numpy()
 
     # ------------------------------------------------------------------ start
@@ -277,8 +282,22 @@ class Tracker:
             self.seed_groups(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
             estimate.reseeded |= r.groups
         estimate.status = self.recovery.status.copy()
+        if estimate.overflow.any():
+            self._overflowed(np.flatnonzero(estimate.overflow))
         estimate.covariance[:, self._diagonal, self._diagonal] += self._unresolved(estimate.cost)
         return estimate
+
+    def _overflowed(self, groups: np.ndarray) -> None:
+        """Say, once per population, that worlds of ``groups`` ran out of contact room."""
+        self.overflows += 1
+        if self.overflows == 1:
+            cfg = self.pop.config
+            log.warning(
+                "contacts: worlds of groups %s made more contacts than the %d a world holds (or more than its %d"
+                " constraint rows); the excess was dropped from their physics: raise the population's"
+                " contacts_per_world (and constraints_per_world)",
+                groups.tolist(), cfg.contacts_per_world, cfg.constraints_per_world,
+            )  # fmt: skip
 
     def _unresolved(self, cost: np.ndarray) -> np.ndarray:
         """The variance the worlds' spread does not show, (G, 6) [m^2, rad^2], added to the reported
@@ -346,46 +365,20 @@ class Tracker:
     def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
         copy; ``lost`` (G, K) says which worlds lost their object."""
-        obs, pop = self.pop.obs, self.pop
-        best = window.argmin(-1)
-        take = lambda t: torch.gather(t, 1, best[:, None, None].expand(-1, 1, t.shape[-1]))[:, 0]  # noqa: E731
-        # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
-        poses = torch.where(torch.isfinite(obs.object_pose).all(-1, keepdim=True), obs.object_pose, self._origin)
-        pose = take(poses)
-        weights = estimate_pmf(window, self.config.estimate.estimate_lambda)  # (G, K)
-        position = poses[..., :3]
-        quat = poses[..., 3:]
-        # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
-        quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
-        mean_p = (weights[..., None] * position).sum(1)
-        mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
-        delta = torch.cat(
-            [
-                position - mean_p[:, None],
-                quat_log(quat_multiply(quat_conjugate(mean_q)[:, None].expand_as(quat), quat)),
-            ],
-            dim=-1,
-        )
+        pop = self.pop
+        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
-        mean_pose = torch.cat([mean_p, mean_q], dim=-1)
-        modes, mode_weights = pose_modes(
-            poses, pose, weights, self.config.estimate.mode_angle, self.config.estimate.mode_distance
-        )
         return ESTIMATE.pack(
             {
-                "pose": mean_pose if self.config.estimate.mean_estimate else pose,
-                "best_pose": pose,
-                "mean_pose": mean_pose,
-                "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
+                **poses,
                 "cost": at_best(window),
                 "mass": at_best(pop.mass),
                 "friction": at_best(pop.friction),
                 "lost": lost.float().mean(-1),
                 "contact_disagreement": at_best(self.cost.last_terms[..., 3]),  # sensors in disagreement
                 "hand": self.real.sensor_pos.mean(1),
-                "modes": modes,
-                "mode_weights": mode_weights,
                 "contacts_explored": self.contacts.open.float(),
+                "overflow": (pop.overflow != 0).any(-1).float(),
             }
         )
 
