@@ -236,7 +236,9 @@ class SessionInfo(_Message):
     joint_names: list[str]
     """The robot's joints in the order of every (D,) array: ``q``, ``controls``, ``q0``."""
     sensor_names: list[str]
-    """The robot's touch sensors in the order of every (L, ...) array: ``force``, ``slip``, ..."""
+    """The robot's fingertip sensors in the order of every (L, ...) array: ``force``, ``slip``, ..."""
+    zone_names: list[str] = []
+    """The robot's touch zones in the order of the (Z,) ``touch`` array; empty when it has none."""
     worlds: int
     """K, the worlds granted."""
     method: str
@@ -260,7 +262,7 @@ def _sensing_fields() -> dict:
     fields = {}
     for f in SENSING:
         kind = _array(1 + len(f.trailing), f.trailing[-1] if f.trailing else None)
-        text = f"{f.doc} Shape {('D' if f.per == 'joint' else 'L', *f.trailing)} [{f.unit}]."
+        text = f"{f.doc} Shape {({'joint': 'D', 'sensor': 'L', 'zone': 'Z'}[f.per], *f.trailing)} [{f.unit}]."
         fields[f.name] = (kind | None, Field(None, description=text)) if f.optional else (kind, Field(description=text))
     return fields
 

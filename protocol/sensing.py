@@ -2,10 +2,11 @@
 
 Every form a frame takes is derived from :data:`SENSING`: the wire message
 (:class:`protocol.RobotFrame`), the ``.traj`` file's ``frames`` table, the tracker's frame and
-the packed row the GPU reads. A field is per joint (D of them) or per touch sensor (L of them),
-with a trailing shape per joint or sensor. Optional fields come in presence groups: a frame
-either carries a group (forces; translational slip; rotational slip) or not, and the tracker's
-cost drops the terms of a group the frame lacks.
+the packed row the GPU reads. A field is per joint (D of them), per fingertip sensor (L of them)
+or per touch zone (Z of them: a scalar normal force on a region of a link, the way touch arrays,
+pressure pads and taxel skins report), with a trailing shape. Optional fields come in presence
+groups: a frame either carries a group (fingertip forces; translational slip; rotational slip;
+touch zones) or not, and the tracker's cost drops the terms of a group the frame lacks.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ class SensingField:
     """One field of the robot's sensing record."""
 
     name: str
-    per: Literal["joint", "sensor"]
-    """What the leading axis counts: D actuated joints or L touch sensors."""
+    per: Literal["joint", "sensor", "zone"]
+    """What the leading axis counts: D actuated joints, L fingertip sensors or Z touch zones."""
     trailing: tuple[int, ...]
     """Shape per joint or sensor: () for a scalar, (3,) for a vector."""
     unit: str
@@ -32,9 +33,9 @@ class SensingField:
     group: str | None = None
     """Presence group of an optional field; None for a field every frame carries."""
 
-    def shape(self, d: int, l: int) -> tuple[int, ...]:
-        """The field's shape in one frame of a robot with ``d`` joints and ``l`` sensors."""
-        return ((d if self.per == "joint" else l), *self.trailing)
+    def shape(self, d: int, l: int, z: int = 0) -> tuple[int, ...]:
+        """The field's shape in one frame of a robot with ``d`` joints, ``l`` sensors and ``z`` zones."""
+        return ({"joint": d, "sensor": l, "zone": z}[self.per], *self.trailing)
 
     @property
     def optional(self) -> bool:
@@ -53,12 +54,20 @@ SENSING: tuple[SensingField, ...] = (
     SensingField(
         "spin_sense", "sensor", (), "1", "Rotational slip senses: 1 counter-clockwise about the pad normal.", "spin"
     ),
+    SensingField(
+        "touch",
+        "zone",
+        (),
+        "N",
+        "Normal force on each touch zone (palm, phalanges, taxels), as the robot declares.",
+        "touch",
+    ),
 )
 """The robot's sensing record, in wire and packing order. Sensor frames: z is the pad normal,
 pointing at the object; x-y is the pad's tangent plane."""
 
 PRESENCE: tuple[str, ...] = tuple(dict.fromkeys(f.group for f in SENSING if f.group))
-"""The presence groups, in order: ("force", "slip", "spin")."""
+"""The presence groups, in order: ("force", "slip", "spin", "touch")."""
 
 _BY_NAME = {f.name: f for f in SENSING}
 
@@ -90,14 +99,14 @@ def sensing_field(name: str) -> SensingField:
         raise ValueError(f"sensing field: '{name}' is not one of {list(_BY_NAME)}") from None
 
 
-def check_sensing(values: dict[str, np.ndarray | None], d: int, l: int, lead: tuple[int, ...] = ()) -> None:
-    """Check a record's shapes against a robot of ``d`` joints and ``l`` sensors, with leading axes
-    ``lead`` (frames, groups, ...); a ValueError names the field and both shapes."""
+def check_sensing(values: dict[str, np.ndarray | None], d: int, l: int, lead: tuple[int, ...] = (), z: int = 0) -> None:
+    """Check a record's shapes against a robot of ``d`` joints, ``l`` sensors and ``z`` touch zones,
+    with leading axes ``lead`` (frames, groups, ...); a ValueError names the field and both shapes."""
     for name, value in values.items():
         if value is None:
             if not sensing_field(name).optional:
                 raise ValueError(f"{name}: required, got None")
             continue
-        expected = (*lead, *sensing_field(name).shape(d, l))
+        expected = (*lead, *sensing_field(name).shape(d, l, z))
         if np.shape(value) != expected:
             raise ValueError(f"{name}: expected shape {expected}, got {np.shape(value)}")

@@ -52,10 +52,10 @@ def examples() -> dict[str, BaseModel]:
     cov = np.diag(np.array([4e-6, 4e-6, 9e-6, 2.5e-3, 2.5e-3, 1e-2], np.float32))
     q = np.linspace(-0.2, 0.9, 22, dtype=np.float32)
     token = "5f2b9c0e7d1a4b3c8e6f0a9d2c4b7e1f"
-    # Every sensing field, filled with fixed values: D = 22 joints, L = 4 sensors.
+    # Every sensing field, filled with fixed values: D = 22 joints, L = 4 sensors, Z = 3 touch zones.
     frame = {}
     for f in SENSING:
-        shape = (len(q) if f.per == "joint" else 4, *f.trailing)
+        shape = f.shape(len(q), 4, 3)
         frame[f.name] = np.linspace(-0.5, 0.5, int(np.prod(shape)), dtype=np.float32).reshape(shape)
     return {
         "ServiceInfo": ServiceInfo(

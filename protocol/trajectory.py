@@ -78,11 +78,11 @@ class Trajectory(SensingAttributes):
         self.sensing: dict[str, np.ndarray | None] = {f.name: sensing.get(f.name) for f in SENSING}
         """Every field of protocol.SENSING, (F, ...) or None."""
         f, d = np.shape(self.sensing["controls"])
-        l = next(
-            (np.shape(v)[1] for k, v in self.sensing.items() if v is not None and sensing_field(k).per == "sensor"), 0
+        per = lambda kind: next(  # noqa: E731 - the count of a kind of sensor, from the first field of it sent
+            (np.shape(v)[1] for k, v in self.sensing.items() if v is not None and sensing_field(k).per == kind), 0
         )
         try:
-            check_sensing(self.sensing, d, l, lead=(f,))
+            check_sensing(self.sensing, d, per("sensor"), lead=(f,), z=per("zone"))
         except ValueError as exc:
             raise ValueError(f"trajectory '{name}' {exc}") from None
         self.stamp = np.arange(f, dtype=np.float64) / self.frame_rate if stamp is None else stamp

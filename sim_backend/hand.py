@@ -9,7 +9,7 @@ import newton
 import numpy as np
 import warp as wp
 
-from .robot_specs import HandSpec, RobotLayout, joint_coord_dof
+from .robot_specs import HandSpec, RobotLayout, joint_coord_dof, zone_layout
 
 __all__ = [
     "ALLEGRO_FINGER_LIMITS",
@@ -78,10 +78,14 @@ class _HandBuilder:
         self.upper: list[float] = []
         self.joints: list[int] = []
         self.tips: list[int] = []
+        self.bodies: dict[str, int] = {}
+        """Each link's body index in the world, by its label."""
 
     def link(self, mass: float, inertia_diag: float, label: str) -> int:
         inertia = wp.mat33(inertia_diag, 0.0, 0.0, 0.0, inertia_diag, 0.0, 0.0, 0.0, inertia_diag)
-        return self.builder.add_link(mass=mass, inertia=inertia, label=label, custom_attributes=self.gravcomp)
+        body = self.builder.add_link(mass=mass, inertia=inertia, label=label, custom_attributes=self.gravcomp)
+        self.bodies[label] = body - self.body_start
+        return body
 
     def hinge(self, parent: int, child: int, axis, lim, name: str, offset=(0.0, 0.0, 0.0), turn=None) -> int:
         """A finger hinge with the fingers' servo, at ``offset`` [m] (and ``turn``) in the parent's frame."""
@@ -198,6 +202,7 @@ class _HandBuilder:
         # towards), x along the digit. Fingers: pad normal = link x; thumb: pad normal = link -y.
         finger_pad = (0.0, 0.0, ALLEGRO_FINGER_LINKS[3], math.sqrt(0.5), 0.0, math.sqrt(0.5), 0.0)
         thumb_pad = (0.0, 0.0, ALLEGRO_THUMB_LINKS[2], 0.5, -0.5, 0.5, 0.5)
+        zones, zone_bodies, zone_boxes = zone_layout(self.spec.name, self.spec.touch_zones, self.bodies)
         return RobotLayout(
             name=self.spec.name,
             joint_names=tuple(self.names),
@@ -208,6 +213,9 @@ class _HandBuilder:
             sensor_names=("index_tip", "middle_tip", "ring_tip", "thumb_tip"),
             sensor_bodies=np.asarray(self.tips) - self.body_start,
             sensor_offsets=np.asarray([finger_pad] * 3 + [thumb_pad]),
+            zone_names=zones,
+            zone_bodies=zone_bodies,
+            zone_boxes=zone_boxes,
         )
 
 

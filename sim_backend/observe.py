@@ -25,6 +25,7 @@ __all__ = [
     "Buffers",
     "Observation",
     "accumulate_contacts",
+    "accumulate_zones",
     "add_sensor_noise",
     "allocate_buffers",
     "finish_observation",
@@ -154,6 +155,63 @@ def accumulate_contacts(
 
 
 @wp.kernel(enable_backward=False)
+def accumulate_zones(
+    contact_count: wp.array[wp.int32],
+    shape0: wp.array[wp.int32],
+    shape1: wp.array[wp.int32],
+    point0: wp.array[wp.vec3],
+    normal: wp.array[wp.vec3],
+    contact_force: wp.array[wp.spatial_vector],
+    shape_body: wp.array[wp.int32],
+    body_q: wp.array[wp.transform],
+    object_world: wp.array[wp.int32],
+    bodies_per_world: int,
+    zone_first: wp.array[wp.int32],
+    zone_index: wp.array[wp.int32],
+    zone_center: wp.array[wp.vec3],
+    zone_half: wp.array[wp.vec3],
+    touch: wp.array2d[float],
+):
+    """Sum, per touch zone, the normal force of its world's object on the contacts inside the zone's
+    box (as a touch array reports: the normal force on each cell, whatever slides along it).
+
+    ``zone_first[b]`` .. ``zone_first[b + 1]`` are the zones on the world's local body b, in
+    ``zone_index`` (the zone's place in the record), ``zone_center`` and ``zone_half`` (its box in
+    the link's frame). Launch dim: contact capacity."""
+    c = wp.tid()
+    if c >= contact_count[0]:
+        return
+    b0 = shape_body[shape0[c]]
+    b1 = shape_body[shape1[c]]
+    if b0 < 0 or b1 < 0:
+        return
+    obj = b1
+    link = b0
+    if object_world[b0] >= 0:
+        obj = b0
+        link = b1
+    w = object_world[obj]
+    if w < 0 or object_world[link] >= 0:
+        return
+    local = link - w * bodies_per_world
+    if local < 0 or local >= bodies_per_world:
+        return
+    first = zone_first[local]
+    last = zone_first[local + 1]
+    if first == last:
+        return
+    pressed = wp.abs(wp.dot(wp.spatial_top(contact_force[c]), wp.normalize(normal[c])))
+    if pressed == 0.0:  # inside the detection gap, not touching
+        return
+    p = wp.transform_point(wp.transform_inverse(body_q[link]), wp.transform_point(body_q[b0], point0[c]))
+    for i in range(first, last):
+        d = p - zone_center[i]
+        h = zone_half[i]
+        if wp.abs(d[0]) <= h[0] and wp.abs(d[1]) <= h[1] and wp.abs(d[2]) <= h[2]:
+            wp.atomic_add(touch, w, zone_index[i], pressed)
+
+
+@wp.kernel(enable_backward=False)
 def finish_observation(
     rot: wp.array2d[wp.quat],
     force_acc: wp.array2d[wp.vec3],
@@ -247,7 +305,7 @@ def object_health(
 class Observation:
     """What every world's robot senses after a frame; torch views of device memory.
 
-    G groups, K worlds, D actuated joints, L touch sensors. Frames follow
+    G groups, K worlds, D actuated joints, L fingertip sensors, Z touch zones. Frames follow
     :mod:`sim_backend.observe`: sensor z is the pad normal, the tangent plane its x-y plane.
     """
 
@@ -268,6 +326,8 @@ class Observation:
     """Rotational slip flag, shape (G, K, L), 1.0 / 0.0."""
     spin_sense: torch.Tensor
     """Rotational slip sense about the pad normal, shape (G, K, L): 1.0 counter-clockwise, else 0.0."""
+    touch: torch.Tensor
+    """Normal force of the object on each touch zone, shape (G, K, Z) [N]."""
     object_pose: torch.Tensor
     """Object pose in the world frame, shape (G, K, 7): position [m], quaternion (x, y, z, w)."""
     health: torch.Tensor
@@ -286,6 +346,7 @@ class Buffers:
     slip_dir: wp.array
     spin: wp.array
     spin_sense: wp.array
+    touch: wp.array
     object_pose: wp.array
     health: wp.array
     force_acc: wp.array
@@ -296,8 +357,8 @@ class Buffers:
     """Perturbation wrench on each world's object for the next frame, (W,) spatial_vector."""
 
 
-def allocate_buffers(w: int, d: int, l: int) -> Buffers:
-    """Zeroed buffers for ``w`` worlds of ``d`` joints and ``l`` sensors."""
+def allocate_buffers(w: int, d: int, l: int, zones: int = 0) -> Buffers:
+    """Zeroed buffers for ``w`` worlds of ``d`` joints, ``l`` sensors and ``zones`` touch zones."""
     z = wp.zeros
     return Buffers(
         q=z((w, d), dtype=float),
@@ -308,6 +369,7 @@ def allocate_buffers(w: int, d: int, l: int) -> Buffers:
         slip_dir=z((w, l), dtype=wp.vec2),
         spin=z((w, l), dtype=float),
         spin_sense=z((w, l), dtype=float),
+        touch=z((w, zones), dtype=float),
         object_pose=z((w, 7), dtype=float),
         health=z(w, dtype=wp.int32),
         force_acc=z((w, l), dtype=wp.vec3),

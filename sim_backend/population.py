@@ -28,7 +28,7 @@ from .params import ObjectParams
 from .robots import RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 from .separate import separate_objects
-from .step import simulate
+from .step import frame_arrays, simulate
 
 __all__ = ["Population", "no_collection"]
 
@@ -83,7 +83,7 @@ class Population:
             built.object_body, built.bodies, built.coords, built.dofs
         )  # fmt: skip
         """Per world: the object's body index, and its bodies, joint coordinates and DOFs in all."""
-        self.D, self.L = self.layout.dof_count, self.layout.sensor_count
+        self.D, self.L, self.Z = self.layout.dof_count, self.layout.sensor_count, self.layout.zone_count
         with turn:
             physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
@@ -93,12 +93,12 @@ class Population:
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
             self.control = self.model.control()
-            self.buf = observe.allocate_buffers(self.W, self.D, self.L)
+            self.buf = observe.allocate_buffers(self.W, self.D, self.L, self.Z)
             """The observation kernels' arrays (:mod:`.observe`)."""
             # With ramped targets the robot's command for the frame, and the last frame's, per world.
             self.goal = wp.zeros((self.W, self.D), dtype=float)
             self.last_goal = wp.zeros((self.W, self.D), dtype=float)
-            self.static = self._static_arrays()
+            self.static = frame_arrays(self)
             """Index arrays of the frame's kernels: joints' coordinates, sensors' bodies and offsets, ..."""
             self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
             """The object's mass and friction per world and the solver's constants they set."""
@@ -113,23 +113,6 @@ class Population:
             self._capture(turn)
 
     # ------------------------------------------------------------------ build
-    def _static_arrays(self) -> dict[str, wp.array]:
-        lay, W, nb = self.layout, self.W, self.bodies
-        sensor_row = np.full(self.model.body_count, -1, np.int32)
-        object_world = np.full(self.model.body_count, -1, np.int32)
-        worlds = np.arange(W)
-        for l, b in enumerate(lay.sensor_bodies):
-            sensor_row[worlds * nb + b] = worlds * self.L + l
-        object_world[worlds * nb + self.object_body] = worlds
-        offsets = [wp.transform(wp.vec3(*o[:3]), wp.quat(*o[3:])) for o in lay.sensor_offsets]
-        return {
-            "coord_index": wp.array(lay.coord_indices.astype(np.int32), dtype=wp.int32),
-            "sensor_body": wp.array(lay.sensor_bodies.astype(np.int32), dtype=wp.int32),
-            "sensor_offset": wp.array(offsets, dtype=wp.transform),
-            "sensor_row": wp.array(sensor_row, dtype=wp.int32),
-            "object_world": wp.array(object_world, dtype=wp.int32),
-        }
-
     def _views(self) -> None:
         """Torch views (no copies) of the per-world simulation arrays, leading axes (G, K)."""
         G, K, nb = self.G, self.K, self.bodies

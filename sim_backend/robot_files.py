@@ -15,7 +15,7 @@ import newton
 import numpy as np
 import warp as wp
 
-from .robot_specs import FileRobotSpec, RobotLayout, joint_coord_dof
+from .robot_specs import FileRobotSpec, RobotLayout, joint_coord_dof, zone_layout
 
 __all__ = ["add_file_robot"]
 
@@ -102,6 +102,8 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
         if off.shape != offsets.shape:
             raise ValueError(f"robot '{spec.name}' sensor_offsets: expected shape {offsets.shape}, got {off.shape}")
         offsets = off
+    local = {name: b - body_start for name, b in body_names.items()}
+    zones, zone_bodies, zone_boxes = zone_layout(spec.name, spec.touch_zones, local)
     default_q = np.asarray(spec.default_q, dtype=np.float64) if spec.default_q else np.clip(0.0, lower, upper)
     if default_q.shape != lower.shape:
         raise ValueError(f"robot '{spec.name}' default_q: expected {lower.shape[0]} values, got {default_q.shape[0]}")
@@ -116,6 +118,9 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
         sensor_bodies=np.asarray([body_names[n] for n in spec.sensor_links]) - body_start,
         sensor_offsets=offsets,
         carries_on_palm=spec.carries_on_palm,
+        zone_names=zones,
+        zone_bodies=zone_bodies,
+        zone_boxes=zone_boxes,
     )
 
 

@@ -11,7 +11,52 @@ from pathlib import Path
 import newton
 import numpy as np
 
-__all__ = ["FileRobotSpec", "HandSpec", "RobotLayout", "RobotSpec", "joint_coord_dof", "load_robot"]
+__all__ = [
+    "FileRobotSpec",
+    "HandSpec",
+    "RobotLayout",
+    "RobotSpec",
+    "TouchZone",
+    "joint_coord_dof",
+    "load_robot",
+    "zone_layout",
+]
+
+
+@dataclass(frozen=True)
+class TouchZone:
+    """A region of a link that reports one scalar normal force, as a touch array's cell, a pressure
+    pad or a patch of taxel skin does: a box in the link's frame."""
+
+    name: str
+    link: str
+    """The link that carries it, by its name in the robot's model."""
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The box's centre in the link's frame [m]."""
+    half_extents: tuple[float, float, float] = (0.01, 0.01, 0.01)
+    """The box's half extents along the link frame's axes [m]; contacts inside it count."""
+
+    def __post_init__(self) -> None:
+        if len(self.center) != 3 or len(self.half_extents) != 3:
+            raise ValueError(f"touch zone '{self.name}': expected 3 values for center and half_extents")
+        if not all(h > 0 for h in self.half_extents):
+            raise ValueError(f"touch zone '{self.name}' half_extents: expected > 0 m, got {list(self.half_extents)}")
+
+
+def zone_layout(
+    robot: str, zones: tuple[TouchZone, ...], bodies: dict[str, int]
+) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """The touch zones' names, their links' body indices (Z,) from ``bodies`` (link name -> index
+    local to the world), and their boxes (Z, 6): centre then half extents [m]; a ValueError names a
+    zone whose link the robot lacks."""
+    missing = [(z.name, z.link) for z in zones if z.link not in bodies]
+    if missing:
+        raise ValueError(f"robot '{robot}' touch_zones: links {missing} not in the robot (has {sorted(bodies)})")
+    names = tuple(z.name for z in zones)
+    if len(set(names)) != len(names):
+        raise ValueError(f"robot '{robot}' touch_zones: names repeat: {names}")
+    boxes = np.array([[*z.center, *z.half_extents] for z in zones], np.float32).reshape(len(zones), 6)
+    return names, np.array([bodies[z.link] for z in zones], np.int64), boxes
 
 
 @dataclass(frozen=True)
@@ -40,6 +85,12 @@ class RobotLayout:
     """Sensor frame in its link's frame, shape (L, 7): position [m] then quaternion (x, y, z, w)."""
     carries_on_palm: bool = False
     """The hand carries objects on a palm that has no touch sensor (see :class:`FileRobotSpec`)."""
+    zone_names: tuple[str, ...] = ()
+    """Touch zone names, shape (Z,)."""
+    zone_bodies: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """Body index of the link carrying each zone, shape (Z,), int."""
+    zone_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float32))
+    """Each zone's box in its link's frame, shape (Z, 6): centre then half extents [m]."""
 
     @property
     def dof_count(self) -> int:
@@ -48,6 +99,10 @@ class RobotLayout:
     @property
     def sensor_count(self) -> int:
         return len(self.sensor_names)
+
+    @property
+    def zone_count(self) -> int:
+        return len(self.zone_names)
 
 
 @dataclass(frozen=True)
@@ -76,6 +131,8 @@ class HandSpec:
     gravity_compensation: bool = True
     """Cancel gravity on the robot's links, as the arm's and hand's controllers do."""
     default_q: tuple[float, ...] = field(default=())
+    touch_zones: tuple[TouchZone, ...] = ()
+    """Regions of the links that sense a normal force (``touch`` in a frame); none by default."""
     """Start joints (D=22); empty means wrist at 0.3 m height and an open hand."""
 
 
@@ -106,6 +163,9 @@ class FileRobotSpec:
     """The hand carries objects on its palm, which has no touch sensor: fingertips that feel
     nothing then do not say the object fell, so a lost track is re-seeded where the object was,
     not on the table below it."""
+    touch_zones: tuple[TouchZone, ...] = ()
+    """Regions of the links that sense a normal force (``touch`` in a frame): ``[[touch_zones]]``
+    tables in the robot config, each with a name, a link, a center and half_extents."""
     package_dirs: tuple[str, ...] = ()
     """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
     NAME folder); the URDF's own package folder is found without it."""
@@ -135,7 +195,12 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
             table["path"] = str(path.parent / table["path"])
         table["package_dirs"] = tuple(str(path.parent / d) for d in table.get("package_dirs", ()))
         table["sensor_offsets"] = tuple(tuple(o) for o in table.get("sensor_offsets", ()))
-    table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
+    try:
+        zones = tuple(TouchZone(**{k: tuple(v) if isinstance(v, list) else v for k, v in z.items()})
+                      for z in table.pop("touch_zones", ()))  # fmt: skip
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"robot config '{path}' touch_zones: {exc}") from None
+    table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()} | {"touch_zones": zones}
     try:
         return cls(**table)
     except TypeError as exc:

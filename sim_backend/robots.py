@@ -12,7 +12,7 @@ import newton
 
 from .hand import ALLEGRO_FINGER_LIMITS, ALLEGRO_THUMB_LIMITS, TIP_RADIUS, add_hand
 from .robot_files import add_file_robot
-from .robot_specs import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, load_robot
+from .robot_specs import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, TouchZone, load_robot
 
 __all__ = [
     "ALLEGRO_FINGER_LIMITS",
@@ -22,6 +22,7 @@ __all__ = [
     "HandSpec",
     "RobotLayout",
     "RobotSpec",
+    "TouchZone",
     "add_robot",
     "load_robot",
 ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
 import warp as wp
 
 from . import observe
@@ -13,7 +14,7 @@ from . import observe
 if TYPE_CHECKING:
     from .population import Population
 
-__all__ = ["simulate"]
+__all__ = ["frame_arrays", "simulate"]
 
 
 @wp.kernel(enable_backward=False)
@@ -99,6 +100,29 @@ def simulate(pop: Population) -> None:
         outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
     )
     observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
+    if pop.Z:
+        b.touch.zero_()
+        wp.launch(
+            observe.accumulate_zones,
+            dim=c.rigid_contact_max,
+            inputs=[
+                c.rigid_contact_count,
+                c.rigid_contact_shape0,
+                c.rigid_contact_shape1,
+                c.rigid_contact_point0,
+                c.rigid_contact_normal,
+                pop.observables.contact_f,
+                pop.model.shape_body,
+                st.body_q,
+                s["object_world"],
+                pop.bodies,
+                s["zone_first"],
+                s["zone_index"],
+                s["zone_center"],
+                s["zone_half"],
+            ],
+            outputs=[b.touch],
+        )
     wp.launch(
         observe.object_health,
         dim=pop.W,
@@ -117,3 +141,39 @@ def simulate(pop: Population) -> None:
         ],
         outputs=[b.object_pose, b.health],
     )
+
+
+def frame_arrays(pop: Population) -> dict[str, wp.array]:
+    """The index arrays the frame's kernels read: each actuated joint's coordinate, each sensor's
+    body and offset, which bodies carry sensors and objects, and the touch zones."""
+    lay, W, nb = pop.layout, pop.W, pop.bodies
+    sensor_row = np.full(pop.model.body_count, -1, np.int32)
+    object_world = np.full(pop.model.body_count, -1, np.int32)
+    worlds = np.arange(W)
+    for l, b in enumerate(lay.sensor_bodies):
+        sensor_row[worlds * nb + b] = worlds * pop.L + l
+    object_world[worlds * nb + pop.object_body] = worlds
+    offsets = [wp.transform(wp.vec3(*o[:3]), wp.quat(*o[3:])) for o in lay.sensor_offsets]
+    return {
+        "coord_index": wp.array(lay.coord_indices.astype(np.int32), dtype=wp.int32),
+        "sensor_body": wp.array(lay.sensor_bodies.astype(np.int32), dtype=wp.int32),
+        "sensor_offset": wp.array(offsets, dtype=wp.transform),
+        "sensor_row": wp.array(sensor_row, dtype=wp.int32),
+        "object_world": wp.array(object_world, dtype=wp.int32),
+        **_zone_arrays(pop),
+    }
+
+
+def _zone_arrays(pop: Population) -> dict[str, wp.array]:
+    """The touch zones by the local body that carries them (CSR: ``zone_first`` has one entry
+    per body and one more), with their place in the record and their boxes."""
+    lay = pop.layout
+    order = np.argsort(lay.zone_bodies, kind="stable")
+    first = np.searchsorted(lay.zone_bodies[order], np.arange(pop.bodies + 1)).astype(np.int32)
+    boxes = lay.zone_boxes[order].reshape(-1, 6)
+    return {
+        "zone_first": wp.array(first, dtype=wp.int32),
+        "zone_index": wp.array(order.astype(np.int32), dtype=wp.int32),
+        "zone_center": wp.array(boxes[:, :3].copy(), dtype=wp.vec3),
+        "zone_half": wp.array(boxes[:, 3:].copy(), dtype=wp.vec3),
+    }

@@ -15,18 +15,18 @@ from sim_backend import Observation
 from sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
 
 
-def _sim_obs(g: int, k: int, d: int = 2, l: int = 2) -> Observation:
+def _sim_obs(g: int, k: int, d: int = 2, l: int = 2, zones: int = 2) -> Observation:
     z = lambda *s: torch.zeros(s)  # noqa: E731
     rot = z(g, k, l, 4)
     rot[..., 3] = 1.0
     pose = z(g, k, 7)
     pose[..., 6] = 1.0
     return Observation(z(g, k, d), z(g, k, l, 3), rot, z(g, k, l, 3), z(g, k, l), z(g, k, l, 2), z(g, k, l),
-                       z(g, k, l), pose, torch.zeros(g, k, dtype=torch.int32))  # fmt: skip
+                       z(g, k, l), z(g, k, zones), pose, torch.zeros(g, k, dtype=torch.int32))  # fmt: skip
 
 
-def _real(d: int = 2, l: int = 2) -> RealObservation:
-    r = RealObservation.zeros(1, d, l, torch.device("cpu"))
+def _real(d: int = 2, l: int = 2, zones: int = 2) -> RealObservation:
+    r = RealObservation.zeros(1, d, l, torch.device("cpu"), z=zones)
     r.has_force.fill_(1.0)
     r.has_slip.fill_(1.0)
     r.has_spin.fill_(1.0)
@@ -54,8 +54,14 @@ def test_each_cost_term_against_hand_computed_values():
     sim.spin[0, 0, 0] = real.spin[0, 0] = 1.0
     sim.spin_sense[0, 0, 0] = 1.0
     t = cost_terms(sim, real, contact_threshold=0.2)[0, 0]
-    expected = [0.5, 0.03, 0.3, 1.0, 1.0, math.pi / 2, 1.0, math.pi / 4, 0.0, 1.0]
+    expected = [0.5, 0.03, 0.3, 1.0, 1.0, math.pi / 2, 1.0, math.pi / 4, 0.0, 1.0, 0.0, 0.0]
     assert t.tolist() == pytest.approx(expected, abs=1e-5)
+    # Touch zones, sent: zone 0 pressed 2 N by both and 5 N by the sim, zone 1 only by the real one.
+    real.has_touch.fill_(1.0)
+    sim.touch[0, 0, 0], real.touch[0, 0] = 5.0, 2.0
+    real.touch[0, 1] = 1.0
+    t = cost_terms(sim, real, contact_threshold=0.2)[0, 0]
+    assert t[10:].tolist() == pytest.approx([1.0, 3.0], abs=1e-5)
 
 
 def test_the_one_world_still_holding_the_object_costs_least():
@@ -88,9 +94,9 @@ def test_terms_without_fields_drop_out_and_weights_normalise():
         c = cost(sim, real)
     # Normalised by the running mean (0.2), the joint term of the three worlds reads 0.5, 1, 1.5.
     assert c[0].tolist() == pytest.approx([0.5, 1.0, 1.5], rel=1e-5)
-    fixed = Cost(CostConfig(weights=(2.0,) + (0.0,) * 9), groups=1, device=torch.device("cpu"))
+    fixed = Cost(CostConfig(weights=(2.0,) + (0.0,) * 11), groups=1, device=torch.device("cpu"))
     assert fixed(sim, real)[0].tolist() == pytest.approx([0.2, 0.4, 0.6], rel=1e-5)
-    with pytest.raises(ValueError, match="cost weights: expected 10 values"):
+    with pytest.raises(ValueError, match=r"cost weights: expected 12 values \(w1..w12\), got 2"):
         CostConfig(weights=(1.0, 2.0))
 
 
@@ -262,7 +268,7 @@ def test_shrinking_toward_the_mean_before_roughening_keeps_the_spread():
 
 
 def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():
-    from service.tracker.tracker import pose_modes
+    from service.tracker.estimate import pose_modes
 
     upright = torch.tensor([0.1, 0.0, 0.05, 0.0, 0.0, 0.0, 1.0])
     turned = torch.tensor([0.1, 0.0, 0.05, 0.0, 0.0, 1.0, 0.0])  # half a turn about z: contact cannot tell

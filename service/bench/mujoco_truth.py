@@ -145,7 +145,7 @@ def _run(
     mujoco.mj_forward(m, d)
     steps = round(1.0 / (FRAME_RATE * STEP))
     m.opt.timestep = 1.0 / (FRAME_RATE * steps)
-    sensing = {f.name: [] for f in SENSING if f.name != "controls"}
+    sensing = {f.name: [] for f in SENSING if f.name != "controls" and f.per != "zone"}  # MuJoCo's sites: no zones
     poses = []
     last = demo.q.astype(np.float64)
     for u in demo.controls.astype(np.float64):

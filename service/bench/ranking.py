@@ -71,7 +71,7 @@ def cost_ranking(
     rho: list[np.ndarray] = []
     for f in range(rec.frames):
         tracker.step(Frame(**{name: v[f] for name, v in rec.sensing.items()}))
-        terms = tracker.cost.last_terms.double().cpu().numpy()  # (G, K, 10)
+        terms = tracker.cost.last_terms.double().cpu().numpy()  # (G, K, terms)
         # The window restarts at an update: right after one it holds nothing to rank.
         window = (tracker.window / max(tracker.window_frames, 1)).double().cpu().numpy()
         stacked = np.concatenate([terms, (terms * weights).sum(-1, keepdims=True), window[..., None]], axis=-1)

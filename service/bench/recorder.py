@@ -104,8 +104,11 @@ class Recording(SensingAttributes):
 
         d = trajectories[0].controls.shape[1]
         l_count = next((t.force.shape[1] for t in trajectories if t.force is not None), 0)
+        z_count = next((t.touch.shape[1] for t in trajectories if t.touch is not None), 0)
         sensing = {
-            s.name: np.stack([pad(t.sensing[s.name], t.frames, s.shape(d, l_count)) for t in trajectories], axis=1)
+            s.name: np.stack(
+                [pad(t.sensing[s.name], t.frames, s.shape(d, l_count, z_count)) for t in trajectories], axis=1
+            )
             for s in SENSING
         }
         return cls(

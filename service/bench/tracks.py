@@ -17,6 +17,7 @@ import torch
 from protocol import DEFAULT_WORLDS, TrackState, Trajectory
 from service.evaluation import add_error, adds_error, pose_error, within_region
 from service.tracker import Frame, Tracker
+from service.tracker.cost import TERMS
 from service.tracker.sampling import sample_poses
 from sim_backend import Population, PopulationConfig, catalog_object
 
@@ -227,7 +228,7 @@ def _tracker(spec, obj, group: Sequence[TrackSetting], k: int, run: AccuracyRun)
     """A tracker whose groups are ``group``'s tracks, in a population of ``k`` worlds each."""
     physics = PopulationConfig(groups=len(group), worlds=k, device=run.device, **run.physics)
     pop = Population(spec, obj, physics)
-    terms = np.ones((len(group), 10), bool)
+    terms = np.ones((len(group), TERMS), bool)
     for g, t in enumerate(group):
         terms[g, list(_CONTACT_TERMS)] = t.contact_terms
         terms[g, list(_SLIP_TERMS)] = t.slip_terms

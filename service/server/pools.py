@@ -132,7 +132,7 @@ def build_pool(
     with turn:
         tracker = Tracker(pop, tracker_config, methods=[method] * groups)
         g = pop.G
-        sensing = {f.name: np.zeros((g, *f.shape(pop.D, pop.L)), np.float32) for f in SENSING}
+        sensing = {f.name: np.zeros((g, *f.shape(pop.D, pop.L, pop.Z)), np.float32) for f in SENSING}
         for f in SENSING:
             if f.per == "joint":
                 sensing[f.name][:] = pop.layout.default_q

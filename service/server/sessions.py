@@ -191,6 +191,7 @@ class SessionManager:
             object=request.object,
             joint_names=list(layout.joint_names),
             sensor_names=list(layout.sensor_names),
+            zone_names=list(layout.zone_names),
             worlds=tracker.K,
             method=request.method,
             notice=admission.notice,
@@ -243,7 +244,7 @@ class SessionManager:
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
         tracker = session.pool.tracker
         for f in SENSING:
-            value, shape = getattr(frame, f.name), f.shape(tracker.D, tracker.L)
+            value, shape = getattr(frame, f.name), f.shape(tracker.D, tracker.L, tracker.pop.Z)
             if value is not None and value.shape != shape:
                 session.errors += 1
                 session.last_error = f"RobotFrame.{f.name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"

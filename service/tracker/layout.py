@@ -94,12 +94,12 @@ ESTIMATE = Columns.of(
 
 
 class InputLayout:
-    """The packed input row of a robot with ``d`` joints and ``l`` sensors: every sensing field,
-    then one 0/1 flag per presence group (``has_force``, ``has_slip``, ``has_spin``)."""
+    """The packed input row of a robot with ``d`` joints, ``l`` sensors and ``z`` touch zones: every
+    sensing field, then one 0/1 flag per presence group (``has_force``, ..., ``has_touch``)."""
 
-    def __init__(self, d: int, l: int):
-        self.d, self.l = d, l
-        shapes = {f.name: f.shape(d, l) for f in SENSING} | {f"has_{p}": () for p in PRESENCE}
+    def __init__(self, d: int, l: int, z: int = 0):
+        self.d, self.l, self.z = d, l, z
+        shapes = {f.name: f.shape(d, l, z) for f in SENSING} | {f"has_{p}": () for p in PRESENCE}
         self.columns = Columns.of(shapes)
 
     @property
@@ -122,7 +122,7 @@ class InputLayout:
                     raise ValueError(f"frame {f.name}: required, got None")
                 continue
             arr = np.asarray(value, dtype=np.float32)
-            expected = (groups, *f.shape(self.d, self.l))
+            expected = (groups, *f.shape(self.d, self.l, self.z))
             if arr.shape != expected:
                 raise ValueError(f"frame {f.name}: expected shape {expected}, got {arr.shape}")
             bad = ~np.isfinite(arr)

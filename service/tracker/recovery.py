@@ -95,10 +95,21 @@ class Recovery:
         self._recovering[mask] = self.config.recovery.recover_frames
         self._contact_loss[mask] = 0
 
-    def watch(self, est: GroupEstimates, force: np.ndarray | None, felt: np.ndarray, hand: np.ndarray) -> list[Reseed]:
+    def watch(
+        self,
+        est: GroupEstimates,
+        force: np.ndarray | None,
+        felt: np.ndarray,
+        hand: np.ndarray,
+        touch: np.ndarray | None = None,
+        felt_touch: np.ndarray | None = None,
+    ) -> list[Reseed]:
         """Update the state from the estimate just copied back and say which groups to re-seed.
         ``force``: the real fingertip forces this frame, (G, L, 3) [N], or None; ``felt``: which
-        groups' robots sense force, (G,) bool; ``hand``: the real hand's position, (G, 3) [m]."""
+        groups' robots sense force, (G,) bool; ``hand``: the real hand's position, (G, 3) [m];
+        ``touch``: the real touch zones' normal forces, (G, Z) [N], or None, and ``felt_touch``
+        which groups' robots sent them. The object fell only where the robot senses touch and no
+        sensor of it, fingertip or zone (a palm, a phalanx), feels the object."""
         cfg = self.config
         self._recovering = np.maximum(self._recovering - 1, 0)
         recovering = self._recovering > 0
@@ -115,6 +126,9 @@ class Recovery:
         touching = np.zeros(self.G, bool)
         if force is not None:
             touching = felt & (np.linalg.norm(force, axis=-1) > cfg.cost.contact_threshold).any(-1)
+        if touch is not None and felt_touch is not None:
+            touching |= felt_touch & (touch > cfg.cost.contact_threshold).any(-1)
+            felt = felt | felt_touch
         # The re-seed anchor is the best pose of the last frame on which the best world felt what
         # the real hand felt. A tracking frame whose best world already misses the real contacts
         # does not count: the contact-loss rule takes a few frames to call the divergence, and

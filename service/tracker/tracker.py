@@ -29,7 +29,7 @@ from sim_backend.rotations import quat_rotate
 from .capture import CapturedOps
 from .config import TrackerConfig
 from .contacts import ContactExplorer
-from .cost import Cost, RealObservation
+from .cost import TERMS, Cost, RealObservation
 from .estimate import pose_statistics
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
@@ -64,7 +64,7 @@ class Tracker:
 
     Groups share the config but may differ where a benchmark compares them side by side in one
     population: ``methods`` (G,) optimizer per group, ``exploration`` (G,) multiplier on the
-    parameter and wrench noise, ``terms`` (G, 10) cost terms switched on.
+    parameter and wrench noise, ``terms`` (G, 12) cost terms switched on.
     """
 
     def __init__(
@@ -91,8 +91,8 @@ class Tracker:
         if scale.shape != (self.G,) or (scale < 0).any():
             raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
         self._exploration = torch.as_tensor(scale, dtype=torch.float32, device=dev)
-        if terms is not None and np.shape(terms) != (self.G, 10):
-            raise ValueError(f"tracker terms: expected shape ({self.G}, 10), got {np.shape(terms)}")
+        if terms is not None and np.shape(terms) != (self.G, TERMS):
+            raise ValueError(f"tracker terms: expected shape ({self.G}, {TERMS}), got {np.shape(terms)}")
         enabled = None if terms is None else torch.as_tensor(np.asarray(terms, dtype=bool), device=dev)
         self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
         self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
@@ -241,7 +241,7 @@ class Tracker:
         """The packed input and estimate rows (:mod:`.layout`), and the real observation as views
         of the input row on the device."""
         G, dev = self.G, self.device
-        self.inputs = InputLayout(self.D, self.L)
+        self.inputs = InputLayout(self.D, self.L, self.pop.Z)
         pinned = dev.type == "cuda"
         self._host_in = torch.zeros(G, self.inputs.width, pin_memory=pinned)
         self._inputs = self._host_in.to(dev) if pinned else self._host_in
@@ -275,8 +275,9 @@ class Tracker:
             self._fetched.synchronize()  # the one wait of the frame: the estimate itself
         packed = self._host_out.numpy().copy()
         estimate = GroupEstimates.unpack(packed, self.frame, self.recovery.status.copy())
-        felt = self.inputs.columns.view(self._staged, "has_force") > 0
-        reseeds = self.recovery.watch(estimate, frame.force, felt, hand=ESTIMATE.view(packed, "hand"))
+        has = lambda group: self.inputs.columns.view(self._staged, f"has_{group}") > 0  # noqa: E731
+        hand = ESTIMATE.view(packed, "hand")
+        reseeds = self.recovery.watch(estimate, frame.force, has("force"), hand, frame.touch, has("touch"))
         estimate.reseeded = np.zeros(self.G, bool)
         for r in reseeds:
             self.seed_groups(r.groups, r.anchor, frame.q, r.sigma_t, r.sigma_r, on_table=r.on_table)
@@ -326,12 +327,12 @@ class Tracker:
 
     def _lost(self) -> torch.Tensor:
         """Which worlds lost their object, (G, K) bool. An object far from the hand is lost only
-        while the real hand feels the object (or cannot say, without force sensing): once the
+        while the real hand feels the object (or cannot say, without force or touch sensing): once the
         real fingers touch nothing it may lie anywhere on the table, put down or dropped, and
         counting it lost there re-seeded every frame after a drop, as soon as the hand moved on."""
-        health = self.pop.obs.health
-        touch = torch.linalg.vector_norm(self.real.force, dim=-1) > self.config.cost.contact_threshold
-        holds = touch.any(-1) | (self.real.has_force < 0.5)  # (G,)
+        health, real, threshold = self.pop.obs.health, self.real, self.config.cost.contact_threshold
+        feels = (torch.linalg.vector_norm(real.force, dim=-1) > threshold).any(-1) | (real.touch > threshold).any(-1)
+        holds = feels | ((real.has_force < 0.5) & (real.has_touch < 0.5))  # (G,)
         return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
 
     def weights(self) -> torch.Tensor:
