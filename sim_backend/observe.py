@@ -25,7 +25,6 @@ __all__ = [
     "Buffers",
     "Observation",
     "accumulate_contacts",
-    "accumulate_zones",
     "add_sensor_noise",
     "allocate_buffers",
     "finish_observation",
@@ -152,63 +151,6 @@ def accumulate_contacts(
     wp.atomic_add(slip_acc, w, l, weight * v_tan)
     wp.atomic_add(spin_acc, w, l, weight * omega_rel)
     wp.atomic_add(weight_acc, w, l, weight)
-
-
-@wp.kernel(enable_backward=False)
-def accumulate_zones(
-    contact_count: wp.array[wp.int32],
-    shape0: wp.array[wp.int32],
-    shape1: wp.array[wp.int32],
-    point0: wp.array[wp.vec3],
-    normal: wp.array[wp.vec3],
-    contact_force: wp.array[wp.spatial_vector],
-    shape_body: wp.array[wp.int32],
-    body_q: wp.array[wp.transform],
-    object_world: wp.array[wp.int32],
-    bodies_per_world: int,
-    zone_first: wp.array[wp.int32],
-    zone_index: wp.array[wp.int32],
-    zone_center: wp.array[wp.vec3],
-    zone_half: wp.array[wp.vec3],
-    touch: wp.array2d[float],
-):
-    """Sum, per touch zone, the normal force of its world's object on the contacts inside the zone's
-    box (as a touch array reports: the normal force on each cell, whatever slides along it).
-
-    ``zone_first[b]`` .. ``zone_first[b + 1]`` are the zones on the world's local body b, in
-    ``zone_index`` (the zone's place in the record), ``zone_center`` and ``zone_half`` (its box in
-    the link's frame). Launch dim: contact capacity."""
-    c = wp.tid()
-    if c >= contact_count[0]:
-        return
-    b0 = shape_body[shape0[c]]
-    b1 = shape_body[shape1[c]]
-    if b0 < 0 or b1 < 0:
-        return
-    obj = b1
-    link = b0
-    if object_world[b0] >= 0:
-        obj = b0
-        link = b1
-    w = object_world[obj]
-    if w < 0 or object_world[link] >= 0:
-        return
-    local = link - w * bodies_per_world
-    if local < 0 or local >= bodies_per_world:
-        return
-    first = zone_first[local]
-    last = zone_first[local + 1]
-    if first == last:
-        return
-    pressed = wp.abs(wp.dot(wp.spatial_top(contact_force[c]), wp.normalize(normal[c])))
-    if pressed == 0.0:  # inside the detection gap, not touching
-        return
-    p = wp.transform_point(wp.transform_inverse(body_q[link]), wp.transform_point(body_q[b0], point0[c]))
-    for i in range(first, last):
-        d = p - zone_center[i]
-        h = zone_half[i]
-        if wp.abs(d[0]) <= h[0] and wp.abs(d[1]) <= h[1] and wp.abs(d[2]) <= h[2]:
-            wp.atomic_add(touch, w, zone_index[i], pressed)
 
 
 @wp.kernel(enable_backward=False)

@@ -10,11 +10,12 @@ import numpy as np
 import warp as wp
 
 from . import observe
+from .zones import accumulate_zones, zone_arrays
 
 if TYPE_CHECKING:
     from .population import Population
 
-__all__ = ["frame_arrays", "simulate"]
+__all__ = ["frame_arrays", "observe_frame", "simulate"]
 
 
 @wp.kernel(enable_backward=False)
@@ -69,6 +70,13 @@ def simulate(pop: Population) -> None:
     b.wrench.zero_()  # a perturbation lasts one frame
     if cfg.ramp_targets:
         wp.copy(pop.last_goal, pop.goal)
+    observe_frame(pop)
+
+
+def observe_frame(pop: Population) -> None:
+    """What every world's robot senses after the frame's last substep (:mod:`.observe`)."""
+    b, s = pop.buf, pop.static
+    cfg = pop.config
     st = pop.state_0
     wp.launch(observe.gather_joints, dim=(pop.W, pop.D), inputs=[st.joint_q, pop.coords, s["coord_index"]],
               outputs=[b.q])  # fmt: skip
@@ -100,10 +108,10 @@ def simulate(pop: Population) -> None:
         outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
     )
     observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
-    if pop.Z:
+    if pop.Z:  # touch zones: the contacts inside each zone's box
         b.touch.zero_()
         wp.launch(
-            observe.accumulate_zones,
+            accumulate_zones,
             dim=c.rigid_contact_max,
             inputs=[
                 c.rigid_contact_count,
@@ -160,20 +168,5 @@ def frame_arrays(pop: Population) -> dict[str, wp.array]:
         "sensor_offset": wp.array(offsets, dtype=wp.transform),
         "sensor_row": wp.array(sensor_row, dtype=wp.int32),
         "object_world": wp.array(object_world, dtype=wp.int32),
-        **_zone_arrays(pop),
-    }
-
-
-def _zone_arrays(pop: Population) -> dict[str, wp.array]:
-    """The touch zones by the local body that carries them (CSR: ``zone_first`` has one entry
-    per body and one more), with their place in the record and their boxes."""
-    lay = pop.layout
-    order = np.argsort(lay.zone_bodies, kind="stable")
-    first = np.searchsorted(lay.zone_bodies[order], np.arange(pop.bodies + 1)).astype(np.int32)
-    boxes = lay.zone_boxes[order].reshape(-1, 6)
-    return {
-        "zone_first": wp.array(first, dtype=wp.int32),
-        "zone_index": wp.array(order.astype(np.int32), dtype=wp.int32),
-        "zone_center": wp.array(boxes[:, :3].copy(), dtype=wp.vec3),
-        "zone_half": wp.array(boxes[:, 3:].copy(), dtype=wp.vec3),
+        **zone_arrays(pop),
     }
