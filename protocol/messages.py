@@ -18,6 +18,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PlainSerializer,
+    StrictInt,
     WithJsonSchema,
     create_model,
     field_validator,
@@ -57,7 +58,10 @@ DEFAULT_METHOD = "PBO"
 
 def _array(rank: int, last: int | None = None):
     def convert(value):
-        arr = np.asarray(value, dtype=np.float32)
+        try:
+            arr = np.asarray(value, dtype=np.float32)
+        except (TypeError, ValueError):  # a map, a string, ragged lists: say what came
+            raise ValueError(f"expected an array of numbers, got {type(value).__name__}") from None
         if arr.ndim != rank:
             raise ValueError(f"expected {rank} dimensions, got shape {arr.shape}")
         if last is not None and arr.shape[-1] != last:
@@ -96,6 +100,17 @@ Vec3s = _array(2, 3)
 Poses = _array(2, 7)
 Vec2s = _array(2, 2)
 Matrix6 = _array(2, 6)
+
+
+REACH = 10.0
+"""How far from the robot's world origin a pose may lie [m]: a hand's workspace, with room to spare."""
+
+
+def _within_reach(pose: np.ndarray) -> np.ndarray:
+    distance = float(np.linalg.norm(pose[:3].astype(np.float64)))
+    if distance > REACH:
+        raise ValueError(f"position {pose[:3].tolist()} lies {distance:.3g} m from the origin, beyond {REACH:g} m")
+    return pose
 
 
 class _Message(BaseModel):
@@ -183,7 +198,7 @@ class OpenSession(_Message):
     """Joint positions at the start, (D,); default the robot's start pose."""
     method: str = DEFAULT_METHOD
     """The optimizer: OLP, EYE, WRS, REPS or PBO."""
-    worlds: Annotated[int, Field(ge=1, le=65536)] | Literal["auto"] = AUTO
+    worlds: Annotated[StrictInt, Field(ge=1, le=65536)] | Literal["auto"] = AUTO
     """K, the session's worlds; "auto": the most the service's frame budget allows now."""
     allow_fewer: bool = False
     """Take fewer worlds than asked for when the budget has no room for them, instead of a refusal."""
@@ -198,7 +213,7 @@ class OpenSession(_Message):
         norm = float(np.linalg.norm(p0[3:].astype(np.float64)))
         if not 1e-3 <= norm <= 1e3:
             raise ValueError(f"quaternion (x, y, z, w) = {p0[3:].tolist()} has length {norm:.3g}, expected about 1")
-        return p0
+        return _within_reach(p0)
 
     @field_validator("overrides")
     @classmethod
@@ -252,8 +267,8 @@ class _FrameHeader(_Message):
     """The session this frame belongs to (also in its key)."""
     seq: int = Field(ge=0)
     """Frame counter, consecutive from 0; the service applies frames in seq order."""
-    stamp: float
-    """Robot clock when the frame was sensed [s]."""
+    stamp: float = Field(ge=0.0, le=1e10, allow_inf_nan=False)
+    """Robot clock when the frame was sensed [s]: 0 to 1e10 (seconds since boot, or since 1970)."""
     token: str = ""
     """The session's secret (:attr:`SessionInfo.token`); a frame without it is refused."""
 
@@ -283,7 +298,7 @@ class PoseObservation(_Message):
     session: str
     token: str = ""
     """The session's secret (:attr:`SessionInfo.token`)."""
-    stamp: float
+    stamp: float = Field(ge=0.0, le=1e10, allow_inf_nan=False)
     """Robot clock when the sensor saw the pose [s]: an observation more than the service's
     ``max_observation_age_s`` older than the newest frame is counted stale and dropped."""
     pose: Pose
@@ -298,7 +313,7 @@ class PoseObservation(_Message):
         norm = float(np.linalg.norm(pose[3:].astype(np.float64)))
         if abs(norm - 1.0) > 1e-2:
             raise ValueError(f"quaternion (x, y, z, w) = {pose[3:].tolist()} has length {norm:.4g}, expected 1 +- 0.01")
-        return pose
+        return _within_reach(pose)
 
     @field_validator("covariance")
     @classmethod

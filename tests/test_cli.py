@@ -35,7 +35,7 @@ def test_bad_tracker_settings_are_refused_with_the_name_and_value():
     for setting, message in [
         ("jitter_bandwith=0", "got 'jitter_bandwith=0'"),  # a typo: the names allowed follow
         ("update_every=x", "update_every: expected a value of type int, got 'x'"),
-        ("jitter_t=-1", "tracker jitter_t: expected >= 0, got -1"),
+        ("jitter_t=-1", "tracker jitter_t: expected 0 to 0.1 m, got -1"),
         ("optimizer.pbo_keep=2", "optimizer pbo_keep: expected 0 < fraction <= 1, got 2.0"),
         ("optimizer.keep_best=flase", "optimizer.keep_best: expected a value of type bool, got 'flase'"),
         ("population.tolerance=2", "population tolerance: expected 0 < tolerance < 1, got 2.0"),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -23,7 +24,18 @@ from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
 from client import ServiceLost, StaleEstimate, TrackerClient, TrackerError
-from protocol import CloseSession, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
+from protocol import (
+    CloseSession,
+    Error,
+    ErrorCode,
+    Keys,
+    OpenSession,
+    PoseObservation,
+    RobotFrame,
+    Trajectory,
+    decode,
+    encode,
+)
 from service.paths import DATA_DIR
 from service.server.config import ServiceConfig
 from service.server.sessions import ServiceError, SessionManager
@@ -84,16 +96,99 @@ def test_a_seq_jump_resynchronises_the_session_and_says_so(traj):
         manager.step(pool)
     manager.submit(traj.frame(3, info.session, token=info.token, seq=2**31))  # a corrupt seq
     (est,) = manager.step(pool)
-    assert est.seq == 2**31 and "jumped from 2 to 2147483648" in est.notice  # the robot is told
+    assert est.seq == 2**31 and "2147483648 after 2, beyond the service's window of 100" in est.notice  # told
     for seq in (7, 8):  # the robot's own counter again: far behind, so a second re-sync, then in order
         manager.submit(traj.frame(seq, info.session, token=info.token, seq=seq))
         (est,) = manager.step(pool)
         assert est.seq == seq and (est.notice is not None) == (seq == 7)  # said once
     status = manager.status(info.session, info.token)
     assert (status.frames, status.resyncs, status.late) == (6, 2, 0)
-    assert "RobotFrame.seq: jumped from 2147483648 to 7" in status.last_error
+    assert "RobotFrame.seq: 7 after 2147483648" in status.last_error
     manager.submit(traj.frame(9, info.session, token=info.token, seq=5))  # within the window behind: late, dropped
-    assert manager.status(info.session, info.token).late == 1
+    status = manager.status(info.session, info.token)
+    assert status.late == 1 and "RobotFrame.seq: 5 is behind the session's 8: dropped as late" in status.last_error
+
+
+def test_a_stray_seq_within_the_window_never_silences_the_robot(traj):
+    """One frame's seq ran 250 ahead (inside the window, so taken as a gap); the robot's own
+    counter goes on behind it. After ``late_resync`` late frames the session takes the robot's
+    counter again, says so, and tracks every frame after."""
+    manager = _manager(seq_window=300, late_resync=5)
+    info = manager.open(_request(traj))
+    pool = manager.sessions[info.session].pool
+    frame = lambda i, seq: traj.frame(i, info.session, token=info.token, seq=seq)  # noqa: E731
+    for seq in range(3):
+        manager.submit(frame(seq, seq))
+        manager.step(pool)
+    manager.submit(frame(3, 253))
+    manager.step(pool)
+    estimates = []
+    for seq in range(4, 20):
+        manager.submit(frame(seq, seq))
+        estimates += manager.step(pool) if manager.ready(0.0) else []
+    status = manager.status(info.session, info.token)
+    assert (status.late, status.resyncs) == (4, 1), status
+    assert [e.seq for e in estimates] == list(range(8, 20)), "tracked again from the fifth frame behind"
+    assert "5 frames in a row behind it: re-synchronised" in estimates[0].notice
+
+
+def test_one_far_future_stamp_does_not_make_later_observations_stale(traj):
+    manager = _manager(max_observation_age_s=0.5)
+    info = manager.open(_request(traj))
+    pool = manager.sessions[info.session].pool
+    manager.submit(traj.frame(0, info.session, token=info.token).model_copy(update={"stamp": 1e9}))
+    manager.step(pool)
+    for seq in (1, 2):
+        manager.submit(traj.frame(seq, info.session, token=info.token))
+        manager.step(pool)
+    seen = PoseObservation(session=info.session, token=info.token, stamp=traj.stamp[2], pose=traj.truth.pose[2],
+                           covariance=np.eye(6) * 1e-4)  # fmt: skip
+    manager.observe(seen)
+    manager.submit(traj.frame(3, info.session, token=info.token))
+    manager.step(pool)
+    status = manager.status(info.session, info.token)
+    assert (status.observations, status.observations_stale) == (1, 0), status
+
+
+@pytest.mark.parametrize(
+    "make, field",
+    [
+        (lambda t, p0: RobotFrame(session="s", seq=0, stamp=float("nan"), controls=t, q=t), "stamp"),
+        (lambda t, p0: RobotFrame(session="s", seq=0, stamp=1e300, controls=t, q=t), "stamp"),
+        (lambda t, p0: RobotFrame(session="s", seq=0, stamp=-1.0, controls=t, q=t), "stamp"),
+        (lambda t, p0: RobotFrame(session="s", seq=0, stamp=0.0, controls={"a": {"b": 1}}, q=t), "controls"),
+        (lambda t, p0: OpenSession(robot="r", object="o", p0=np.r_[1e30, p0[1:]]), "p0"),
+        (lambda t, p0: OpenSession(robot="r", object="o", p0=p0, worlds=True), "worlds"),
+        (
+            lambda t, p0: PoseObservation(session="s", stamp=0.0, pose=np.r_[0, 0, 1e30, p0[3:]], covariance=np.eye(6)),
+            "pose",
+        ),
+    ],
+)
+def test_out_of_range_values_are_refused_at_the_boundary_naming_the_field(traj, make, field):
+    with pytest.raises(ValidationError) as exc:
+        make(np.zeros(22, np.float32), traj.truth.initial_pose)
+    assert exc.value.errors()[0]["loc"][0] == field, exc.value
+
+
+@pytest.mark.parametrize(
+    "overrides, words",
+    [({"recover_frames": -5}, "recover_frames: expected >= 0 frames, got -5"),
+     ({"mass_sigma0": 1e30}, "mass_sigma0: expected 0 to 1, got 1e+30"),
+     ({"update_every": 0}, "update_every: expected 1 to 10000 frames, got 0")],
+)  # fmt: skip
+def test_settings_out_of_their_range_are_refused_naming_them(traj, overrides, words):
+    with pytest.raises(ServiceError, match=re.escape(f"overrides: tracker {words}")):
+        _manager().open(_request(traj, overrides=overrides))
+
+
+def test_a_megabyte_of_garbage_on_a_session_key_does_not_break_its_status(traj):
+    manager = _manager()
+    info = manager.open(_request(traj))
+    manager.count_error(info.session, "x" * (1 << 20))
+    status = manager.status(info.session, info.token)
+    assert status.errors == 1 and len(status.last_error) <= 500 and status.last_error.endswith("...")
+    assert len(encode(status)) < 4096
 
 
 def test_a_flooding_robot_keeps_its_newest_frames_and_the_rest_are_counted(traj):

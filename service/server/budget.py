@@ -55,9 +55,11 @@ def device_name(device) -> str:
 @dataclass
 class FrameTimes:
     """The p99 time of one step of a population [ms] by its worlds W, on one device and physics
-    setting: measured points, linear between them, flat below the smallest (a GPU's launch cost
-    does not shrink with fewer worlds) and extrapolated along the last segment above the largest
-    (through the origin with one point)."""
+    setting: measured points, made non-decreasing in W (a busy machine can time a larger
+    population faster than a smaller one; more worlds never cost less), linear between them, flat
+    below the smallest (a GPU's launch cost does not shrink with fewer worlds), and above the
+    largest the greater of the last segment's growth and proportional growth: past what was
+    measured, admission assumes the worst a device does."""
 
     key: dict
     """The device and the physics settings the points hold for."""
@@ -70,13 +72,14 @@ class FrameTimes:
         if not self.points:
             return 0.0
         w = np.array(sorted(self.points), dtype=np.float64)
-        t = np.array([self.points[int(x)] for x in w])
+        t = np.maximum.accumulate(np.array([self.points[int(x)] for x in w]))
         if worlds <= w[-1]:
             return float(np.interp(worlds, w, t))
+        proportional = t[-1] * worlds / w[-1]
         if len(w) == 1:
-            return float(t[0] * worlds / w[0])
-        slope = max((t[-1] - t[-2]) / (w[-1] - w[-2]), 0.0)
-        return float(t[-1] + slope * (worlds - w[-1]))
+            return float(proportional)
+        slope = (t[-1] - t[-2]) / (w[-1] - w[-2])
+        return float(max(t[-1] + slope * (worlds - w[-1]), proportional))
 
     def observe(self, worlds: int, p99_ms: float, weight: float = 0.25) -> None:
         """A population of ``worlds`` measured at ``p99_ms``: a new point, or an old one moved by

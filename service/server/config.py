@@ -95,6 +95,10 @@ class ServiceConfig(BaseSettings):
     seq_window: int = Field(300, ge=1)
     """A frame whose seq lies further than this from the last one re-synchronises the session to
     it (a robot that restarted its counter, or a corrupt seq) instead of being dropped as late."""
+    late_resync: int = Field(15, ge=1)
+    """Frames in a row behind the session's seq after which the service takes the robot's counter
+    as the truth and re-synchronises to it (a stray frame ran the seq ahead): a robot is never
+    silenced by its own counter."""
     max_pending: int = Field(30, ge=1)
     """Frames queued per session at most; the oldest is dropped for a new one (a robot wants its
     newest frame tracked, not a backlog)."""

@@ -336,15 +336,13 @@ class TrackerNode:
                 resumed = now
             for session, since in list(self._robot_gone.items()):
                 if now - since > cfg.robot_timeout_s:
-                    log.info("closing session %s: its robot's liveliness token is gone", session)
-                    self._drop(session)
+                    self._drop(session, "its robot's liveliness token is gone")
             for session in [s.id for s in m.sessions.values() if now - max(s.heard, resumed) > cfg.idle_timeout_s]:
-                log.info("closing session %s: no frame for %.0f s", session, cfg.idle_timeout_s)
-                self._drop(session)
+                self._drop(session, f"no frame for {cfg.idle_timeout_s:.0f} s")
             if now - refreshed > 0.2:  # what info answers: read here, where the populations change
                 self._room, refreshed = (m.load_ms(), m.free_worlds()), now
         for session in list(m.sessions):
-            self._drop(session)
+            self._drop(session, "the service is stopping")
         if m.frame_times.points:
             m.frame_times.save(cfg.frame_time_cache)
 
@@ -400,6 +398,10 @@ class TrackerNode:
             priority=zenoh.Priority.REAL_TIME,
         )
         self.outputs.open(info, request)
+        log.info(
+            "session %s opened: robot '%s', object '%s', %d worlds, %s%s",
+            info.session, info.robot, info.object, info.worlds, info.method, f" ({info.notice})" if info.notice else "",
+        )  # fmt: skip
         return info
 
     def _adopt(self, admission: Admission, build: Future, began: float) -> None:
@@ -418,9 +420,11 @@ class TrackerNode:
         for request, done, notice in waiting:
             self._inbox.handle(Request("open", functools.partial(self._open, request, notice), done), self._refusal)
 
-    def _drop(self, session: str) -> None:
-        if session not in self.manager.sessions:
+    def _drop(self, session: str, why: str = "its robot closed it") -> None:
+        s = self.manager.sessions.get(session)
+        if s is None:
             return
+        log.info("session %s closed (%s): %d frames, %d errors", session, why, s.frames, s.errors)
         self.manager.drop(session)
         self._robot_gone.pop(session, None)
         self._latest.pop(session, None)

@@ -42,6 +42,9 @@ __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
 
 log = logging.getLogger(__name__)
 
+_SAID = 500
+"""The most characters of a refused input's error a session's status repeats."""
+
 
 @dataclass
 class Session:
@@ -77,6 +80,8 @@ class Session:
     failed: str | None = None
     """Why the session's population failed; it takes no more frames then."""
     notice: str | None = None
+    late_run: int = 0
+    """Frames in a row that came behind the session's seq."""
     overflow_said: bool = False
     """Whether the session was told its worlds ran out of contact room."""
     """Said to the robot with its next estimate, then cleared."""
@@ -249,32 +254,44 @@ class SessionManager:
                 session.errors += 1
                 session.last_error = f"RobotFrame.{f.name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"
                 raise ServiceError(ErrorCode.BAD_REQUEST, session.last_error)
-        last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
-        window = self.config.seq_window
-        if abs(frame.seq - last) > window:
-            session.resyncs += 1
-            session.stale += len(session.pending)
-            session.pending.clear()
-            session.last_error = (
-                f"RobotFrame.seq: jumped from {last} to {frame.seq}, beyond the service's window of {window}:"
-                " re-synchronised to it"
-            )
-            session.notice = session.last_error
-            session.next_seq = frame.seq
-            last = frame.seq - 1
-        if frame.seq <= last:
-            if frame.seq == last:
-                session.duplicates += 1
-            else:
-                session.late += 1
+        if not self._in_order(session, frame):
             return
         session.heard = time.monotonic()
-        session.newest_stamp = max(frame.stamp, session.newest_stamp or frame.stamp)
-        session.gaps += frame.seq - last - 1
+        # The clock of the newest frame in seq order, not the largest ever seen: one frame stamped far
+        # ahead must not make every later observation stale.
+        session.newest_stamp = frame.stamp
         if len(session.pending) >= self.config.max_pending:
             session.pending.popleft()
             session.stale += 1
         session.pending.append((frame, time.perf_counter() if received is None else received))
+
+    def _in_order(self, session: Session, frame: RobotFrame) -> bool:
+        """Whether ``frame`` comes next in seq order: a duplicate or late one is counted and said,
+        a gap counted. A seq beyond the window either way, or frames behind the session's for
+        ``late_resync`` frames in a row (a robot that restarted its counter after a stray frame
+        ran it ahead), re-synchronise the session to the robot's counter, with a notice."""
+        last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
+        window, behind = self.config.seq_window, frame.seq <= last
+        session.late_run = session.late_run + 1 if behind else 0
+        far = abs(frame.seq - last) > window
+        if far or session.late_run >= self.config.late_resync:
+            session.resyncs += 1
+            session.stale += len(session.pending)
+            session.pending.clear()
+            why = f"beyond the service's window of {window}" if far else f"{session.late_run} frames in a row behind it"
+            session.last_error = session.notice = (
+                f"RobotFrame.seq: {frame.seq} after {last}, {why}: re-synchronised to the robot's counter"
+            )
+            session.next_seq, last, session.late_run = frame.seq, frame.seq - 1, 0
+        elif behind:
+            if frame.seq == last:
+                session.duplicates += 1
+            else:
+                session.late += 1
+                session.last_error = f"RobotFrame.seq: {frame.seq} is behind the session's {last}: dropped as late"
+            return False
+        session.gaps += frame.seq - last - 1
+        return True
 
     def observe(self, observation: PoseObservation) -> None:
         """Queue a pose observation for the session's next step; one older than the newest frame by
@@ -398,11 +415,12 @@ class SessionManager:
         )
 
     def count_error(self, session_id: str, message: str) -> None:
-        """A frame for this session that could not even be decoded."""
+        """A frame for this session that could not even be decoded. The message is cut short: a
+        decoder's words quote what it was sent, and a peer may send a megabyte."""
         s = self.sessions.get(session_id)
         if s is not None:
             s.errors += 1
-            s.last_error = message
+            s.last_error = message if len(message) <= _SAID else message[: _SAID - 3] + "..."
 
 
 def _estimate(s: Session, frame: RobotFrame, est: GroupEstimates, latency: float) -> Estimate:

@@ -25,18 +25,22 @@ __all__ = [
 ]
 
 
-def _check(config, at_least_zero: tuple[str, ...] = (), at_least_one: dict[str, str] | None = None) -> None:
-    """Refuse non-finite numbers, and names below their bound, naming the setting and the value."""
+_INF = math.inf
+
+
+def _check(config, ranges: dict[str, tuple[float, float, str]]) -> None:
+    """Refuse non-finite numbers, and settings outside their range (low, high, unit), naming the
+    setting, the range and the value. The ranges are what the settings can mean: fractions of a
+    range at most 1, poses and spreads within a hand's reach."""
     for f in fields(config):
         value = getattr(config, f.name)
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"tracker {f.name}: expected a finite number, got {value}")
-    for name in at_least_zero:
-        if getattr(config, name) < 0:
-            raise ValueError(f"tracker {name}: expected >= 0, got {getattr(config, name)}")
-    for name, unit in (at_least_one or {}).items():  # counts, named with their unit
-        if getattr(config, name) < 1:
-            raise ValueError(f"tracker {name}: expected >= 1 {unit}, got {getattr(config, name)}")
+    for name, (low, high, unit) in ranges.items():
+        value = getattr(config, name)
+        if not low <= value <= high:
+            wanted = f">= {low:g}" if high == _INF else f"{low:g} to {high:g}"
+            raise ValueError(f"tracker {name}: expected {wanted}{unit}, got {value}")
 
 
 @dataclass(frozen=True)
@@ -54,7 +58,9 @@ class Seeding:
     """Initial friction spread, as a fraction of the friction range."""
 
     def __post_init__(self) -> None:
-        _check(self, at_least_zero=("sigma_t", "sigma_r"))
+        fraction = (0.0, 1.0, "")
+        ranges = {"sigma_t": (0.0, 0.1, " m"), "sigma_r": (0.0, 3.2, " rad")}
+        _check(self, ranges | {"mass_sigma0": fraction, "friction_sigma0": fraction})
 
 
 @dataclass(frozen=True)
@@ -88,8 +94,19 @@ class Exploration:
     collapse. 0: never."""
 
     def __post_init__(self) -> None:
-        noise = ("mass_sigma", "friction_sigma", "wrench_force", "wrench_torque", "jitter_t", "jitter_r")
-        _check(self, at_least_zero=(*noise, "jitter_bandwidth", "jitter_shrink_worlds"))
+        _check(
+            self,
+            {
+                "mass_sigma": (0.0, 1.0, ""),
+                "friction_sigma": (0.0, 1.0, ""),
+                "wrench_force": (0.0, 10.0, " N"),
+                "wrench_torque": (0.0, 1.0, " N m"),
+                "jitter_t": (0.0, 0.1, " m"),
+                "jitter_r": (0.0, 3.2, " rad"),
+                "jitter_bandwidth": (0.0, 10.0, ""),
+                "jitter_shrink_worlds": (0, _INF, " worlds (0: never)"),
+            },
+        )
 
 
 @dataclass(frozen=True)
@@ -120,8 +137,16 @@ class ContactExploration:
     a small population more than they help it."""
 
     def __post_init__(self) -> None:
-        spreads = ("softness_sigma0", "impratio_sigma0", "softness_sigma", "impratio_sigma", "contact_gate_cost")
-        _check(self, at_least_zero=spreads, at_least_one={"contact_gate_updates": "update", "contact_worlds": "world"})
+        spread = (0.0, 5.0, "")
+        _check(
+            self,
+            dict.fromkeys(("softness_sigma0", "impratio_sigma0", "softness_sigma", "impratio_sigma"), spread)
+            | {
+                "contact_gate_cost": (0.0, _INF, ""),
+                "contact_gate_updates": (1, _INF, " update"),
+                "contact_worlds": (1, _INF, " world"),
+            },
+        )
 
     @property
     def any(self) -> bool:
@@ -159,9 +184,18 @@ class EstimateConfig:
     """[m] (see ``mode_angle``)."""
 
     def __post_init__(self) -> None:
-        _check(self, at_least_zero=("covariance_resolution",))
-        if not self.covariance_cost_ref > 0:
-            raise ValueError(f"tracker covariance_cost_ref: expected > 0, got {self.covariance_cost_ref}")
+        _check(
+            self,
+            {
+                "estimate_lambda": (0.0, 100.0, ""),
+                "covariance_floor_t": (0.0, 1.0, " m"),
+                "covariance_floor_r": (0.0, 3.2, " rad"),
+                "covariance_cost_ref": (1e-9, _INF, ""),
+                "covariance_resolution": (0.0, _INF, ""),
+                "mode_angle": (0.0, 3.2, " rad"),
+                "mode_distance": (0.0, 1.0, " m"),
+            },
+        )
 
 
 @dataclass(frozen=True)
@@ -197,7 +231,21 @@ class RecoveryConfig:
     """Frames a re-seeded group reports RECOVERING before it is trusted again."""
 
     def __post_init__(self) -> None:
-        _check(self, at_least_zero=("surprise_ratio", "surprise_cost"), at_least_one={"surprise_frames": "frame"})
+        _check(
+            self,
+            {
+                "lost_fraction": (0.0, 1.0, ""),
+                "contact_loss_frames": (1, _INF, " frame"),
+                "uncertain_spread": (0.0, 1.0, " m"),
+                "ambiguous_weight": (0.0, 1.0, ""),
+                "surprise_ratio": (0.0, _INF, ""),
+                "surprise_cost": (0.0, _INF, ""),
+                "surprise_frames": (1, _INF, " frame"),
+                "reseed_scale": (0.0, 100.0, ""),
+                "drop_sigma_t": (0.0, 1.0, " m"),
+                "recover_frames": (0, _INF, " frames"),
+            },
+        )
 
 
 @dataclass(frozen=True)
@@ -222,9 +270,16 @@ class ObservationConfig:
     """An observation is confident when its largest position standard deviation is below this [m]."""
 
     def __post_init__(self) -> None:
-        _check(self, at_least_zero=("inject_gate",))
-        if not 0.0 <= self.inject_share <= 1.0:
-            raise ValueError(f"tracker inject_share: expected 0 to 1, got {self.inject_share}")
+        _check(
+            self,
+            {
+                "observation_weight": (0.0, 1e3, ""),
+                "observation_gate": (0.0, _INF, ""),
+                "inject_share": (0.0, 1.0, ""),
+                "inject_gate": (0.0, _INF, ""),
+                "observation_confident": (0.0, 1.0, " m"),
+            },
+        )
 
 
 TRACKER_GROUPS = {"seeding", "exploration", "contacts", "estimate", "recovery", "observations"}
@@ -247,8 +302,7 @@ class TrackerConfig:
     cost: CostConfig = field(default_factory=CostConfig)
 
     def __post_init__(self) -> None:
-        if self.update_every < 1:
-            raise ValueError(f"tracker update_every: expected >= 1 frame, got {self.update_every}")
+        _check(self, {"update_every": (1, 10_000, " frames")})
 
     @classmethod
     def of(cls, **settings) -> TrackerConfig:
