@@ -100,6 +100,8 @@ class TrackerClient:
         (TLS or mTLS certificates) under the endpoints given."""
         self._route = service is None
         self.keys = Keys(service or "default")
+        self.endpoints = list(connect) or ["(scouting)"]
+        """Where this client looks for its service, for the errors that say it found none."""
         self.timeout = timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file))
         self.info: SessionInfo | None = None
@@ -158,26 +160,36 @@ class TrackerClient:
                     found[info.name] = info
         return sorted(found.values(), key=lambda i: (-i.free_worlds, i.sessions - i.max_sessions, i.name))
 
-    def wait_ready(self, timeout: float | None = None) -> ServiceInfo:
+    def wait_ready(self, timeout: float | None = None, absent: float = 3.0) -> ServiceInfo:
         """Wait until the service (without a name: any service) answers and has compiled its
         kernels (minutes on a first start with a cold cache); TimeoutError after ``timeout`` [s]
-        (default the client's)."""
-        deadline = time.monotonic() + (timeout or self.timeout)
+        (default the client's), or after ``absent`` [s] when nothing answers at all: a service that
+        is warming up answers that it is not ready, one that is not there never answers."""
+        start = time.monotonic()
+        deadline = start + (timeout or self.timeout)
+        answered = False
         while True:
-            left = min(5.0, max(0.1, deadline - time.monotonic()))
+            left = min(2.0, max(0.1, deadline - time.monotonic()))
             try:
                 if self._route:
-                    ready = [i for i in self.services(timeout=min(left, 2.0)) if i.ready]
-                    if ready:
+                    found = self.services(timeout=left)
+                    answered |= bool(found)
+                    if ready := [i for i in found if i.ready]:
                         return ready[0]
                 else:
                     info = self.service_info(timeout=left)
+                    answered = True
                     if info.ready:
                         return info
             except TimeoutError:
                 pass
+            which = "no service" if self._route else f"service '{self.keys.service}'"
+            if not answered and time.monotonic() - start >= absent:
+                raise TimeoutError(
+                    f"{which} does not answer at {', '.join(self.endpoints)} (waited {absent:g} s): start one"
+                    " with `inhand-tracker serve`, or give its address (--connect) and name (--name)"
+                )
             if time.monotonic() >= deadline:
-                which = "no service" if self._route else f"service '{self.keys.service}'"
                 raise TimeoutError(f"{which} ready within {timeout or self.timeout} s")
             time.sleep(0.2)
 

@@ -30,6 +30,7 @@ __all__ = [
     "AUTO",
     "DEFAULT_METHOD",
     "DEFAULT_WORLDS",
+    "METHODS",
     "PROTOCOL_VERSION",
     "CloseSession",
     "Error",
@@ -52,6 +53,8 @@ DEFAULT_WORLDS = 40
 service without one, benchmarks)."""
 AUTO = "auto"
 """``OpenSession.worlds``: the most worlds the service's frame budget allows now."""
+METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
+"""The optimizers a session may ask for: open loop, the paper's EYE baseline, and its three optimizers."""
 DEFAULT_METHOD = "PBO"
 """A session's optimizer when it does not say."""
 

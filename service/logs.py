@@ -3,6 +3,7 @@ Warp's per-module load lines silenced, and a progress line while kernels compile
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import sys
@@ -45,10 +46,43 @@ def setup_logging(level: str | int = "INFO") -> None:
 
 def quiet_warp() -> None:
     """Silence Warp's banner (printed to stdout, where a command's JSON goes) and its "Module ...
-    load on device" line per module (about 60 on a first start, before anything of ours)."""
+    load on device" line per module (about 60 on a first start, before anything of ours); on a
+    machine without NVIDIA's driver, also the "CUDA warning" its native library prints when it
+    looks for one (a CPU is a supported device, not a fault)."""
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
+    if not _cuda_driver():
+        with _native_stderr_silenced():
+            wp.init()
+
+
+def _cuda_driver() -> bool:
+    """Whether NVIDIA's driver library loads, as Warp looks for it."""
+    import ctypes
+
+    for name in ("libcuda.so", "libcuda.so.1", "nvcuda.dll"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """File descriptor 2 to /dev/null for a moment: a native library's fprintf does not go through
+    Python's sys.stderr, so redirecting that would not reach it."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def watch_kernel_compiles(every_s: float = 5.0) -> None:

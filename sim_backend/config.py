@@ -159,7 +159,7 @@ def resolve_device(name: str = "auto") -> wp.context.Device:
     try:
         return wp.get_device(name)
     except Exception as exc:
-        raise ValueError(f"population device: unknown device '{name}'") from exc
+        raise ValueError(f"population device: unknown device '{name}' (expected auto, cpu, cuda or cuda:N)") from exc
 
 
 def forward_only_kernels() -> None:

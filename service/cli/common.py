@@ -2,12 +2,28 @@
 
 from __future__ import annotations
 
+import contextlib
+import re
 import shlex
 from typing import Annotated
 
 import typer
 
-__all__ = ["Device", "IntList", "Json", "app", "bench", "command_line", "fail", "gpu_stack", "names", "suite_named"]
+__all__ = [
+    "Device",
+    "IntList",
+    "Json",
+    "app",
+    "bench",
+    "check_device",
+    "check_listen",
+    "command_line",
+    "fail",
+    "gpu_stack",
+    "names",
+    "started",
+    "suite_named",
+]
 
 
 app = typer.Typer(
@@ -105,6 +121,65 @@ def version_callback(show: bool) -> None:
         except PackageNotFoundError:  # run from a source tree that was never installed
             typer.echo(f"inhand-tracker (not installed; protocol v{PROTOCOL_VERSION})")
         raise typer.Exit()
+
+
+def check_device(device: str, command: str) -> None:
+    """Exit 2 with one line when ``device`` is not one this machine has; Warp alone, before the
+    rest of the GPU stack is imported (seconds)."""
+    if device not in ("auto", "cpu") and not re.fullmatch(r"cuda(:\d+)?", device):
+        raise fail(f"{command}: --device: expected auto, cpu, cuda or cuda:N, got '{device}'")
+    if device.startswith("cuda"):
+        from service.logs import quiet_warp
+
+        quiet_warp()
+        import warp as wp
+
+        if not wp.is_cuda_available():
+            raise fail(
+                f"{command}: --device: '{device}' asked for, but this machine has no CUDA device (auto: the CPU)"
+            )
+
+
+def _taken_message(command: str, where: str) -> str:
+    return (
+        f"{command}: cannot listen on {where}: the address is taken (another service, or a Zenoh router"
+        " on this host): give another with --listen tcp/127.0.0.1:PORT, or --listen '' to only --connect"
+    )
+
+
+def check_listen(endpoints: list[str], command: str) -> None:
+    """Exit 2 with one line when a TCP endpoint to listen on is taken, before the GPU stack loads
+    (a service on another's port would only fail once it opens its Zenoh session)."""
+    import socket
+
+    for endpoint in endpoints:
+        match = re.fullmatch(r"tcp/(\[[^\]]+\]|[^:]+):(\d+)", endpoint)
+        if match is None:
+            continue
+        host, port = match.group(1).strip("[]"), int(match.group(2))
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family) as probe:
+            try:
+                probe.bind((host, port))
+            except OSError as exc:
+                if exc.errno == 98 or "in use" in str(exc).lower():
+                    raise fail(_taken_message(command, endpoint)) from None
+
+
+@contextlib.contextmanager
+def started(node, command: str):
+    """A service node, started and closed; an address already taken exits 2 with one line and the fix."""
+    try:
+        node.start()
+    except Exception as exc:
+        node.close()
+        if "address already in use" not in str(exc).lower():
+            raise
+        raise fail(_taken_message(command, ", ".join(node.config.listen))) from None
+    try:
+        yield node
+    finally:
+        node.close()
 
 
 def suite_named(name: str, short: bool):

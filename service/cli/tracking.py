@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from .common import Device, app, fail, gpu_stack, names
+from .common import Device, app, check_device, check_listen, fail, gpu_stack, names, started
 
 log = logging.getLogger("inhand_tracker")
 
@@ -29,6 +30,11 @@ def serve(
     import signal
     import threading
 
+    # Before the GPU stack loads (seconds): what the command line and the environment say.
+    if device is not None:
+        check_device(device, "serve")
+    given = listen if listen is not None else os.environ.get("INHAND_LISTEN", "tcp/127.0.0.1:7447")
+    check_listen(names(given), "serve")
     gpu_stack()
     from service.server import TrackerNode, load_config
 
@@ -39,10 +45,11 @@ def serve(
         )  # fmt: skip
     except ValueError as exc:
         raise fail(f"serve: {exc}") from None
+    check_device(settings.device, "serve")  # before the rest of the GPU stack loads
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    with TrackerNode(settings) as node:
+    with started(TrackerNode(settings), "serve") as node:
         while not stop.wait(0.5) and not node.failed.is_set():
             pass
         log.info("stopping")
@@ -100,6 +107,10 @@ def watch(
             done.set()
 
     with TrackerClient(connect=names(connect), service=name) as client:
+        try:
+            client.wait_ready(timeout=3600)  # a service that is not there says so within seconds
+        except TimeoutError as exc:
+            raise fail(f"watch: {exc}") from None
         watcher = client.watch(show)
         typer.echo(f"watching service '{name}'")
         try:
@@ -132,10 +143,19 @@ def demo(
     """The service embedded on loopback, a bundled trajectory replayed through a client."""
     import socket
 
+    from protocol import METHODS
+    from service.paths import DATA_DIR
+
+    # Everything a user can get wrong is checked before the GPU stack loads and the service starts.
+    if method is not None and method not in METHODS:
+        raise fail(f"demo: --method: expected one of {', '.join(METHODS)}, got '{method}'")
+    file = file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+    if not file.is_file():
+        raise fail(f"demo: --file: no such file '{file}'")
+    check_device(device, "demo")
     gpu_stack()
     from client import TrackerClient
     from client.report import replay_file
-    from service.paths import DATA_DIR
     from service.server import ServiceConfig, TrackerNode
 
     with socket.socket() as sock:  # a free loopback port
@@ -147,12 +167,11 @@ def demo(
         listen=(endpoint,), device=device, groups=1, rate_hz=0, record=str(record) if record else None
     )
     log.info("starting the service on %s (device %s)", endpoint, device)
-    with TrackerNode(config) as node, TrackerClient(connect=[endpoint]) as client:
+    with started(TrackerNode(config), "demo") as node, TrackerClient(connect=[endpoint]) as client:
         # The embedded service compiles its kernels first: minutes on a cold cache and a small CPU,
         # with a progress line meanwhile. This client waits for it however long that takes.
         client.wait_ready(timeout=3600)
         log.info("service up on %s; replaying through a client", node.device)
-        file = file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
         try:
             code = replay_file(client, file, method, worlds, live=True, say=typer.echo)
         except ValueError as exc:

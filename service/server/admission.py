@@ -115,7 +115,9 @@ class Gate:
         ``allow_fewer``; else a refusal naming the numbers."""
         cfg, asked = self.config, request.worlds
         if asked != AUTO and asked > cfg.max_worlds:
-            raise ServiceError(ErrorCode.CAPACITY, f"worlds: {asked} exceeds this service's limit of {cfg.max_worlds}")
+            raise ServiceError(
+                ErrorCode.CAPACITY, f"worlds: {asked} exceeds this service's limit of {cfg.max_worlds} (max_worlds)"
+            )
         if not cfg.rate_hz:
             return (DEFAULT_WORLDS if asked == AUTO else asked), None
         joinable = [k.worlds for k, p in self.pools.items() if k.kind == kind and None in p.sessions]
@@ -138,7 +140,7 @@ class Gate:
                 ErrorCode.CAPACITY,
                 f"worlds: no room in the frame budget of {budget:.1f} ms ({per}) on {self.device}: "
                 f"{load:.1f} ms in use, and a population of {g} x {cfg.min_worlds} worlds (min_worlds) would "
-                f"add about {t:.1f} ms (p99)",
+                f"add about {t:.1f} ms (p99){self._budget_hint()}",
             )
         t = self.frame_times.predict(g * asked)
         why = (
@@ -146,11 +148,19 @@ class Gate:
             f"with {load:.1f} ms in use that passes the frame budget of {budget:.1f} ms ({per})"
         )
         if asked > room:
-            why = f"{g} x {asked} worlds pass the service's limit of {cfg.max_worlds} ({g * room} free)"
+            why = f"{g} x {asked} worlds pass the service's limit of {cfg.max_worlds} (max_worlds; {g * room} free)"
         if request.allow_fewer and best >= cfg.min_worlds:
             return best, f"worlds: {asked} asked, {best} granted: {why}"
         fit = f"at most {best} fit now (allow_fewer to take them)" if best else "none fit now"
-        raise ServiceError(ErrorCode.CAPACITY, f"worlds: {why}; {fit}")
+        raise ServiceError(ErrorCode.CAPACITY, f"worlds: {why}; {fit}{self._budget_hint()}")
+
+    def _budget_hint(self) -> str:
+        """Which of the service's settings would admit more worlds, and what they are now."""
+        cfg = self.config
+        return (
+            f". The service's settings that admit more: rate_hz (now {cfg.rate_hz:g}; 0: no frame budget),"
+            f" budget_share ({cfg.budget_share:g}), groups ({cfg.groups}), min_worlds ({cfg.min_worlds})"
+        )
 
     # ------------------------------------------------------------------ an open
     def admit(self, request: OpenSession, sessions: int) -> Admission:
@@ -176,14 +186,15 @@ class Gate:
         if populations >= cfg.max_populations:
             raise ServiceError(
                 ErrorCode.CAPACITY,
-                f"populations: {populations} built, this service's limit is {cfg.max_populations}"
+                f"populations: {populations} built, this service's limit is {cfg.max_populations} (max_populations)"
                 " (sessions share one when robot, object, worlds and overrides match)",
             )
         in_use = self._worlds_in_use()
         if in_use + cfg.groups * worlds > cfg.max_worlds:
             raise ServiceError(
                 ErrorCode.CAPACITY,
-                f"worlds: no room for {cfg.groups} x {worlds} more worlds ({in_use} in use, limit {cfg.max_worlds})",
+                f"worlds: no room for {cfg.groups} x {worlds} more worlds"
+                f" ({in_use} in use, max_worlds {cfg.max_worlds})",
             )
         return admission
 
@@ -209,14 +220,17 @@ class Gate:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"method: expected one of {METHODS}, got '{request.method}'")
         if sessions >= self.config.max_sessions:
             limit = self.config.max_sessions
-            raise ServiceError(ErrorCode.CAPACITY, f"sessions: {sessions} open, this service's limit is {limit}")
+            raise ServiceError(
+                ErrorCode.CAPACITY, f"sessions: {sessions} open, this service's limit is {limit} (max_sessions)"
+            )
         now = time.monotonic()
         while self._opened and now - self._opened[0] > 60.0:
             self._opened.popleft()
         if len(self._opened) >= self.config.max_opens_per_minute:
             limit = self.config.max_opens_per_minute
             raise ServiceError(
-                ErrorCode.CAPACITY, f"opens: {len(self._opened)} in the last 60 s, this service's limit is {limit}"
+                ErrorCode.CAPACITY,
+                f"opens: {len(self._opened)} in the last 60 s, this service's limit is {limit} (max_opens_per_minute)",
             )
         unknown = sorted(set(request.overrides) - set(_TUNABLE))
         if unknown:

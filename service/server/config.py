@@ -73,8 +73,9 @@ class ServiceConfig(BaseSettings):
     access control rules (relative to the project root)."""
     scouting: bool = False
     """Zenoh multicast scouting; off, so a service is found only where it is told to be."""
-    groups: int = Field(8, ge=1)
-    """Sessions per population: sessions with the same robot, object and K share one graph replay."""
+    groups: int | None = Field(None, ge=1)
+    """Sessions per population: sessions with the same robot, object and K share one graph replay.
+    Unset: 8 on a GPU (eight sessions step at about the cost of one), 1 on a CPU (each costs its own)."""
     max_worlds: int = Field(65536, ge=1)
     """Worlds the service may hold in all."""
     max_sessions: int = Field(64, ge=1)

@@ -71,6 +71,7 @@ class TrackerNode:
             robots[spec.name] = spec
         self.device = str(resolve_device(config.device))
         self.manager = SessionManager(config, robots, load_catalog(resolve(config.objects)))
+        self.config = config = self.manager.config  # groups resolved for the device
         self._inbox = Inbox()
         self._latest: dict[str, bytes] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}

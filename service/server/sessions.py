@@ -94,8 +94,10 @@ class SessionManager:
     only :meth:`build` may run on another, taking :attr:`turn` for its device work."""
 
     def __init__(self, config: ServiceConfig, robots: dict[str, RobotSpec], objects: dict[str, ObjectSpec]):
-        self.config, self.robots, self.objects = config, robots, objects
         self.device = resolve_device(config.device)
+        if config.groups is None:
+            config = config.model_copy(update={"groups": 8 if self.device.is_cuda else 1})
+        self.config, self.robots, self.objects = config, robots, objects
         self.sessions: dict[str, Session] = {}
         self.pools: dict[PoolKey, Pool] = {}
         self.building: dict[PoolKey, int] = {}

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
+from protocol import METHODS as PROTOCOL_METHODS
+
 __all__ = [
     "HELD_COST",
     "METHODS",
@@ -27,7 +29,7 @@ __all__ = [
     "wrs_pmf",
 ]
 
-METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
+METHODS = PROTOCOL_METHODS  # declared with the protocol, where a session names its method
 
 HELD_COST = 1e8
 """Window costs below this are worlds that still hold their object: a lost one scores 1e9 a frame."""
