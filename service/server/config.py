@@ -117,10 +117,11 @@ class ServiceConfig(BaseSettings):
     physics: PhysicsSettings = PhysicsSettings()
     """The tracker's physics, shared by every population (``[physics]`` in the TOML file,
     INHAND_PHYSICS__<KEY> in the environment)."""
-    rate_hz: float = Field(30.0, ge=0)
+    rate_hz: float | None = Field(None, ge=0)
     """The robots' frame rate the service keeps up with [Hz]: a new population is admitted only
     while the p99 steps of all populations together fit in ``budget_share`` of one frame period.
-    0: no budget (offline replay as fast as it goes; ``worlds="auto"`` is then the paper's 40)."""
+    0: no budget (offline replay as fast as it goes; ``worlds="auto"`` is then the paper's 40).
+    Unset: 30 on a GPU; 10 on a CPU, where a frame of a few dozen worlds takes tens of milliseconds."""
     budget_share: float = Field(0.8, gt=0, le=1)
     """The share of a frame period the populations' steps may take; the rest is headroom for
     decoding, publishing and jitter."""
