@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import pytest
 
-from service.server.config import ServiceConfig, load_config
+from service.server.config import DEFAULT_CONFIG, ServiceConfig, load_config, shipped_toml
 
 
-def test_the_shipped_config_is_the_defaults():
+def test_the_shipped_config_is_the_defaults_and_names_every_setting():
     assert load_config() == ServiceConfig()
+    assert DEFAULT_CONFIG.read_text() == shipped_toml(), "run `inhand-tracker settings > configs/service.toml`"
+    shipped = DEFAULT_CONFIG.read_text()
+    assert all(
+        f"\n{name} =" in shipped or f"\n# {name} =" in shipped
+        for name in ServiceConfig.model_fields
+        if name != "physics"
+    )
 
 
 def test_environment_then_overrides(monkeypatch):

@@ -73,7 +73,8 @@ def gpu_stack() -> None:
     if missing:
         raise fail(
             f"this command simulates, and the GPU stack is not installed (missing: {', '.join(missing)}):"
-            " install torch first (pip install torch==2.13.0 for the CPU build, or your CUDA build), then"
+            " install torch first (the CPU build: pip install torch==2.13.0 --index-url"
+            " https://download.pytorch.org/whl/cpu; or your CUDA build), then"
             " pip install 'inhand-tracker[service]'. The robot side (replay, the client) needs neither."
         )
     import sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)

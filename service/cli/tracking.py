@@ -61,6 +61,14 @@ def serve(
         raise typer.Exit(1)
 
 
+@app.command()
+def settings() -> None:
+    """Print the service's settings file with every setting at its default (configs/service.toml)."""
+    from service.server.config import shipped_toml
+
+    typer.echo(shipped_toml(), nl=False)
+
+
 # ---------------------------------------------------------------------- the robot side
 @app.command()
 def replay(

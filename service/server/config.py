@@ -4,7 +4,9 @@ the command line. A bad value is refused with the key and the value."""
 
 from __future__ import annotations
 
+import json
 import os
+import textwrap
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -20,7 +22,7 @@ from pydantic_settings import (
 from service.paths import CONFIG_DIR
 from sim_backend import PopulationConfig
 
-__all__ = ["DEFAULT_CONFIG", "PhysicsSettings", "ServiceConfig", "load_config"]
+__all__ = ["DEFAULT_CONFIG", "PhysicsSettings", "ServiceConfig", "load_config", "shipped_toml"]
 
 DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 
@@ -32,7 +34,7 @@ class PhysicsSettings(BaseModel):
     """How every population simulates: the solver's budget per frame. The frame budget's cached
     step times are kept per physics setting."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)
     """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
@@ -57,7 +59,12 @@ class PhysicsSettings(BaseModel):
 
 class ServiceConfig(BaseSettings):
     model_config = SettingsConfigDict(
-        env_prefix="INHAND_", env_nested_delimiter="__", extra="forbid", frozen=True, toml_file=DEFAULT_CONFIG
+        env_prefix="INHAND_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        frozen=True,
+        toml_file=DEFAULT_CONFIG,
+        use_attribute_docstrings=True,
     )
 
     name: str = "default"
@@ -166,6 +173,44 @@ class ServiceConfig(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         # The command line (given as keyword arguments) over the environment over the file.
         return init_settings, env_settings, TomlConfigSettingsSource(settings_cls)
+
+
+def shipped_toml() -> str:
+    """configs/service.toml as it ships: every setting at its default, each with what it does (a
+    test keeps the file so). Generated, not written by hand: a hand-kept file drifts from the settings."""
+    lines = [
+        "# The tracking service (`inhand-tracker serve`): every setting at its default. A key can also be set",
+        "# from the environment as INHAND_<KEY> (lists comma-separated; [physics] as INHAND_PHYSICS__<KEY>),",
+        "# and the endpoints from the command line. Generated from service/server/config.py.",
+        "",
+    ]
+    for name, field in ServiceConfig.model_fields.items():
+        if name != "physics":
+            lines += _toml_entry(name, field)
+    lines += ["[physics]", ""]
+    for name, field in PhysicsSettings.model_fields.items():
+        lines += _toml_entry(name, field)
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _toml_entry(name: str, field) -> list[str]:
+    """A setting as TOML: its description as comments, then its default (commented out when unset)."""
+    text = " ".join((field.description or "").split())
+    out = [f"# {line}" for line in textwrap.wrap(text, 98)]
+    value = field.default
+    if value is None:
+        return [*out, f"# {name} =", ""]
+    return [*out, f"{name} = {_toml_value(value)}", ""]
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, tuple | list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
 
 
 def load_config(path: str | os.PathLike | None = None, **overrides) -> ServiceConfig:
