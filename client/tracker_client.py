@@ -206,12 +206,14 @@ class TrackerClient:
         worlds: int | str = AUTO,
         allow_fewer: bool = False,
         overrides: dict[str, float] | None = None,
+        name: str | None = None,
     ) -> SessionInfo:
         """Ask the service to track ``object`` in ``robot``'s hand from the pose estimate ``p0`` (7,).
 
         ``worlds``: K, or "auto" for the most the service's frame budget allows now;
         ``allow_fewer``: take fewer than K when the budget has no room for K, instead of a refusal
-        (:attr:`SessionInfo.notice` says why)."""
+        (:attr:`SessionInfo.notice` says why); ``name``: the session's ROS 2 topics and TF frame
+        (``/inhand/{name}/pose``; default ``{robot}_{object}``)."""
         if self.info is not None:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
         self.wait_ready()
@@ -226,10 +228,12 @@ class TrackerClient:
             worlds=worlds,
             allow_fewer=allow_fewer,
             overrides=overrides or {},
+            name=name,
         )
         self.info = info = self._open(request)
         self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
-                            method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides)  # fmt: skip
+                            method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides,
+                            name=name)  # fmt: skip
         self._seq = 0
         self._latest = None
         self._sent_stamp = None

@@ -207,6 +207,10 @@ class OpenSession(_Message):
     """Take fewer worlds than asked for when the budget has no room for them, instead of a refusal."""
     overrides: dict[str, float] = Field(default_factory=dict)
     """Tracker hyperparameters by name (e.g. update_every, wrench_force)."""
+    name: str | None = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
+    """The session's name, a ROS name token: its ROS 2 topics and TF frame are named after it
+    (``/inhand/{name}/pose``, ``{name}``), so a launch file or an RViz config can name them. A name
+    another open session holds is refused. Default ``{robot}_{object}``, numbered from 2 when taken."""
 
     @field_validator("p0")
     @classmethod
@@ -263,6 +267,8 @@ class SessionInfo(_Message):
     """The session's optimizer."""
     notice: str | None = None
     """Why the session got fewer worlds than it asked for, when it did."""
+    name: str = ""
+    """The session's name (:attr:`OpenSession.name`): its ROS 2 topics and TF frame follow it."""
 
 
 class _FrameHeader(_Message):

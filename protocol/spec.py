@@ -65,12 +65,13 @@ def examples() -> dict[str, BaseModel]:
         ),
         "OpenSession": OpenSession(
             robot="allegro", object="foam_brick", p0=pose, q0=q, method="PBO", worlds=1024, allow_fewer=True,
-            overrides={"update_every": 10.0},
+            overrides={"update_every": 10.0}, name="left_hand",
         ),
         "SessionInfo": SessionInfo(
             session="3fa9c01b2d4e", token=token, robot="allegro", object="foam_brick",
             joint_names=[f"joint_{i}" for i in range(22)], sensor_names=["index", "middle", "ring", "thumb"],
             worlds=512, method="PBO", notice="worlds: 1024 do not fit the frame budget; granted 512",
+            zone_names=["palm", "index_proximal", "thumb_proximal"], name="left_hand",
         ),
         "CloseSession": CloseSession(session="3fa9c01b2d4e", token=token),
         "RobotFrame": RobotFrame(session="3fa9c01b2d4e", seq=42, stamp=1.4, token=token, **frame),

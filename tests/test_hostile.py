@@ -182,6 +182,20 @@ def test_settings_out_of_their_range_are_refused_naming_them(traj, overrides, wo
         _manager().open(_request(traj, overrides=overrides))
 
 
+def test_a_session_s_name_is_its_own(traj):
+    """A name names the session's ROS 2 topics and TF frame: another open session's is refused;
+    unnamed, sessions of one robot and object are numbered."""
+    manager = _manager(groups=4)
+    named = manager.open(_request(traj, name="left_hand"))
+    with pytest.raises(ServiceError, match="name: 'left_hand' is another open session's"):
+        manager.open(_request(traj, name="left_hand"))
+    assert [manager.open(_request(traj)).name for _ in range(2)] == ["allegro_foam_brick", "allegro_foam_brick_2"]
+    manager.close(named.session, named.token)
+    assert manager.open(_request(traj, name="left_hand")).name == "left_hand"
+    with pytest.raises(ValidationError, match="name"):
+        _request(traj, name="2nd hand")  # not a ROS name token
+
+
 def test_a_megabyte_of_garbage_on_a_session_key_does_not_break_its_status(traj):
     manager = _manager()
     info = manager.open(_request(traj))

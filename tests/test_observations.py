@@ -31,7 +31,12 @@ def traj() -> Trajectory:
     return Trajectory.load(TRAJECTORY)
 
 
-def _observation(pose, covariance=SURE, stamp: float = 0.0, session: str = "s", **kw) -> PoseObservation:
+CLOCK = 100.0
+"""The robot's clock at the first frame [s] (a robot up for a while: a stale observation's stamp is
+then still a time of its clock, >= 0)."""
+
+
+def _observation(pose, covariance=SURE, stamp: float = CLOCK, session: str = "s", **kw) -> PoseObservation:
     return PoseObservation(session=session, stamp=stamp, pose=pose, covariance=covariance, **kw)
 
 
@@ -61,7 +66,8 @@ def _open(traj: Trajectory, worlds: int = 16, **kw):
 
 
 def _step(manager, pool, traj, info, frame: int):
-    manager.submit(traj.frame(frame, info.session, token=info.token))
+    sent = traj.frame(frame, info.session, token=info.token)
+    manager.submit(sent.model_copy(update={"stamp": CLOCK + sent.stamp}))
     (estimate,) = manager.step(pool)
     return estimate
 
@@ -70,7 +76,7 @@ def test_a_late_observation_is_used_and_a_stale_one_counted_and_dropped(traj):
     manager, info, pool = _open(traj)
     for i in range(10):
         _step(manager, pool, traj, info, i)
-    newest = traj.frame(9, info.session).stamp
+    newest = CLOCK + traj.frame(9, info.session).stamp
     seen = traj.truth.initial_pose
     manager.observe(_observation(seen, stamp=newest - 0.2, session=info.session, token=info.token))  # 6 frames late
     manager.observe(_observation(seen, stamp=newest - 2.0, session=info.session, token=info.token))

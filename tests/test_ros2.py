@@ -4,6 +4,7 @@ node would and lists the topics as `ros2 topic list` does; rosbags decodes the C
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -25,7 +26,14 @@ POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 @pytest.fixture(scope="module")
 def service():
     port = free_port()
-    svc = ServiceProcess(port, ros2="true", ros2_tf="true", ros2_frame_id="allegro_world")
+    domain, os.environ["ROS_DOMAIN_ID"] = os.environ.get("ROS_DOMAIN_ID"), "3"  # as a ROS 2 shell sets it
+    try:
+        svc = ServiceProcess(port, ros2="true", ros2_tf="true", ros2_frame_id="allegro_world")
+    finally:
+        if domain is None:
+            del os.environ["ROS_DOMAIN_ID"]
+        else:
+            os.environ["ROS_DOMAIN_ID"] = domain
     with TrackerClient(connect=[svc.endpoint]) as probe:
         svc.wait_ready(probe)
     yield svc, port
@@ -42,17 +50,19 @@ def test_a_third_party_rmw_zenoh_node_receives_the_pose_and_sees_the_topics(serv
     get_registry(str(MSGS))  # the .msg files a ROS 2 install would hold; nothing fetched
     traj = Trajectory.load(TRAJECTORY)
     with TrackerClient(connect=[svc.endpoint]) as robot:
-        info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
-        topic = f"/inhand/session_{info.session}/pose"
+        info = robot.open_session(
+            traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4, name="left_hand"
+        )
+        topic = "/inhand/left_hand/pose"  # named by the robot, so a launch file can name it too
         received, attachments, lock = [], [], threading.Lock()
 
         def on_pose(msg) -> None:
             with lock:
                 received.append(msg)
 
-        sub = ROS2Subscriber(topic, POSE, on_pose, router_ip="127.0.0.1", router_port=port, domain_id=0)
+        sub = ROS2Subscriber(topic, POSE, on_pose, router_ip="127.0.0.1", router_port=port, domain_id=3)
         raw = sub.session_mgr.session.declare_subscriber(
-            "0/**", lambda s: attachments.append(bytes(s.attachment.to_bytes())) if s.attachment else None
+            "3/**", lambda s: attachments.append(bytes(s.attachment.to_bytes())) if s.attachment else None
         )
         time.sleep(1.0)  # the subscriptions reach the service
         estimates = []
@@ -82,9 +92,9 @@ def test_a_third_party_rmw_zenoh_node_receives_the_pose_and_sees_the_topics(serv
         assert all(s == list(range(1, 6)) for s in by_gid.values())
 
         # `ros2 topic list` and `ros2 topic info` read the liveliness tokens.
-        topics = dict(get_topic_names_and_types(domain_id=0, router_ip="127.0.0.1", router_port=port, timeout=2.0))
+        topics = dict(get_topic_names_and_types(domain_id=3, router_ip="127.0.0.1", router_port=port, timeout=2.0))
         assert topics[topic] == [POSE] and topics["/tf"] == ["tf2_msgs/msg/TFMessage"]
-        about = get_topic_info(topic, 0, "127.0.0.1", port, timeout=2.0, verbose=True)
+        about = get_topic_info(topic, 3, "127.0.0.1", port, timeout=2.0, verbose=True)
         assert (about.publisher_count, about.subscriber_count, about.publishers[0].node_name) == (
             1,
             1,
@@ -94,9 +104,9 @@ def test_a_third_party_rmw_zenoh_node_receives_the_pose_and_sees_the_topics(serv
 
         robot.close_session()  # its publisher goes (the SDK's own subscription stays listed)
         deadline = time.monotonic() + 10
-        while get_topic_info(topic, 0, "127.0.0.1", port, 1.0).publisher_count and time.monotonic() < deadline:
+        while get_topic_info(topic, 3, "127.0.0.1", port, 1.0).publisher_count and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert get_topic_info(topic, 0, "127.0.0.1", port, 1.0).publisher_count == 0, (
+        assert get_topic_info(topic, 3, "127.0.0.1", port, 1.0).publisher_count == 0, (
             "the publisher outlived its session"
         )
         raw.undeclare()
@@ -132,6 +142,7 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
                 sensor_names=[],
                 worlds=1,
                 method="PBO",
+                name="bench_left",
             )
         )
         est = Estimate(
@@ -148,7 +159,7 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
     digest = store.hash_rihs01(POSE)
     dds = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
     (sample,) = got
-    assert str(sample.key_expr) == f"7/inhand/session_0a1b2c/pose/{dds}/{digest}"
+    assert str(sample.key_expr) == f"7/inhand/bench_left/pose/{dds}/{digest}"
     msg = store.deserialize_cdr(bytes(sample.payload.to_bytes()), POSE)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (12, 250_000_000, "base")
     assert msg.pose.pose.orientation.z == pytest.approx(0.6) and msg.pose.covariance[35] == pytest.approx(6e-6)
@@ -156,6 +167,6 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
     assert tokens == sorted(
         [
             f"@ros2_lv/7/{zid}/0/0/NN/%/%/inhand_tracker",
-            f"@ros2_lv/7/{zid}/0/1/MP/%/%/inhand_tracker/%inhand%session_0a1b2c%pose/{dds}/{digest}/::,10:,:,:,,",
+            f"@ros2_lv/7/{zid}/0/1/MP/%/%/inhand_tracker/%inhand%bench_left%pose/{dds}/{digest}/::,10:,:,:,,",
         ]
     )

@@ -145,7 +145,7 @@ def _run(
     mujoco.mj_forward(m, d)
     steps = round(1.0 / (FRAME_RATE * STEP))
     m.opt.timestep = 1.0 / (FRAME_RATE * steps)
-    sensing = {f.name: [] for f in SENSING if f.name != "controls" and f.per != "zone"}  # MuJoCo's sites: no zones
+    sensing = {f.name: [] for f in SENSING if f.name != "controls"}
     poses = []
     last = demo.q.astype(np.float64)
     for u in demo.controls.astype(np.float64):
@@ -212,4 +212,5 @@ def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed
     return {
         "q": d.qpos[scene.qpos].copy(),
         **observe.touch_from_sums(forces, sliding, turning, weight, slip_speed, spin_speed),
+        "touch": np.zeros(0, np.float32),  # the robot's MJCF declares no touch zones
     }

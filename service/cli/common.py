@@ -160,6 +160,8 @@ def check_listen(endpoints: list[str], command: str) -> None:
         host, port = match.group(1).strip("[]"), int(match.group(2))
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         with socket.socket(family) as probe:
+            # As Zenoh binds: a port whose last connections linger in TIME_WAIT is free to listen on.
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 probe.bind((host, port))
             except OSError as exc:

@@ -139,14 +139,15 @@ class ServiceConfig(BaseSettings):
     """Where the step times measured on this device are kept between starts."""
     ros2: bool = False
     """Publish every session's estimate as a ROS 2 topic the way rmw_zenoh does
-    (``/inhand/session_<id>/pose``, ``geometry_msgs/msg/PoseWithCovarianceStamped``): a ROS 2 stack
-    on rmw_zenoh connected to the same Zenoh network sees it without a bridge."""
-    ros2_domain_id: int = Field(0, ge=0, le=232)
-    """The ROS 2 domain (``ROS_DOMAIN_ID``) the topics are published in."""
+    (``/inhand/<session name>/pose``, ``geometry_msgs/msg/PoseWithCovarianceStamped``): a ROS 2
+    stack on rmw_zenoh connected to the same Zenoh network sees it without a bridge."""
+    ros2_domain_id: int | None = Field(None, ge=0, le=232)
+    """The ROS 2 domain the topics are published in. Unset: ``ROS_DOMAIN_ID`` from the environment,
+    as every ROS 2 node reads it, else 0."""
     ros2_frame_id: str = "world"
     """The ROS frame the poses are in: the robot's world frame (its config's base) as your TF tree names it."""
     ros2_tf: bool = False
-    """Also broadcast each session's object frame (``<object>_<session>``) on ``/tf`` under ``ros2_frame_id``."""
+    """Also broadcast each session's object frame (the session's name) on ``/tf`` under ``ros2_frame_id``."""
     view_port: int | None = Field(None, ge=1, le=65535)
     """Serve a live view of the sessions on this port (Newton's viser viewer; open it in a browser)."""
     view_host: str = "127.0.0.1"
@@ -154,6 +155,16 @@ class ServiceConfig(BaseSettings):
     record: str | None = None
     """A folder to record every session to, one MCAP file each (``<session>.mcap``): what the robot
     sent, every estimate and a summary of the population, for Foxglove and ``inhand-tracker replay``."""
+
+    @property
+    def ros2_domain(self) -> int:
+        """The ROS 2 domain: ``ros2_domain_id``, else ``ROS_DOMAIN_ID``, else 0; a ValueError names a bad one."""
+        if self.ros2_domain_id is not None:
+            return self.ros2_domain_id
+        text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+        if not text.isdigit() or int(text) > 232:
+            raise ValueError(f"service config ros2_domain_id: ROS_DOMAIN_ID is '{text}', expected 0 to 232")
+        return int(text)
 
     @field_validator("listen", "connect", "robots", mode="before")
     @classmethod
@@ -224,7 +235,9 @@ def load_config(path: str | os.PathLike | None = None, **overrides) -> ServiceCo
         config = {**ServiceConfig.model_config, "toml_file": path}
         settings = type("ServiceConfig", (ServiceConfig,), {"model_config": config})
     try:
-        return settings(**{k: v for k, v in overrides.items() if v is not None})
+        config = settings(**{k: v for k, v in overrides.items() if v is not None})
+        config.ros2_domain  # noqa: B018 - a bad ROS_DOMAIN_ID is said at start, not when ROS 2 starts
+        return config
     except ValidationError as exc:
         first = exc.errors()[0]
         key = ".".join(str(p) for p in first["loc"])

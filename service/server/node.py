@@ -121,7 +121,7 @@ class TrackerNode:
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
         if cfg.ros2:
-            self.outputs.add(RosTopics(s, cfg.ros2_domain_id, cfg.ros2_frame_id, cfg.ros2_tf))
+            self.outputs.add(RosTopics(s, cfg.ros2_domain, cfg.ros2_frame_id, cfg.ros2_tf))
         if cfg.view_port:
             from .viewer import LiveView  # viser, only where a view is asked for
 

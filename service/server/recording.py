@@ -120,7 +120,7 @@ class SessionRecorder(Output):
         }  # fmt: skip
         f.json("population", summary, estimate.stamp)
         f.ros("pose", pose_message(estimate, f.frame_id), estimate.stamp)
-        f.ros("tf", tf_message(estimate, f.frame_id, object_frame(f.info.object, estimate.session)), estimate.stamp)
+        f.ros("tf", tf_message(estimate, f.frame_id, object_frame(f.info.name or estimate.session)), estimate.stamp)
 
     def drop(self, session: str) -> None:
         f = self._files.pop(session, None)

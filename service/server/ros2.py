@@ -59,15 +59,14 @@ _QOS = "::,10:,:,:,,"
 _NOT_A_NAME = re.compile(r"[^A-Za-z0-9_]")
 
 
-def ros_topic(session: str, leaf: str = "pose") -> str:
-    """The ROS 2 topic of a session's ``leaf`` (session ids may start with a digit, which a ROS
-    name token may not)."""
-    return f"/inhand/session_{_NOT_A_NAME.sub('_', session)}/{leaf}"
+def ros_topic(name: str, leaf: str = "pose") -> str:
+    """The ROS 2 topic of a session's ``leaf``, by the session's name (a ROS name token)."""
+    return f"/inhand/{_NOT_A_NAME.sub('_', name)}/{leaf}"
 
 
-def object_frame(object_name: str, session: str) -> str:
-    """The TF frame of a session's object."""
-    return f"{object_name}_{_NOT_A_NAME.sub('_', session)}"
+def object_frame(name: str) -> str:
+    """The TF frame of a session's object: the session's name."""
+    return _NOT_A_NAME.sub("_", name)
 
 
 def to_ros_time(stamp: float):
@@ -179,8 +178,8 @@ class RosTopics(Output):
 
     def open(self, info: SessionInfo, request: OpenSession | None = None) -> None:
         """Start publishing the session's estimates on its ROS 2 pose topic."""
-        self._poses[info.session] = self._declare(ros_topic(info.session), POSE_TYPE)
-        self._children[info.session] = object_frame(info.object, info.session)
+        self._poses[info.session] = self._declare(ros_topic(info.name or info.session), POSE_TYPE)
+        self._children[info.session] = object_frame(info.name or info.session)
 
     def estimate(self, estimate: Estimate) -> None:
         pub = self._poses.get(estimate.session)

@@ -10,6 +10,7 @@ steps every population that has work and returns the estimates to publish.
 from __future__ import annotations
 
 import logging
+import re
 import secrets
 import time
 import uuid
@@ -56,6 +57,8 @@ class Session:
     method: str
     pool: Pool
     group: int
+    name: str = ""
+    """The session's name: its ROS 2 topics and TF frame follow it."""
     next_seq: int = 0
     pending: deque = field(default_factory=deque)
     """Accepted frames not yet stepped, in seq order: (frame, receive time)."""
@@ -146,7 +149,22 @@ class SessionManager:
     def admit(self, request: OpenSession) -> Admission:
         """Validate an open (ServiceError with the field and the numbers) and find its population:
         one with a free group, or none when one must be built or is on its way."""
+        self._check_name(request.name)
         return self.gate.admit(request, len(self.sessions))
+
+    def _check_name(self, name: str | None) -> None:
+        if name is not None and any(s.name == name for s in self.sessions.values()):
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"name: '{name}' is another open session's; choose another")
+
+    def _name(self, request: OpenSession) -> str:
+        """The session's name: the one asked for, else ``{robot}_{object}``, numbered from 2 when taken."""
+        if request.name is not None:
+            self._check_name(request.name)  # taken while its population was built
+            return request.name
+        base = re.sub(r"[^A-Za-z0-9_]", "_", f"{request.robot}_{request.object}")
+        base = base if base[:1].isalpha() else f"s_{base}"
+        taken = {s.name for s in self.sessions.values()}
+        return next(n for n in (base, *(f"{base}_{i}" for i in range(2, len(taken) + 3))) if n not in taken)
 
     def reserve(self, admission: Admission) -> None:
         """Count a population being built against the caps until it is adopted (or failed)."""
@@ -175,8 +193,9 @@ class SessionManager:
         q0 = layout.default_q if request.q0 is None else request.q0
         group = pool.sessions.index(None)
         session = Session(
-            uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group
-        )
+            uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group,
+            self._name(request),
+        )  # fmt: skip
         tracker = pool.tracker
         tracker.set_method(group, request.method)
         mask = np.zeros(tracker.G, bool)
@@ -205,6 +224,7 @@ class SessionManager:
             worlds=tracker.K,
             method=request.method,
             notice=admission.notice,
+            name=session.name,
         )
 
     def close(self, session_id: str, token: str) -> None:
