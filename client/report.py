@@ -101,7 +101,11 @@ def _load(file: Path, noise: str) -> tuple[Trajectory, SessionRecording | None, 
 
 def _latency(result: ReplayResult, status: SessionStatus, say: Callable[[str], None]) -> None:
     """What the service and the client measured of a replay's frames and latency."""
-    say(f"estimates: {len(result.estimates)}; gaps {status.gaps}, dropped {status.duplicates + status.late}")
+    dropped = status.duplicates + status.late + status.stale
+    say(
+        f"estimates: {len(result.estimates)}; gaps {status.gaps}, dropped {dropped}"
+        f" (duplicate {status.duplicates}, late {status.late}, stale {status.stale})"
+    )
     say(
         f"latency, frame received to estimate ready (service): p50 {status.latency_p50_ms:.1f} ms, "
         f"p99 {status.latency_p99_ms:.1f} ms"

@@ -182,6 +182,34 @@ def test_settings_out_of_their_range_are_refused_naming_them(traj, overrides, wo
         _manager().open(_request(traj, overrides=overrides))
 
 
+def test_a_peer_sharing_the_population_cannot_poison_it(traj):
+    """An attacker opens with the victim's robot, object and K (so it joins the victim's population)
+    and sends joints of 1e20 rad: refused at the boundary, naming the joint; the victim's estimates
+    are bit for bit those of a run without the attacker."""
+
+    def victim_run(attack: bool) -> list[np.ndarray]:
+        manager = _manager()
+        victim = manager.open(_request(traj))
+        pool = manager.sessions[victim.session].pool
+        if attack:
+            attacker = manager.open(_request(traj))
+            assert manager.sessions[attacker.session].pool is pool
+        poses = []
+        for i in range(6):
+            if attack and i in (1, 2, 3):
+                frame = traj.frame(i, attacker.session, token=attacker.token)
+                with pytest.raises(ServiceError, match=r"RobotFrame.q: joint '.*' = 1e\+20 lies outside its limits"):
+                    manager.submit(frame.model_copy(update={"q": np.full_like(frame.q, 1e20)}))
+            manager.submit(traj.frame(i, victim.session, token=victim.token))
+            (estimate,) = [e for e in manager.step(pool) if e.session == victim.session]
+            poses.append(estimate.pose)
+        assert manager.status(victim.session, victim.token).errors == 0
+        return poses
+
+    for alone, attacked in zip(victim_run(False), victim_run(True), strict=True):
+        assert np.array_equal(alone, attacked)
+
+
 def test_a_session_s_name_is_its_own(traj):
     """A name names the session's ROS 2 topics and TF frame: another open session's is refused;
     unnamed, sessions of one robot and object are numbered."""

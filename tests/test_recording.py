@@ -4,6 +4,7 @@ estimates on the CPU."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 import numpy as np
@@ -65,3 +66,63 @@ def test_the_demo_s_recording_opens_in_mcap_and_replays_to_the_same_estimates(tm
         svc.stop()
     assert out.exit_code == 0, out.output[-3000:]
     assert f"against the recording: {traj.frames} estimates, position differs by at most 0.000 mm" in out.output
+
+
+def _session(traj: Trajectory, session: str = "0a1b2c3d4e5f"):
+    from protocol import OpenSession, SessionInfo
+
+    request = OpenSession(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose, worlds=8)
+    info = SessionInfo(session=session, token="t", robot=traj.robot, object=traj.object,
+                       joint_names=[f"j{i}" for i in range(traj.controls.shape[1])], sensor_names=["a", "b", "c", "d"],
+                       worlds=8, method="PBO", name="left_hand")  # fmt: skip
+    return info, request
+
+
+def test_every_json_channel_carries_its_full_schema_and_a_killed_service_leaves_a_readable_file(tmp_path):
+    """Recorded for over a second and never closed (as after kill -9): the chunks flushed each
+    second read back; every JSON channel's schema lists its message's fields."""
+    import time
+
+    from mcap.data_stream import EndOfFile
+    from mcap.records import Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    from service.server.recording import SessionRecorder
+
+    traj = Trajectory.load(TRAJECTORY)
+    info, request = _session(traj)
+    recorder = SessionRecorder(tmp_path, "default")
+    recorder.open(info, request)
+    began = time.monotonic()
+    i = 0
+    while time.monotonic() - began < 1.5:
+        recorder.frame(traj.frame(i % traj.frames, info.session))
+        i += 1
+        time.sleep(0.01)
+    (path,) = tmp_path.glob("*.mcap")  # not closed: the footer and summary are missing
+    records = []
+    with contextlib.suppress(EndOfFile):  # the file ends mid-record, where the process stopped
+        records.extend(StreamReader(path.open("rb"), skip_magic=False).records)
+    schemas = {r.name: json.loads(r.data) for r in records if isinstance(r, Schema) and r.encoding == "jsonschema"}
+    expected = {"inhand.RobotFrame", "inhand.PoseObservation", "inhand.Estimate", "inhand.PopulationSummary"}
+    assert set(schemas) == expected
+    assert {"q", "controls", "force", "touch", "stamp"} <= set(schemas["inhand.RobotFrame"]["properties"])
+    assert {"pose", "covariance", "status"} <= set(schemas["inhand.Estimate"]["properties"])
+    messages = [r for r in records if isinstance(r, Message)]
+    assert len(messages) >= 2 * 50, f"{len(messages)} messages of {2 * i} read back from the flushed chunks"
+
+
+def test_a_recording_that_cannot_be_written_stops_for_its_session_and_says_so(tmp_path):
+    """A record folder that cannot be made (under a file): the session is told, nothing raises."""
+    from service.server.recording import SessionRecorder
+
+    traj = Trajectory.load(TRAJECTORY)
+    info, request = _session(traj)
+    said = {}
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    recorder = SessionRecorder(blocked / "recordings", "default", said=lambda s, m: said.setdefault(s, m))
+    recorder.open(info, request)
+    recorder.frame(traj.frame(0, info.session))
+    recorder.drop(info.session)
+    assert said[info.session].startswith("recording: stopped for this session: ") and "recordings" in said[info.session]

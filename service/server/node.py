@@ -99,7 +99,7 @@ class TrackerNode:
         self.outputs = Outputs()
         """ROS 2 topics (setting ``ros2``), recordings (``record``) and the live view (``view_port``)."""
         if config.record:
-            self.outputs.add(SessionRecorder(config.record, config.name, config.ros2_frame_id))
+            self.outputs.add(SessionRecorder(config.record, config.name, config.ros2_frame_id, said=self._say))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> TrackerNode:
@@ -346,6 +346,11 @@ class TrackerNode:
             self._drop(session, "the service is stopping")
         if m.frame_times.points:
             m.frame_times.save(cfg.frame_time_cache)
+
+    def _say(self, session: str, message: str) -> None:
+        """Tell a session's robot (its status and next estimate) what went wrong beside its tracking."""
+        if (s := self.manager.sessions.get(session)) is not None:
+            s.last_error = s.notice = message
 
     def _refusal(self, exc: ServiceError) -> Error:
         """A refused request's answer; one refused for capacity names the other services there are."""

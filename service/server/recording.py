@@ -5,9 +5,11 @@ opens it and ``inhand-tracker replay`` tracks it again offline. The layout is
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +28,25 @@ log = logging.getLogger(__name__)
 _JOINTS = "sensor_msgs/msg/JointState"
 _ROS = {"joint_states": _JOINTS, "pose": POSE_TYPE, "tf": TF_TYPE}
 _JSON = {"frame": RobotFrame, "observation": PoseObservation, "estimate": Estimate, "population": None}
+_POPULATION = {
+    "title": "PopulationSummary",
+    "type": "object",
+    "description": "The session's worlds after a frame: what the estimate rests on.",
+    "properties": {
+        "seq": {"type": "integer", "description": "The frame's seq."},
+        "worlds": {"type": "integer", "description": "K, the session's worlds."},
+        "cost": {"type": "number", "description": "The best world's window cost."},
+        "spread_m": {"type": "number", "description": "RMS position spread of the weighted worlds [m]."},
+        "mass": {"type": "number", "description": "The best world's object mass [kg]."},
+        "friction": {"type": "number", "description": "The best world's object friction."},
+        "status": {"type": "string", "description": "The track state."},
+        "mode_weights": {"type": "array", "items": {"type": "number"}, "description": "The two modes' shares."},
+    },
+    "required": ["seq", "worlds", "cost", "spread_m", "mass", "friction", "status", "mode_weights"],
+}
+"""The population channel's JSON Schema (the other JSON channels carry the protocol's messages' own)."""
+_FLUSH_S = 1.0
+"""How often a recording's chunk is written out [s]: a process killed outright loses at most this."""
 
 
 def _plain(value):
@@ -44,7 +65,8 @@ class _File:
         self.channels: dict[str, int] = {}
         for role, model in _JSON.items():
             title = model.__name__ if model else "PopulationSummary"
-            schema = json.dumps({"title": title, "type": "object", "description": (model.__doc__ or "").strip()})
+            # The message's full JSON Schema, as docs/protocol/schema ships it: Foxglove reads the fields.
+            schema = json.dumps(model.model_json_schema() if model else _POPULATION)
             sid = self.writer.register_schema(name=f"inhand.{title}", encoding="jsonschema", data=schema.encode())
             self.channels[role] = self.writer.register_channel(CHANNELS[role], "json", sid)
         for role, msg_type in _ROS.items():
@@ -56,11 +78,15 @@ class _File:
         opened = {k: known[k] for k in SESSION_FIELDS}
         self.writer.add_metadata(SESSION_METADATA, {k: json.dumps(_plain(v)) for k, v in opened.items()})
         self.sequence = 0
+        self.flushed = time.monotonic()
 
     def write(self, role: str, data: bytes, stamp: float) -> None:
         self.sequence += 1
         robot_ns = round(stamp * 1e9)
         self.writer.add_message(self.channels[role], time.time_ns(), data, robot_ns, self.sequence)
+        if time.monotonic() - self.flushed > _FLUSH_S:
+            self.writer.flush()
+            self.flushed = time.monotonic()
 
     def json(self, role: str, doc: dict, stamp: float) -> None:
         self.write(role, json.dumps({k: _plain(v) for k, v in doc.items()}).encode(), stamp)
@@ -74,22 +100,49 @@ class _File:
 
 
 class SessionRecorder(Output):
-    """The recordings of every open session, written by the service's loop thread."""
+    """The recordings of every open session, written by the service's loop thread. A recording
+    that fails (a full disk, a read-only folder) stops for its session alone and says so through
+    ``said(session, message)``; tracking never waits on it."""
 
     name = "recorder"
 
-    def __init__(self, folder: str | Path, service: str, frame_id: str = "world"):
+    def __init__(
+        self, folder: str | Path, service: str, frame_id: str = "world", said: Callable[[str, str], None] | None = None
+    ):
         self.folder = Path(folder).expanduser()
-        self.folder.mkdir(parents=True, exist_ok=True)
         self.service, self.frame_id = service, frame_id
+        self.said = said or (lambda session, message: None)
         self._files: dict[str, _File] = {}
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # said at each open: the service itself goes on
+            log.error("recordings: cannot make the folder %s (%s)", self.folder, exc)
+
+    @contextlib.contextmanager
+    def _guarded(self, session: str):
+        """Run a session's recording work; a failure ends that recording and is said, not raised."""
+        try:
+            yield
+        except Exception as exc:
+            f = self._files.pop(session, None)
+            if f is not None:
+                with contextlib.suppress(Exception):
+                    f.close()
+            message = f"recording: stopped for this session: {type(exc).__name__}: {exc}"
+            log.error("session %s: %s", session, message)
+            self.said(session, message)
 
     def open(self, info: SessionInfo, request: OpenSession) -> None:
         path = self.folder / f"{info.session}.mcap"
-        self._files[info.session] = _File(path, info, request, self.service, self.frame_id)
-        log.info("recording session %s to %s", info.session, path)
+        with self._guarded(info.session):
+            self._files[info.session] = _File(path, info, request, self.service, self.frame_id)
+            log.info("recording session %s to %s", info.session, path)
 
     def frame(self, frame: RobotFrame) -> None:
+        with self._guarded(frame.session):
+            self._frame(frame)
+
+    def _frame(self, frame: RobotFrame) -> None:
         f = self._files.get(frame.session)
         if f is None:
             return
@@ -104,10 +157,15 @@ class SessionRecorder(Output):
         f.ros("joint_states", joints, frame.stamp)
 
     def observation(self, observation: PoseObservation) -> None:
-        if (f := self._files.get(observation.session)) is not None:
-            f.json("observation", observation.model_dump(exclude={"token"}), observation.stamp)
+        with self._guarded(observation.session):
+            if (f := self._files.get(observation.session)) is not None:
+                f.json("observation", observation.model_dump(exclude={"token"}), observation.stamp)
 
     def estimate(self, estimate: Estimate) -> None:
+        with self._guarded(estimate.session):
+            self._estimate(estimate)
+
+    def _estimate(self, estimate: Estimate) -> None:
         f = self._files.get(estimate.session)
         if f is None:
             return
@@ -123,10 +181,12 @@ class SessionRecorder(Output):
         f.ros("tf", tf_message(estimate, f.frame_id, object_frame(f.info.name or estimate.session)), estimate.stamp)
 
     def drop(self, session: str) -> None:
-        f = self._files.pop(session, None)
+        f = self._files.get(session)
         if f is not None:
-            f.close()
-            log.info("recording of session %s closed: %s", session, f.path)
+            with self._guarded(session):
+                f.close()
+                self._files.pop(session, None)
+                log.info("recording of session %s closed: %s", session, f.path)
 
     def close(self) -> None:
         for session in list(self._files):

@@ -20,7 +20,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from protocol import (
-    SENSING,
     ErrorCode,
     Estimate,
     OpenSession,
@@ -37,6 +36,7 @@ from sim_backend import ObjectSpec, RobotSpec, resolve_device
 from .admission import Admission, Gate, ServiceError
 from .budget import FrameTimes, device_name
 from .config import ServiceConfig
+from .frames import frame_problem, in_order
 from .pools import MEASURED_STEPS, Pool, PoolKey, Turn, build_pool, warm_up
 
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
@@ -260,7 +260,8 @@ class SessionManager:
     # ------------------------------------------------------------------ frames
     def submit(self, frame: RobotFrame, received: float | None = None) -> None:
         """Queue a frame in seq order; a duplicate or late one is dropped and counted, a gap counted;
-        a frame of the wrong size is refused with the field and the numbers (and counted). A seq
+        a frame of the wrong size or with values no robot sends (:func:`.frames.frame_problem`) is
+        refused with the field and the numbers (and counted). A seq
         beyond the window either way re-synchronises the session to it; a full queue drops its oldest."""
         try:
             session = self.authorize(frame.session, frame.token)
@@ -272,14 +273,11 @@ class SessionManager:
         if session.failed is not None:
             session.errors += 1
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
-        tracker = session.pool.tracker
-        for f in SENSING:
-            value, shape = getattr(frame, f.name), f.shape(tracker.D, tracker.L, tracker.pop.Z)
-            if value is not None and value.shape != shape:
-                session.errors += 1
-                session.last_error = f"RobotFrame.{f.name}: expected shape {shape}, got {value.shape} (seq {frame.seq})"
-                raise ServiceError(ErrorCode.BAD_REQUEST, session.last_error)
-        if not self._in_order(session, frame):
+        if (problem := frame_problem(frame, session.pool.tracker.pop.layout)) is not None:
+            session.errors += 1
+            session.last_error = problem
+            raise ServiceError(ErrorCode.BAD_REQUEST, problem)
+        if not in_order(session, frame, self.config.seq_window, self.config.late_resync):
             return
         session.heard = time.monotonic()
         # The clock of the newest frame in seq order, not the largest ever seen: one frame stamped far
@@ -289,34 +287,6 @@ class SessionManager:
             session.pending.popleft()
             session.stale += 1
         session.pending.append((frame, time.perf_counter() if received is None else received))
-
-    def _in_order(self, session: Session, frame: RobotFrame) -> bool:
-        """Whether ``frame`` comes next in seq order: a duplicate or late one is counted and said,
-        a gap counted. A seq beyond the window either way, or frames behind the session's for
-        ``late_resync`` frames in a row (a robot that restarted its counter after a stray frame
-        ran it ahead), re-synchronise the session to the robot's counter, with a notice."""
-        last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
-        window, behind = self.config.seq_window, frame.seq <= last
-        session.late_run = session.late_run + 1 if behind else 0
-        far = abs(frame.seq - last) > window
-        if far or session.late_run >= self.config.late_resync:
-            session.resyncs += 1
-            session.stale += len(session.pending)
-            session.pending.clear()
-            why = f"beyond the service's window of {window}" if far else f"{session.late_run} frames in a row behind it"
-            session.last_error = session.notice = (
-                f"RobotFrame.seq: {frame.seq} after {last}, {why}: re-synchronised to the robot's counter"
-            )
-            session.next_seq, last, session.late_run = frame.seq, frame.seq - 1, 0
-        elif behind:
-            if frame.seq == last:
-                session.duplicates += 1
-            else:
-                session.late += 1
-                session.last_error = f"RobotFrame.seq: {frame.seq} is behind the session's {last}: dropped as late"
-            return False
-        session.gaps += frame.seq - last - 1
-        return True
 
     def observe(self, observation: PoseObservation) -> None:
         """Queue a pose observation for the session's next step; one older than the newest frame by
