@@ -32,6 +32,9 @@ class SensingField:
     doc: str
     group: str | None = None
     """Presence group of an optional field; None for a field every frame carries."""
+    bounds: tuple[float, float] | None = None
+    """The values a real sensor reports (a service refuses others); None: per joint, the robot's
+    limits decide."""
 
     def shape(self, d: int, l: int, z: int = 0) -> tuple[int, ...]:
         """The field's shape in one frame of a robot with ``d`` joints, ``l`` sensors and ``z`` zones."""
@@ -42,17 +45,29 @@ class SensingField:
         return self.group is not None
 
 
+_FORCE = (-1e4, 1e4)  # [N]: more than any hand feels
+_FLAG = (0.0, 1.0)
+_UNIT = (-1.5, 1.5)  # a unit vector's components, with room for rounding
+
 SENSING: tuple[SensingField, ...] = (
     SensingField("controls", "joint", (), "rad or m", "Joint position targets."),
     SensingField("q", "joint", (), "rad or m", "Measured joint positions."),
-    SensingField("force", "sensor", (3,), "N", "Contact force on each fingertip pad, in the sensor frame.", "force"),
-    SensingField("slip", "sensor", (), "1", "Translational slip flags, 1 slipping, else 0.", "slip"),
     SensingField(
-        "slip_dir", "sensor", (2,), "1", "Unit slip directions in the sensors' tangent planes (x, y).", "slip"
+        "force", "sensor", (3,), "N", "Contact force on each fingertip pad, in the sensor frame.", "force", _FORCE
     ),
-    SensingField("spin", "sensor", (), "1", "Rotational slip flags, 1 spinning, else 0.", "spin"),
+    SensingField("slip", "sensor", (), "1", "Translational slip flags, 1 slipping, else 0.", "slip", _FLAG),
     SensingField(
-        "spin_sense", "sensor", (), "1", "Rotational slip senses: 1 counter-clockwise about the pad normal.", "spin"
+        "slip_dir", "sensor", (2,), "1", "Unit slip directions in the sensors' tangent planes (x, y).", "slip", _UNIT
+    ),
+    SensingField("spin", "sensor", (), "1", "Rotational slip flags, 1 spinning, else 0.", "spin", _FLAG),
+    SensingField(
+        "spin_sense",
+        "sensor",
+        (),
+        "1",
+        "Rotational slip senses: 1 counter-clockwise about the pad normal.",
+        "spin",
+        _FLAG,
     ),
     SensingField(
         "touch",
@@ -61,6 +76,7 @@ SENSING: tuple[SensingField, ...] = (
         "N",
         "Normal force on each touch zone (palm, phalanges, taxels), as the robot declares.",
         "touch",
+        _FORCE,
     ),
 )
 """The robot's sensing record, in wire and packing order. Sensor frames: z is the pad normal,

@@ -17,10 +17,8 @@ from sim_backend import RobotLayout
 if TYPE_CHECKING:
     from .sessions import Session
 
-__all__ = ["MAX_FORCE", "frame_problem", "in_order"]
+__all__ = ["frame_problem", "in_order"]
 
-MAX_FORCE = 1e4
-"""The largest force a hand's sensor may report [N]."""
 _SLACK = 0.5
 """How far past a joint's limits a measured joint or a target may lie, as a share of its range
 (encoders and commands overshoot a little; a corrupt value does not)."""
@@ -45,12 +43,13 @@ def frame_problem(frame: RobotFrame, layout: RobotLayout) -> str | None:
                 f"RobotFrame.{name}: joint '{layout.joint_names[j]}' = {value[j]:.4g} lies outside its limits "
                 f"[{layout.lower[j]:.4g}, {layout.upper[j]:.4g}] by more than {slack[j]:.3g} (seq {frame.seq})"
             )
-    for name, low_, high_ in (("force", -MAX_FORCE, MAX_FORCE), ("touch", -1e-3, MAX_FORCE), ("slip", 0, 1),
-                              ("spin", 0, 1), ("spin_sense", 0, 1), ("slip_dir", -1.5, 1.5)):  # fmt: skip
-        value = getattr(frame, name)
-        if value is not None and value.size and not ((value >= low_) & (value <= high_)).all():
-            worst = value.flat[int(np.argmax(np.abs(value)))]
-            return f"RobotFrame.{name}: expected {low_:g} to {high_:g}, got {worst:.4g} (seq {frame.seq})"
+    for f in SENSING:
+        value = getattr(frame, f.name)
+        if f.bounds is not None and value is not None and value.size:
+            low_, high_ = f.bounds
+            if not ((value >= low_) & (value <= high_)).all():
+                worst = value.flat[int(np.argmax(np.abs(value)))]
+                return f"RobotFrame.{f.name}: expected {low_:g} to {high_:g}, got {worst:.4g} (seq {frame.seq})"
     return None
 
 
