@@ -17,6 +17,8 @@ import numpy as np
 import torch
 import warp as wp
 
+from .zones import press_zones
+
 __all__ = [
     "HEALTH_AWAY",
     "HEALTH_LOST",
@@ -105,12 +107,19 @@ def accumulate_contacts(
     sensor_row: wp.array[wp.int32],
     object_world: wp.array[wp.int32],
     sensor_count: int,
+    bodies_per_world: int,
+    zone_first: wp.array[wp.int32],
+    zone_index: wp.array[wp.int32],
+    zone_center: wp.array[wp.vec3],
+    zone_half: wp.array[wp.vec3],
     force_acc: wp.array2d[wp.vec3],
     slip_acc: wp.array2d[wp.vec3],
     spin_acc: wp.array2d[wp.vec3],
     weight_acc: wp.array2d[float],
+    touch: wp.array2d[float],
 ):
-    """Sum, per sensor, the force from its world's object and the force-weighted slip velocity.
+    """Sum, per sensor, the force from its world's object and the force-weighted slip velocity;
+    per touch zone, the normal force of the contacts inside it (:func:`.zones.press_zones`).
 
     ``sensor_row[b]`` is w * L + l when body b carries sensor l of world w, else -1;
     ``object_world[b]`` is w when body b is world w's object, else -1. Launch dim: contact capacity.
@@ -124,6 +133,9 @@ def accumulate_contacts(
         return
     # contact_force is the force on shape 0; flip it when the sensor is shape 1.
     f = wp.spatial_top(contact_force[c])
+    point = wp.transform_point(body_q[b0], point0[c])
+    press_zones(b0, b1, f, normal[c], point, body_q, object_world, bodies_per_world,
+                zone_first, zone_index, zone_center, zone_half, touch)  # fmt: skip
     sensor = b0
     obj = b1
     sign = 1.0
@@ -140,9 +152,8 @@ def accumulate_contacts(
         return
     w = row // sensor_count
     l = row - w * sensor_count
-    p = wp.transform_point(body_q[b0], point0[c])
-    v_rel = _point_velocity(body_q[sensor], body_qd[sensor], body_com[sensor], p) - _point_velocity(
-        body_q[obj], body_qd[obj], body_com[obj], p
+    v_rel = _point_velocity(body_q[sensor], body_qd[sensor], body_com[sensor], point) - _point_velocity(
+        body_q[obj], body_qd[obj], body_com[obj], point
     )
     n = wp.normalize(normal[c])
     v_tan = v_rel - wp.dot(v_rel, n) * n

@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from . import observe
-from .zones import accumulate_zones, zone_arrays
+from .zones import zone_arrays
 
 if TYPE_CHECKING:
     from .population import Population
@@ -87,6 +87,8 @@ def observe_frame(pop: Population) -> None:
         outputs=[b.sensor_pos, b.sensor_rot, b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
     )
     c = pop.contacts
+    if pop.Z:
+        b.touch.zero_()  # the sensors' sums are cleared by sensor_poses, the zones' here
     wp.launch(
         observe.accumulate_contacts,
         dim=c.rigid_contact_max,
@@ -104,33 +106,15 @@ def observe_frame(pop: Population) -> None:
             s["sensor_row"],
             s["object_world"],
             pop.L,
+            pop.bodies,
+            s["zone_first"],
+            s["zone_index"],
+            s["zone_center"],
+            s["zone_half"],
         ],
-        outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc],
+        outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, b.touch],
     )
     observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
-    if pop.Z:  # touch zones: the contacts inside each zone's box
-        b.touch.zero_()
-        wp.launch(
-            accumulate_zones,
-            dim=c.rigid_contact_max,
-            inputs=[
-                c.rigid_contact_count,
-                c.rigid_contact_shape0,
-                c.rigid_contact_shape1,
-                c.rigid_contact_point0,
-                c.rigid_contact_normal,
-                pop.observables.contact_f,
-                pop.model.shape_body,
-                st.body_q,
-                s["object_world"],
-                pop.bodies,
-                s["zone_first"],
-                s["zone_index"],
-                s["zone_center"],
-                s["zone_half"],
-            ],
-            outputs=[b.touch],
-        )
     wp.launch(
         observe.object_health,
         dim=pop.W,

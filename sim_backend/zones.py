@@ -1,6 +1,7 @@
 """Touch zones: regions of the robot's links that report one normal force each, as touch arrays,
 pressure pads and taxel skins do. Their boxes indexed by the link that carries them, and the
-kernel that sums each world's contact normal forces inside them, in the captured frame."""
+function that adds each contact's normal force to the zones it lies in, called by the observation
+kernel (:func:`.observe.accumulate_contacts`) in the captured frame."""
 
 from __future__ import annotations
 
@@ -12,18 +13,16 @@ import warp as wp
 if TYPE_CHECKING:
     from .population import Population
 
-__all__ = ["accumulate_zones", "zone_arrays"]
+__all__ = ["press_zones", "zone_arrays"]
 
 
-@wp.kernel(enable_backward=False)
-def accumulate_zones(
-    contact_count: wp.array[wp.int32],
-    shape0: wp.array[wp.int32],
-    shape1: wp.array[wp.int32],
-    point0: wp.array[wp.vec3],
-    normal: wp.array[wp.vec3],
-    contact_force: wp.array[wp.spatial_vector],
-    shape_body: wp.array[wp.int32],
+@wp.func
+def press_zones(
+    b0: int,
+    b1: int,
+    force: wp.vec3,
+    normal: wp.vec3,
+    point: wp.vec3,
     body_q: wp.array[wp.transform],
     object_world: wp.array[wp.int32],
     bodies_per_world: int,
@@ -33,19 +32,14 @@ def accumulate_zones(
     zone_half: wp.array[wp.vec3],
     touch: wp.array2d[float],
 ):
-    """Sum, per touch zone, the normal force of its world's object on the contacts inside the zone's
-    box (as a touch array reports: the normal force on each cell, whatever slides along it).
+    """Add one contact's normal force to the touch zones it lies in: a contact between bodies
+    ``b0`` and ``b1`` at ``point`` (world frame), when one of them is its world's object and the
+    other a link that carries zones (as a touch array reports: the normal force on each cell,
+    whatever slides along it).
 
     ``zone_first[b]`` .. ``zone_first[b + 1]`` are the zones on the world's local body b, in
     ``zone_index`` (the zone's place in the record), ``zone_center`` and ``zone_half`` (its box in
-    the link's frame). Launch dim: contact capacity."""
-    c = wp.tid()
-    if c >= contact_count[0]:
-        return
-    b0 = shape_body[shape0[c]]
-    b1 = shape_body[shape1[c]]
-    if b0 < 0 or b1 < 0:
-        return
+    the link's frame)."""
     obj = b1
     link = b0
     if object_world[b0] >= 0:
@@ -61,10 +55,10 @@ def accumulate_zones(
     last = zone_first[local + 1]
     if first == last:
         return
-    pressed = wp.abs(wp.dot(wp.spatial_top(contact_force[c]), wp.normalize(normal[c])))
+    pressed = wp.abs(wp.dot(force, wp.normalize(normal)))
     if pressed == 0.0:  # inside the detection gap, not touching
         return
-    p = wp.transform_point(wp.transform_inverse(body_q[link]), wp.transform_point(body_q[b0], point0[c]))
+    p = wp.transform_point(wp.transform_inverse(body_q[link]), point)
     for i in range(first, last):
         d = p - zone_center[i]
         h = zone_half[i]
