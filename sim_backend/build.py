@@ -124,6 +124,12 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
     return Physics(solver, pipeline, contacts, observables)
 
 
+def contact_points(contacts: newton.Contacts) -> list[wp.array]:
+    """The contacts' count, shape pairs and first points: the head of every kernel over contacts."""
+    c = contacts
+    return [c.rigid_contact_count, c.rigid_contact_shape0, c.rigid_contact_shape1, c.rigid_contact_point0]
+
+
 def add_object(world: newton.ModelBuilder, obj: ObjectSpec) -> int:
     """Add ``obj`` as a free body of ``world``; returns its body index."""
     # The object's friction rules in contacts with the hand (MuJoCo takes the max otherwise).

@@ -20,6 +20,8 @@ import numpy as np
 import torch
 import warp as wp
 
+from .build import contact_points
+
 if TYPE_CHECKING:
     from .population import Population
 
@@ -107,10 +109,7 @@ def separate_objects(pop: Population, worlds: torch.Tensor | np.ndarray, passes:
                 object_push,
                 dim=c.rigid_contact_max,
                 inputs=[
-                    c.rigid_contact_count,
-                    c.rigid_contact_shape0,
-                    c.rigid_contact_shape1,
-                    c.rigid_contact_point0,
+                    *contact_points(c),
                     c.rigid_contact_point1,
                     c.rigid_contact_normal,
                     c.rigid_contact_margin0,

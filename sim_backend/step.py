@@ -10,6 +10,7 @@ import numpy as np
 import warp as wp
 
 from . import observe
+from .build import contact_points
 from .zones import zone_arrays
 
 if TYPE_CHECKING:
@@ -93,10 +94,7 @@ def observe_frame(pop: Population) -> None:
         observe.accumulate_contacts,
         dim=c.rigid_contact_max,
         inputs=[
-            c.rigid_contact_count,
-            c.rigid_contact_shape0,
-            c.rigid_contact_shape1,
-            c.rigid_contact_point0,
+            *contact_points(c),
             c.rigid_contact_normal,
             pop.observables.contact_f,
             pop.model.shape_body,
