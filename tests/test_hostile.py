@@ -210,6 +210,29 @@ def test_a_peer_sharing_the_population_cannot_poison_it(traj):
         assert np.array_equal(alone, attacked)
 
 
+@pytest.mark.slow
+def test_memory_stays_flat_over_a_thousand_open_close_cycles(traj):
+    """A robot (or a peer) opening and closing in a loop: the service's resident memory after 1,000
+    cycles is within 1 % of what it was after the first 200 (the population stays, held by a session)."""
+    import gc
+
+    manager = _manager(max_opens_per_minute=100_000)
+    manager.open(_request(traj))  # keeps the population: the cycles reuse its other group
+
+    def resident_kib() -> float:
+        gc.collect()
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1024
+
+    for cycle in range(1000):
+        info = manager.open(_request(traj))
+        manager.close(info.session, info.token)
+        if cycle == 199:
+            warm = resident_kib()
+    grown = resident_kib() - warm
+    assert grown < 0.01 * warm, f"{grown:.0f} KiB more after 800 cycles ({warm:.0f} KiB resident)"
+    assert len(manager.sessions) == 1 and len(manager.pools) == 1
+
+
 def test_a_session_s_name_is_its_own(traj):
     """A name names the session's ROS 2 topics and TF frame: another open session's is refused;
     unnamed, sessions of one robot and object are numbered."""
