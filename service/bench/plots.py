@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -14,6 +15,15 @@ import matplotlib.ticker
 import numpy as np
 
 __all__ = ["bar_chart", "line_chart", "xy_chart"]
+
+
+def _label(fig: plt.Figure, ax: plt.Axes, title: str, note: str) -> None:
+    """The title, wrapped so a long one is not clipped, and below the axes a note of what was run
+    and what the marks are (K, device, runs; what a bar and a whisker stand for)."""
+    inches = fig.get_figwidth()  # about 8 title and 15 note characters fit an inch
+    ax.set_title(textwrap.fill(title, int(8 * inches)))
+    if note:
+        fig.supxlabel(textwrap.fill(note, int(15 * inches)), fontsize=7, color="0.3")
 
 
 def _save(fig: plt.Figure, path: str | Path) -> Path:
@@ -32,8 +42,10 @@ def bar_chart(
     mean: np.ndarray,
     std: np.ndarray | None = None,
     ylabel: str = "ADD [mm]",
+    note: str = "",
 ) -> Path:
-    """Grouped bars: ``mean`` (len(groups), len(series)) with error bars ``std``; NaN bars are left out."""
+    """Grouped bars: ``mean`` (len(groups), len(series)) with error bars ``std``; NaN bars are left
+    out. ``note``: what was run and what the bars and whiskers are, under the chart."""
     mean = np.asarray(mean, float)
     std = np.zeros_like(mean) if std is None else np.asarray(std, float)
     fig, ax = plt.subplots(
@@ -47,7 +59,7 @@ def bar_chart(
                capsize=3, label=name)  # fmt: skip
     ax.set_xticks(x, groups)
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    _label(fig, ax, title, note)
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     ax.grid(axis="y", alpha=0.3)
@@ -61,15 +73,16 @@ def line_chart(
     x_step: float = 1.0,
     xlabel: str = "time [s]",
     ylabel: str = "ADD [mm]",
+    note: str = "",
 ) -> Path:
-    """One line per series over x = index * ``x_step``."""
+    """One line per series over x = index * ``x_step``; ``note`` under the chart."""
     fig, ax = plt.subplots(figsize=(7.2, 3.6), layout="constrained")
     for name, values in series.items():
         values = np.asarray(values, float)
         ax.plot(np.arange(values.size) * x_step, values, label=name, linewidth=1.2)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    _label(fig, ax, title, note)
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     ax.grid(alpha=0.3)
@@ -83,6 +96,7 @@ def xy_chart(
     xlabel: str,
     ylabel: str = "ADD [mm]",
     labels: dict[str, Sequence[str]] | None = None,
+    note: str = "",
 ) -> Path:
     """One marked line per series through its (x, y) points, each point annotated with its label
     (e.g. K); x on a log scale, as frame times and world counts span decades."""
@@ -97,7 +111,7 @@ def xy_chart(
     ax.xaxis.set_minor_formatter(matplotlib.ticker.ScalarFormatter())
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    _label(fig, ax, title, note)
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     ax.grid(alpha=0.3, which="both")

@@ -82,10 +82,12 @@ def _cell(value) -> str:
     return "-" if value is None else str(value)
 
 
-def _chart(path: Path, title: str, chart: dict) -> Path:
+def _chart(path: Path, title: str, chart: dict, note: str) -> Path:
     if chart["kind"] == "xy":
-        return xy_chart(path, title, chart["series"], chart["xlabel"], chart["ylabel"], chart.get("labels"))
-    return bar_chart(path, title, chart["groups"], chart["series"], chart["mean"], chart.get("err"), chart["ylabel"])
+        return xy_chart(path, title, chart["series"], chart["xlabel"], chart["ylabel"], chart.get("labels"), note)
+    return bar_chart(
+        path, title, chart["groups"], chart["series"], chart["mean"], chart.get("err"), chart["ylabel"], note
+    )
 
 
 def render(results: Path, out: Path) -> Path:
@@ -127,6 +129,7 @@ def _section(path: Path, results: Path, page: Path) -> list[str]:
     lines += ["| " + " | ".join(r["columns"]) + " |", "|" + "---|" * len(r["columns"])]
     lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in r["rows"]]
     if chart := r.get("chart"):
-        png = _chart(results / f"{path.stem}.png", r["title"], chart)
+        note = "; ".join(x for x in (f"{r['device']}, {r['date']}", chart.get("note", "")) if x)
+        png = _chart(results / f"{path.stem}.png", r["title"], chart, note)
         lines += ["", f"![{r['title']}]({png.relative_to(page.parent).as_posix()})"]
     return [*lines, ""]

@@ -44,7 +44,7 @@ def write_report(results: dict, out: str | Path, command: str = "") -> Path:
             *_table(best_world, methods, noises),
             "",
         ]
-    lines += _ablations(results["ablations"], out)
+    lines += _ablations(results["ablations"], out, results)
     lines += _per_trajectory(results, methods, noises, out)
     path = out / "report.md"
     path.write_text("\n".join(line for line in lines if line is not None) + "\n")
@@ -100,7 +100,11 @@ def _fig2(results: dict, methods: list[str], noises: list[str], out: Path) -> li
     lines += _table(summary, methods, noises)
     mean = np.array([[summary[m].get(n, {}).get("mean_mm", np.nan) for m in methods] for n in noises])
     std = np.array([[summary[m].get(n, {}).get("std_mm", 0.0) for m in methods] for n in noises])
-    bar_chart(out / "fig2.png", f"ADD {results['suite']['name']}", [n.upper() for n in noises], methods, mean, std)
+    marks = "bars: mean over tracks of each track's mean ADD; whiskers: std over tracks"
+    groups = [n.upper() for n in noises]
+    bar_chart(
+        out / "fig2.png", f"ADD {results['suite']['name']}", groups, methods, mean, std, note=_what_ran(results, marks)
+    )
     return [*lines, "", "![ADD per method and noise](fig2.png)", ""]
 
 
@@ -154,7 +158,14 @@ def _loss(summary: dict, methods: list[str]) -> list[str]:
     return [*lines, ""]
 
 
-def _ablations(ablations: dict, out: Path) -> list[str]:
+def _what_ran(results: dict, marks: str) -> str:
+    """A chart's note: K, the device, the runs and tracks, and what its marks are."""
+    tracks = len({(t["trajectory"], t["repeat"]) for t in results["tracks"]})
+    runs = results.get("repeats", 1)
+    return f"K = {results['worlds']} worlds (OLP: 1), {results['device']}, {runs} run(s), {tracks} track runs; {marks}"
+
+
+def _ablations(ablations: dict, out: Path, results: dict) -> list[str]:
     """The paper's Fig. 3: a table and a chart per ablation study."""
     lines: list[str] = []
     for study, rows in ablations.items():
@@ -173,6 +184,7 @@ def _ablations(ablations: dict, out: Path) -> list[str]:
             ["PBO"],
             np.array([[rows[k]["mean_mm"]] for k in labels]),
             np.array([[rows[k]["std_mm"]] for k in labels]),
+            note=_what_ran(results, "bars: mean ADD over tracks; whiskers: std over tracks (PBO, med noise)"),
         )
         lines += ["", f"![{study}](ablation_{study}.png)", ""]
     return lines
@@ -211,7 +223,8 @@ def _per_trajectory(results: dict, methods: list[str], noises: list[str], out: P
         )
         lines.append(f"| {name} | {drift} | " + " | ".join(cells) + " |")
         series = {m: np.asarray(runs[m][0]["add_mm"]) for m in methods if m in runs}  # the first run's
-        line_chart(out / f"add_{name}.png", f"{name} {noise}", series, x_step=1 / 30)
+        line_chart(out / f"add_{name}.png", f"{name} {noise}", series, x_step=1 / 30,
+                   note=_what_ran(results, "ADD of each method's estimate per frame, the first run"))  # fmt: skip
     first = " (the first run)" if results.get("repeats", 1) > 1 else ""
     return [*lines, "", f"ADD over time per trajectory{first}:", ""] + [f"![{n}](add_{n}.png)" for n in names]
 
