@@ -32,6 +32,7 @@ from protocol import (
     encode,
     encoding_of,
 )
+from protocol.auth import sign, signed_query
 
 __all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError", "zenoh_config", "zenoh_encoding"]
 
@@ -304,14 +305,13 @@ class TrackerClient:
         seq = self._seq if seq is None else seq
         frame = RobotFrame(
             session=self.info.session,
-            token=self.info.token,
             seq=seq,
             stamp=float(seq / 30.0 if stamp is None else stamp),
             controls=controls,
             q=q,
             **{name: value for name, value in touch.items() if value is not None},
         )
-        self._publisher.put(encode(frame))
+        self._publisher.put(encode(sign(frame, self.info.token)))  # the token itself never travels
         self._seq = max(self._seq, seq + 1)
         self._sent_stamp = frame.stamp
         return seq
@@ -326,16 +326,15 @@ class TrackerClient:
             raise RuntimeError("no session: call open_session first")
         observation = PoseObservation(
             session=self.info.session,
-            token=self.info.token,
             stamp=float(stamp if stamp is not None else (self._sent_stamp or 0.0)),
             pose=pose,
             covariance=covariance,
         )
-        self._observer.put(encode(observation))
+        self._observer.put(encode(sign(observation, self.info.token)))
 
     def send(self, frame: RobotFrame) -> None:
-        """Send a prepared frame (its session and token are replaced by this client's)."""
-        self._publisher.put(encode(frame.model_copy(update={"session": self.info.session, "token": self.info.token})))
+        """Send a prepared frame (its session is replaced by this client's, and it is signed)."""
+        self._publisher.put(encode(sign(frame.model_copy(update={"session": self.info.session}), self.info.token)))
         self._seq = max(self._seq, frame.seq + 1)
         self._sent_stamp = frame.stamp
 
@@ -409,17 +408,18 @@ class TrackerClient:
     def status(self, timeout: float = 5.0) -> SessionStatus:
         if self.info is None:
             raise RuntimeError("no session: call open_session first")
-        return self._get(self.keys.status(self.info.session), self._credentials(), SessionStatus, timeout)
+        return self._get(self.keys.status(self.info.session), self._credentials("status"), SessionStatus, timeout)
 
-    def _credentials(self) -> CloseSession:
-        """The payload that proves a request comes from this session's robot."""
-        return CloseSession(session=self.info.session, token=self.info.token)
+    def _credentials(self, purpose: str) -> CloseSession:
+        """The payload that proves a ``purpose`` request comes from this session's robot: signed,
+        so that a peer answering in the service's place learns nothing it could use."""
+        return signed_query(CloseSession(session=self.info.session), self.info.token, purpose)
 
     def close_session(self) -> None:
         if self.info is None:
             return
         try:
-            self._get(self.keys.close, self._credentials(), CloseSession, 10.0)
+            self._get(self.keys.close, self._credentials("close"), CloseSession, 10.0)
         finally:
             self._release()
 

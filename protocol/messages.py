@@ -232,12 +232,18 @@ class OpenSession(_Message):
 
 
 class CloseSession(_Message):
-    """Close a session; also the payload of a session's status query."""
+    """Close a session; also the payload of a session's status query. Only its robot may close or
+    query it: the request carries ``mac`` and ``stamp`` (protocol.auth.signed_query), or the token."""
 
     session: str
     """The session's id (:attr:`SessionInfo.session`)."""
     token: str = ""
-    """The session's secret from :class:`SessionInfo`: only its robot may close or query it."""
+    """The session's secret from :class:`SessionInfo`; a robot that signs (``mac``) leaves it empty,
+    so that a peer answering in the service's place learns nothing."""
+    stamp: float = Field(0.0, allow_inf_nan=False)
+    """When the robot sent the request [s, Unix time], for ``mac``."""
+    mac: str = ""
+    """HMAC-SHA256 of the request's purpose, session and stamp, keyed by the token (protocol.auth)."""
 
 
 class SessionInfo(_Message):
@@ -279,7 +285,11 @@ class _FrameHeader(_Message):
     stamp: float = Field(ge=0.0, le=1e10, allow_inf_nan=False)
     """Robot clock when the frame was sensed [s]: 0 to 1e10 (seconds since boot, or since 1970)."""
     token: str = ""
-    """The session's secret (:attr:`SessionInfo.token`); a frame without it is refused."""
+    """The session's secret (:attr:`SessionInfo.token`), from a robot that does not sign; one that
+    signs (``mac``) leaves it empty, so that the token never travels after the open."""
+    mac: str = ""
+    """HMAC-SHA256 of this frame with ``token`` and ``mac`` empty, keyed by the token (protocol.auth):
+    a frame carries it or the token, else it is refused."""
 
 
 def _sensing_fields() -> dict:
@@ -306,7 +316,9 @@ class PoseObservation(_Message):
 
     session: str
     token: str = ""
-    """The session's secret (:attr:`SessionInfo.token`)."""
+    """The session's secret (:attr:`SessionInfo.token`), from a robot that does not sign (``mac``)."""
+    mac: str = ""
+    """HMAC-SHA256 of this observation with ``token`` and ``mac`` empty, keyed by the token (protocol.auth)."""
     stamp: float = Field(ge=0.0, le=1e10, allow_inf_nan=False)
     """Robot clock when the sensor saw the pose [s]: an observation more than the service's
     ``max_observation_age_s`` older than the newest frame is counted stale and dropped."""

@@ -96,7 +96,7 @@ class SessionRecording:
         stamps = np.array([d["stamp"] for d in frames], np.float64)
         steps = np.diff(stamps)
         rate = 1.0 / float(np.median(steps)) if len(steps) and np.median(steps) > 0 else 30.0
-        header = {"session", "seq", "stamp", "token"}
+        header = {"session", "seq", "stamp", "token", "mac"}
         names = [k for k in frames[0] if k not in header]
         sensing = {k: None if frames[0][k] is None else np.asarray([d[k] for d in frames], np.float32) for k in names}
         trajectory = Trajectory(

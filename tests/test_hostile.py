@@ -504,12 +504,48 @@ def test_a_peer_without_the_session_token_can_neither_steer_query_status_nor_clo
         deadline = time.monotonic() + 10
         while (status := robot.status()).errors < 1 and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert status.frames == 1 and "RobotFrame.token: does not match" in status.last_error
+        assert status.frames == 1 and "RobotFrame.mac: not the session's robot's" in status.last_error
         for key in (keys.status(info.session), keys.close):
             (reply,) = list(peer._zenoh.get(key, payload=encode(guess), timeout=30))
             assert decode(bytes(reply.err.payload.to_bytes()), Error).code == ErrorCode.FORBIDDEN, key
         robot.send(traj.frame(1, info.session))  # the robot's own session goes on
         assert robot.latest_pose(timeout=60, after_seq=1).seq == 1
+        robot.close_session()
+
+
+def test_a_peer_that_reads_every_frame_and_catches_every_query_learns_no_secret(service, traj):
+    """A sniffer subscribed to every session key, and a peer answering status and close queries in
+    the service's place: after the open the token never travels, so neither sees it, and frames the
+    sniffer re-signs with what it saw are refused."""
+    with TrackerClient(connect=[service.endpoint]) as robot, TrackerClient(connect=[service.endpoint]) as peer:
+        keys, seen = Keys("default"), []
+        peer._zenoh.declare_subscriber(keys.every("*"), lambda s: seen.append(bytes(s.payload.to_bytes())))
+        caught = []
+
+        def impostor(query: zenoh.Query) -> None:
+            caught.append(bytes(query.payload.to_bytes()) if query.payload else b"")
+
+        rogue = [peer._zenoh.declare_queryable(k, impostor) for k in (keys.every("status"), keys.close)]
+        info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+        for i in range(5):
+            robot.send(traj.frame(i, info.session))
+            robot.observe_pose(traj.truth.pose[i], np.eye(6) * 1e-4)
+            robot.latest_pose(timeout=60, after_seq=i)
+        status = robot.status()
+        time.sleep(0.5)
+        frames = [p for p in seen if b"controls" in p]
+        assert len(frames) >= 5 and caught, (len(frames), len(caught))
+        token = info.token.encode()
+        assert not any(token in payload for payload in seen + caught), "the session's token travelled"
+        stolen = decode(frames[-1], RobotFrame)
+        forged = stolen.model_copy(update={"seq": 9, "controls": stolen.controls + 0.1})  # its old mac
+        peer._zenoh.put(keys.frame(info.session), encode(forged))
+        deadline = time.monotonic() + 10
+        while (after := robot.status()).errors <= status.errors and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert after.errors == status.errors + 1 and after.frames == status.frames
+        for q in rogue:
+            q.undeclare()
         robot.close_session()
 
 

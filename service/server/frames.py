@@ -15,7 +15,7 @@ from protocol import SENSING, RobotFrame
 from sim_backend import RobotLayout
 
 if TYPE_CHECKING:
-    from .sessions import Session
+    from .session import Session
 
 __all__ = ["frame_problem", "in_order"]
 

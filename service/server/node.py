@@ -230,7 +230,8 @@ class TrackerNode:
         request = self._session_request(query)
         if isinstance(request, Error):
             return self._reply(query, request)
-        self._reply(query, self._inbox.call("status", lambda _: self.manager.status(request.session, request.token)))
+        status = lambda _: self.manager.status_of(self.manager.authorize_query(request, "status"))  # noqa: E731
+        self._reply(query, self._inbox.call("status", status))
 
     @guarded
     def _on_robot_sample(self, sample: zenoh.Sample) -> None:
@@ -373,7 +374,7 @@ class TrackerNode:
             self._robot_gone.pop(session, None)
 
     def _close(self, request: CloseSession) -> CloseSession:
-        self.manager.authorize(request.session, request.token)
+        self.manager.authorize_query(request, "close")
         self._drop(request.session)
         return CloseSession(session=request.session)
 

@@ -24,7 +24,8 @@ from .config import PhysicsSettings
 log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
-    from .sessions import Session, SessionManager
+    from .session import Session
+    from .sessions import SessionManager
 
 __all__ = ["MEASURED_STEPS", "Pool", "PoolKey", "Turn", "build_pool", "idle_pose", "warm_up"]
 

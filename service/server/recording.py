@@ -146,7 +146,7 @@ class SessionRecorder(Output):
         f = self._files.get(frame.session)
         if f is None:
             return
-        f.json("frame", frame.model_dump(exclude={"token"}), frame.stamp)
+        f.json("frame", frame.model_dump(exclude={"token", "mac"}), frame.stamp)
         joints = TYPES.types[_JOINTS](
             header=TYPES.types["std_msgs/msg/Header"](stamp=to_ros_time(frame.stamp), frame_id=f.frame_id),
             name=list(f.info.joint_names),
@@ -159,7 +159,7 @@ class SessionRecorder(Output):
     def observation(self, observation: PoseObservation) -> None:
         with self._guarded(observation.session):
             if (f := self._files.get(observation.session)) is not None:
-                f.json("observation", observation.model_dump(exclude={"token"}), observation.stamp)
+                f.json("observation", observation.model_dump(exclude={"token", "mac"}), observation.stamp)
 
     def estimate(self, estimate: Estimate) -> None:
         with self._guarded(estimate.session):

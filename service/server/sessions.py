@@ -14,12 +14,12 @@ import re
 import secrets
 import time
 import uuid
-from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
 from protocol import (
+    CloseSession,
     ErrorCode,
     Estimate,
     OpenSession,
@@ -27,10 +27,10 @@ from protocol import (
     RobotFrame,
     SessionInfo,
     SessionStatus,
-    TrackState,
     sensing_field,
 )
-from service.tracker import Frame, GroupEstimates
+from protocol.auth import verify, verify_query
+from service.tracker import Frame
 from sim_backend import ObjectSpec, RobotSpec, resolve_device
 
 from .admission import Admission, Gate, ServiceError
@@ -38,6 +38,7 @@ from .budget import FrameTimes, device_name
 from .config import ServiceConfig
 from .frames import frame_problem, in_order
 from .pools import MEASURED_STEPS, Pool, PoolKey, Turn, build_pool, warm_up
+from .session import Session
 
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
 
@@ -45,51 +46,6 @@ log = logging.getLogger(__name__)
 
 _SAID = 500
 """The most characters of a refused input's error a session's status repeats."""
-
-
-@dataclass
-class Session:
-    id: str
-    token: str
-    """The session's secret: frames, close, status and pose queries must carry it."""
-    robot: str
-    object: str
-    method: str
-    pool: Pool
-    group: int
-    name: str = ""
-    """The session's name: its ROS 2 topics and TF frame follow it."""
-    next_seq: int = 0
-    pending: deque = field(default_factory=deque)
-    """Accepted frames not yet stepped, in seq order: (frame, receive time)."""
-    frames: int = 0
-    gaps: int = 0
-    duplicates: int = 0
-    late: int = 0
-    stale: int = 0
-    resyncs: int = 0
-    errors: int = 0
-    last_error: str | None = None
-    observations: int = 0
-    observations_stale: int = 0
-    reseeds_by_observation: int = 0
-    observed: deque = field(default_factory=lambda: deque(maxlen=8))
-    """Pose observations accepted and not yet applied (the newest few)."""
-    newest_stamp: float | None = None
-    """The robot clock of the newest frame accepted [s]."""
-    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
-    latest: Estimate | None = None
-    contacts_explored: bool = False
-    failed: str | None = None
-    """Why the session's population failed; it takes no more frames then."""
-    notice: str | None = None
-    late_run: int = 0
-    """Frames in a row that came behind the session's seq."""
-    overflow_said: bool = False
-    """Whether the session was told its worlds ran out of contact room."""
-    """Said to the robot with its next estimate, then cleared."""
-    heard: float = field(default_factory=time.monotonic)
-    """When the session last received a frame (or opened) [s, monotonic]."""
 
 
 class SessionManager:
@@ -232,6 +188,13 @@ class SessionManager:
         self.authorize(session_id, token)
         self.drop(session_id)
 
+    def authorize_query(self, request: CloseSession, purpose: str) -> Session:
+        """The session a ``purpose`` request ("status", "close") is about, if its robot sent it."""
+        session = self.sessions.get(request.session)
+        if session is None or not verify_query(request, session.token, purpose):
+            raise ServiceError(ErrorCode.FORBIDDEN, f"session '{request.session}': not open, or not yours")
+        return session
+
     def drop(self, session_id: str) -> None:
         """Close a session (if open); a population left without sessions is dropped, its memory and
         worlds freed."""
@@ -263,13 +226,12 @@ class SessionManager:
         a frame of the wrong size or with values no robot sends (:func:`.frames.frame_problem`) is
         refused with the field and the numbers (and counted). A seq
         beyond the window either way re-synchronises the session to it; a full queue drops its oldest."""
-        try:
-            session = self.authorize(frame.session, frame.token)
-        except ServiceError:
-            if (known := self.sessions.get(frame.session)) is not None:  # its robot sees another peer publish
-                known.errors += 1
-                known.last_error = f"RobotFrame.token: does not match the session's (seq {frame.seq}); frame refused"
-            raise
+        session = self.sessions.get(frame.session)
+        if session is None or not verify(frame, session.token):
+            if session is not None:  # its robot sees another peer publish
+                session.errors += 1
+                session.last_error = f"RobotFrame.mac: not the session's robot's (seq {frame.seq}); frame refused"
+            raise ServiceError(ErrorCode.FORBIDDEN, f"session '{frame.session}': not open, or not yours")
         if session.failed is not None:
             session.errors += 1
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
@@ -291,7 +253,9 @@ class SessionManager:
     def observe(self, observation: PoseObservation) -> None:
         """Queue a pose observation for the session's next step; one older than the newest frame by
         more than ``max_observation_age_s`` (robot clock) is counted stale and dropped."""
-        session = self.authorize(observation.session, observation.token)
+        session = self.sessions.get(observation.session)
+        if session is None or not verify(observation, session.token):
+            raise ServiceError(ErrorCode.FORBIDDEN, f"session '{observation.session}': not open, or not yours")
         if session.failed is not None:
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
         limit = self.config.max_observation_age_s
@@ -363,7 +327,7 @@ class SessionManager:
                     f" than its {cfg.constraints_per_world} constraint rows) and dropped the excess: set the service's"
                     " [physics] contacts_per_world higher"
                 )
-            s.latest = _estimate(s, frame, est, latency)
+            s.latest = s.estimate(frame, est, latency)
             s.notice = None
             s.contacts_explored = bool(est.contacts_explored[g])
             out.append(s.latest)
@@ -383,31 +347,11 @@ class SessionManager:
         pool.failed = True
         return failed
 
-    def status(self, session_id: str, token: str) -> SessionStatus:
-        s = self.authorize(session_id, token)
-        lat = np.asarray(s.latencies) if s.latencies else np.zeros(1)
-        cov = s.latest.covariance if s.latest is not None else np.zeros((6, 6))
-        return SessionStatus(
-            session=s.id,
-            frames=s.frames,
-            gaps=s.gaps,
-            duplicates=s.duplicates,
-            late=s.late,
-            stale=s.stale,
-            resyncs=s.resyncs,
-            errors=s.errors,
-            latency_p50_ms=float(np.percentile(lat, 50)),
-            latency_p99_ms=float(np.percentile(lat, 99)),
-            cost=float(s.latest.cost) if s.latest else 0.0,
-            spread_m=float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
-            last_error=s.last_error,
-            observations=s.observations,
-            observations_stale=s.observations_stale,
-            reseeds_by_observation=s.reseeds_by_observation,
-            budget_ms=self.budget_ms if self.config.rate_hz else 0.0,
-            load_ms=self.load_ms(),
-            contacts_explored=s.contacts_explored,
-        )
+    def status(self, session_id: str, token: str) -> SessionStatus:  # a robot that sends its token
+        return self.status_of(self.authorize(session_id, token))
+
+    def status_of(self, s: Session) -> SessionStatus:
+        return s.status(self.budget_ms if self.config.rate_hz else 0.0, self.load_ms())
 
     def count_error(self, session_id: str, message: str) -> None:
         """A frame for this session that could not even be decoded. The message is cut short: a
@@ -416,24 +360,3 @@ class SessionManager:
         if s is not None:
             s.errors += 1
             s.last_error = message if len(message) <= _SAID else message[: _SAID - 3] + "..."
-
-
-def _estimate(s: Session, frame: RobotFrame, est: GroupEstimates, latency: float) -> Estimate:
-    """Session ``s``'s estimate, from its group's row of a step's estimates, for ``frame``."""
-    g = s.group
-    return Estimate(
-        session=s.id,
-        seq=frame.seq,
-        stamp=frame.stamp,
-        pose=est.pose[g],
-        mean_pose=est.mean_pose[g],
-        covariance=est.covariance[g],
-        cost=float(est.cost[g]),
-        mass=float(est.mass[g]),
-        friction=float(est.friction[g]),
-        status=TrackState(int(est.status[g])).name.lower(),
-        modes=est.modes[g],
-        mode_weights=est.mode_weights[g],
-        latency_ms=latency,
-        notice=s.notice,
-    )
