@@ -14,16 +14,14 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import (
     BaseModel,
-    BeforeValidator,
     ConfigDict,
     Field,
-    PlainSerializer,
     StrictInt,
-    WithJsonSchema,
     create_model,
     field_validator,
 )
 
+from .arrays import Matrix6, Pose, Poses, Vector, array_field
 from .sensing import SENSING
 
 __all__ = [
@@ -57,52 +55,6 @@ METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
 """The optimizers a session may ask for: open loop, the paper's EYE baseline, and its three optimizers."""
 DEFAULT_METHOD = "PBO"
 """A session's optimizer when it does not say."""
-
-
-def _array(rank: int, last: int | None = None):
-    def convert(value):
-        try:
-            arr = np.asarray(value, dtype=np.float32)
-        except (TypeError, ValueError):  # a map, a string, ragged lists: say what came
-            raise ValueError(f"expected an array of numbers, got {type(value).__name__}") from None
-        if arr.ndim != rank:
-            raise ValueError(f"expected {rank} dimensions, got shape {arr.shape}")
-        if last is not None and arr.shape[-1] != last:
-            raise ValueError(f"expected last dimension {last}, got shape {arr.shape}")
-        bad = ~np.isfinite(arr)
-        if bad.any():
-            index = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValueError(f"{int(bad.sum())} non-finite values, first at {index} = {arr[index]}")
-        return arr
-
-    shape = ["N"] * (rank - (last is not None)) + ([last] if last is not None else [])
-    # On the wire an array is the codec's map (protocol/codec.py); msgpack's bin has no JSON type.
-    schema = {
-        "type": "object",
-        "description": f"float32 array of shape ({', '.join(map(str, shape))}): the codec's array map",
-        "x-shape": shape,
-        "properties": {
-            "__nd__": {"const": True},
-            "dtype": {"const": "<f4"},
-            "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": rank, "maxItems": rank},
-            "data": {"description": "msgpack bin: the values, little-endian float32, C order"},
-        },
-        "required": ["__nd__", "dtype", "shape", "data"],
-    }
-    return Annotated[
-        np.ndarray,
-        BeforeValidator(convert),
-        PlainSerializer(lambda a: a, return_type=np.ndarray),
-        WithJsonSchema(schema),
-    ]
-
-
-Vector = _array(1)
-Pose = _array(1, 7)
-Vec3s = _array(2, 3)
-Poses = _array(2, 7)
-Vec2s = _array(2, 2)
-Matrix6 = _array(2, 6)
 
 
 REACH = 10.0
@@ -295,7 +247,7 @@ class _FrameHeader(_Message):
 def _sensing_fields() -> dict:
     fields = {}
     for f in SENSING:
-        kind = _array(1 + len(f.trailing), f.trailing[-1] if f.trailing else None)
+        kind = array_field(1 + len(f.trailing), f.trailing[-1] if f.trailing else None)
         text = f"{f.doc} Shape {({'joint': 'D', 'sensor': 'L', 'zone': 'Z'}[f.per], *f.trailing)} [{f.unit}]."
         fields[f.name] = (kind | None, Field(None, description=text)) if f.optional else (kind, Field(description=text))
     return fields
