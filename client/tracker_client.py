@@ -161,11 +161,12 @@ class TrackerClient:
                     found[info.name] = info
         return sorted(found.values(), key=lambda i: (-i.free_worlds, i.sessions - i.max_sessions, i.name))
 
-    def wait_ready(self, timeout: float | None = None, absent: float = 3.0) -> ServiceInfo:
+    def wait_ready(self, timeout: float | None = None, absent: float | None = None) -> ServiceInfo:
         """Wait until the service (without a name: any service) answers and has compiled its
         kernels (minutes on a first start with a cold cache); TimeoutError after ``timeout`` [s]
-        (default the client's), or after ``absent`` [s] when nothing answers at all: a service that
-        is warming up answers that it is not ready, one that is not there never answers."""
+        (default the client's), or, with ``absent``, after that many seconds in which nothing
+        answered at all: a service warming up answers that it is not ready, one that is not there
+        never answers (a service process still importing its libraries does not answer either)."""
         start = time.monotonic()
         deadline = start + (timeout or self.timeout)
         answered = False
@@ -185,7 +186,7 @@ class TrackerClient:
             except TimeoutError:
                 pass
             which = "no service" if self._route else f"service '{self.keys.service}'"
-            if not answered and time.monotonic() - start >= absent:
+            if absent is not None and not answered and time.monotonic() - start >= absent:
                 raise TimeoutError(
                     f"{which} does not answer at {', '.join(self.endpoints)} (waited {absent:g} s): start one"
                     " with `inhand-tracker serve`, or give its address (--connect) and name (--name)"
@@ -217,7 +218,7 @@ class TrackerClient:
         (``/inhand/{name}/pose``; default ``{robot}_{object}``)."""
         if self.info is not None:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
-        self.wait_ready()
+        self.wait_ready(absent=3.0)  # no service at the address is said within seconds
         request = OpenSession(
             robot=robot,
             object=object,

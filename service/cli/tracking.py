@@ -116,7 +116,7 @@ def watch(
 
     with TrackerClient(connect=names(connect), service=name) as client:
         try:
-            client.wait_ready(timeout=3600)  # a service that is not there says so within seconds
+            client.wait_ready(timeout=3600, absent=3.0)  # a service that is not there is said within seconds
         except TimeoutError as exc:
             raise fail(f"watch: {exc}") from None
         watcher = client.watch(show)
