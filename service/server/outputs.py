@@ -51,9 +51,6 @@ class Outputs:
     def add(self, output: Output) -> None:
         self._outputs.append(output)
 
-    def __iter__(self):
-        return iter(self._outputs)
-
     def _each(self, hook: str, *args) -> None:
         for output in self._outputs:
             try:

@@ -7,7 +7,7 @@ A setting is named by its own name alone (``jitter_bandwidth``) where a session 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, is_dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 
 from .cost import CostConfig
 from .optimizers import OptimizerConfig
@@ -336,7 +336,7 @@ def setting_types(config: type, kinds: tuple[type, ...] = (int, float)) -> dict[
         elif type(f.default) in kinds:
             out[f.name] = type(f.default)
         elif f.default is None:  # an optional number (None: the library's own default) is set as the number
-            out |= dict.fromkeys([f.name], next((k for k in kinds if f.type == f"{k.__name__} | None"), None))
-            out = {k: v for k, v in out.items() if v is not None}
-    assert not any(is_dataclass(t) for t in out.values())
+            optional = [k for k in kinds if f.type == f"{k.__name__} | None"]
+            if optional:
+                out[f.name] = optional[0]
     return out
