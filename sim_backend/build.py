@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import math
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import newton
 import numpy as np
@@ -85,6 +85,23 @@ def build_model(
         nominal_mass=float(world.body_mass[object_body]),
         nominal_inertia=np.asarray(world.body_inertia[object_body], dtype=np.float32).reshape(3, 3),
     )
+
+
+def contact_capacity(built: BuiltModel, cfg: PopulationConfig) -> PopulationConfig:
+    """``cfg`` with its contact and constraint capacities sized from the robot and object where
+    they are None: room for every collision shape of the robot to press the object at two points,
+    and the object and the robot to rest on the table at four each, and no less than 32; five
+    constraint rows per contact (an elliptic cone's normal and friction rows and the joint limits).
+    A world that still makes more drops the excess, and the tracker says so with the numbers."""
+    if cfg.contacts_per_world is not None and cfg.constraints_per_world is not None:
+        return cfg
+    model, w = built.model, built.model.world_count
+    flags, body = model.shape_flags.numpy(), model.shape_body.numpy()
+    colliding = (flags & int(newton.ShapeFlags.COLLIDE_SHAPES)) != 0
+    on_robot = colliding & (body >= 0) & (body % built.bodies != built.object_body)
+    robot = int(on_robot.sum()) // max(w, 1)
+    contacts = cfg.contacts_per_world or max(32, 2 * robot + 8)
+    return replace(cfg, contacts_per_world=contacts, constraints_per_world=cfg.constraints_per_world or 5 * contacts)
 
 
 def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:

@@ -63,15 +63,17 @@ class PopulationConfig:
     most 0.23 ± 0.18 mm of ADD (docs/real-time.md). Ground truth keeps the solver's own."""
     ls_tolerance: float = 0.1
     """Line-search tolerance: the search stops once the slope has fallen to this share of its start."""
-    contacts_per_world: int = 32
-    """MuJoCo contact capacity per world (nconmax); a held grasp makes ~10, a grasp on the table ~20."""
+    contacts_per_world: int | None = None
+    """MuJoCo contact capacity per world (nconmax); None sizes it from the robot and object
+    (:func:`sim_backend.build.contact_capacity`). A pinch makes about 10, a grasp on the table
+    about 20, an object rolled on a Shadow hand's palm over 30."""
     broad_phase: str = "explicit"
     """Collision broad phase: "explicit" tests the model's precomputed shape pairs (the hand never
     collides with itself, so that list is short), "sap" or "nxn" search all shapes."""
     contact_gap: float = 0.005
     """Shapes closer than this make (speculative) contacts [m]."""
-    constraints_per_world: int = 160
-    """MuJoCo constraint rows per world (njmax)."""
+    constraints_per_world: int | None = None
+    """MuJoCo constraint rows per world (njmax); None: five per contact the world holds."""
     slip_speed: float = 0.01
     """Tangential speed of a pad against the object above which it slips [m/s]."""
     spin_speed: float = 0.3
@@ -97,7 +99,7 @@ class PopulationConfig:
         )
         for name in counts:
             value = getattr(self, name)
-            if value is None and name.endswith("iterations"):
+            if value is None and name.endswith(("iterations", "per_world")):
                 continue
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"population {name}: expected a positive integer, got {value!r}")

@@ -205,13 +205,18 @@ def load_catalog(path: str | os.PathLike = DEFAULT_CONFIG) -> dict[str, ObjectSp
     for name, entry in table.items():
         physics = {k: entry[k] for k in ("mass", "friction") if k in entry}
         physics |= {k: tuple(entry[k]) for k in ("mass_range", "friction_range") if k in entry}
-        if "mesh" in entry:
+        if "box" in entry:
+            size = tuple(float(v) for v in entry["box"])
+            if len(size) != 3 or min(size) <= 0:
+                raise ValueError(f"objects config '{path}': '{name}' box: expected 3 sizes > 0 [m], got {list(size)}")
+            catalog[name] = _box(name, size, **physics)  # type: ignore[arg-type]
+        elif "mesh" in entry:
             mesh_path = str(path.parent / entry["mesh"])
             catalog[name] = load_mesh_object(name, mesh_path, scale=float(entry.get("scale", 1.0)), **physics)
         elif name in catalog:
             catalog[name] = replace(catalog[name], **physics)
         else:
-            raise ValueError(f"objects config '{path}': '{name}' is not a catalog shape and has no 'mesh'")
+            raise ValueError(f"objects config '{path}': '{name}' is not a catalog shape and has no 'box' or 'mesh'")
     return catalog
 
 

@@ -387,22 +387,31 @@ def touch_from_sums(
 
 
 def add_sensor_noise(
-    sensing: dict[str, np.ndarray],
+    sensing: dict[str, np.ndarray | None],
     rng: np.random.Generator,
     joint_sigma: float = 0.0,
     force_sigma: float = 0.0,
     force_bias: float = 0.0,
     slip_miss: float = 0.0,
+    touch_sigma: float = 0.0,
+    touch_deadband: float = 0.0,
 ) -> None:
     """What real sensors add to a recording's sensing fields (F, G, ...), in place: Gaussian joint
     noise [rad or m]; force noise per axis and a bias per sensor and axis fixed per track [N], read
-    only while in contact; and missed slip and spin events (a fraction ``slip_miss`` of the flags)."""
-    _, g, l = sensing["slip"].shape
+    only while in contact; missed slip and spin events (a fraction ``slip_miss`` of the flags);
+    touch-zone noise [N] while pressed and a deadband [N] under which a zone reads 0, as a touch
+    array's threshold does. A field the robot does not send (None) stays so."""
     q = sensing["q"]
     sensing["q"] = q + rng.normal(0.0, joint_sigma, q.shape).astype(np.float32)
-    force = sensing["force"]
-    bias = rng.normal(0.0, force_bias, (1, g, l, 3))
-    touching = np.linalg.norm(force, axis=-1, keepdims=True) > 0  # a sensor reads noise only in contact
-    sensing["force"] = (force + touching * (bias + rng.normal(0.0, force_sigma, force.shape))).astype(np.float32)
+    if (force := sensing["force"]) is not None:
+        _, g, l, _ = force.shape
+        bias = rng.normal(0.0, force_bias, (1, g, l, 3))
+        touching = np.linalg.norm(force, axis=-1, keepdims=True) > 0  # a sensor reads noise only in contact
+        sensing["force"] = (force + touching * (bias + rng.normal(0.0, force_sigma, force.shape))).astype(np.float32)
     for flags in (sensing["slip"], sensing["spin"]):
-        flags[rng.random(flags.shape) < slip_miss] = 0.0
+        if flags is not None:
+            flags[rng.random(flags.shape) < slip_miss] = 0.0
+    if (touch := sensing["touch"]) is not None and touch.size:
+        pressed = touch > 0
+        touch = np.maximum(touch + pressed * rng.normal(0.0, touch_sigma, touch.shape), 0.0)
+        sensing["touch"] = np.where(touch < touch_deadband, 0.0, touch).astype(np.float32)

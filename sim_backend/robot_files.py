@@ -15,14 +15,14 @@ import newton
 import numpy as np
 import warp as wp
 
-from .robot_specs import FileRobotSpec, RobotLayout, joint_coord_dof, zone_layout
+from .robot_specs import FileRobotSpec, RobotLayout, TouchZone, joint_coord_dof, zone_layout
 
-__all__ = ["add_file_robot"]
+__all__ = ["add_file_robot", "python_package_path"]
 
 _PYTHON_URI = re.compile(r"python://([A-Za-z_][\w.]*)/")
 
 
-def _python_package_path(uri: str) -> str:
+def python_package_path(uri: str) -> str:
     """``python://PACKAGE/rel/path`` as a path inside the installed Python package (found without
     importing it); any other path unchanged. This is how robot models shipped in a package from
     PyPI are named, the way ``package://`` names a ROS package."""
@@ -53,7 +53,7 @@ def _mjcf_source(spec: FileRobotSpec) -> str:
 
 
 def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLayout:
-    spec = replace(spec, path=_python_package_path(spec.path))
+    spec = replace(spec, path=python_package_path(spec.path))
     if not os.path.isfile(spec.path):
         raise ValueError(f"robot '{spec.name}' path: no such file '{spec.path}'")
     body_start, joint_start = builder.body_count, builder.joint_count
@@ -103,7 +103,8 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
             raise ValueError(f"robot '{spec.name}' sensor_offsets: expected shape {offsets.shape}, got {off.shape}")
         offsets = off
     local = {name: b - body_start for name, b in body_names.items()}
-    zones, zone_bodies, zone_boxes = zone_layout(spec.name, spec.touch_zones, local)
+    sites = _site_zones(builder, spec, body_start) if spec.touch_sites else ()
+    zones, zone_bodies, zone_boxes = zone_layout(spec.name, spec.touch_zones + sites, local)
     default_q = np.asarray(spec.default_q, dtype=np.float64) if spec.default_q else np.clip(0.0, lower, upper)
     if default_q.shape != lower.shape:
         raise ValueError(f"robot '{spec.name}' default_q: expected {lower.shape[0]} values, got {default_q.shape[0]}")
@@ -122,6 +123,39 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
         zone_bodies=zone_bodies,
         zone_boxes=zone_boxes,
     )
+
+
+def _site_zones(builder: newton.ModelBuilder, spec: FileRobotSpec, body_start: int) -> tuple[TouchZone, ...]:
+    """The touch zones of the robot's sites whose names match ``spec.touch_sites``, in the file's
+    order: each site's box (a sphere's bounding cube) as the axis-aligned box that bounds it in
+    its link's frame."""
+    try:
+        pattern = re.compile(spec.touch_sites)
+    except re.error as exc:
+        raise ValueError(f"robot '{spec.name}' touch_sites: not a regular expression: {exc}") from None
+    zones = []
+    for sh in range(builder.shape_count):
+        name = _short(builder.shape_label[sh])
+        if not (builder.shape_flags[sh] & newton.ShapeFlags.SITE) or builder.shape_body[sh] < body_start:
+            continue
+        if not pattern.fullmatch(name):
+            continue
+        kind, scale = builder.shape_type[sh], np.asarray(builder.shape_scale[sh], np.float64)
+        if kind == newton.GeoType.SPHERE:
+            half = np.full(3, scale[0])
+        elif kind == newton.GeoType.BOX:
+            half = scale
+        else:
+            raise ValueError(
+                f"robot '{spec.name}' touch_sites: site '{name}' is a {kind.name.lower()}; expected a box or a sphere"
+            )
+        xform = builder.shape_transform[sh]
+        turn = np.abs(np.array(wp.quat_to_matrix(wp.quat(*xform[3:])), np.float64).reshape(3, 3))
+        link = _short(builder.body_label[builder.shape_body[sh]])
+        zones.append(TouchZone(name, link, tuple(float(c) for c in xform[:3]), tuple(float(h) for h in turn @ half)))
+    if not zones:
+        raise ValueError(f"robot '{spec.name}' touch_sites: no site of '{spec.path}' matches '{spec.touch_sites}'")
+    return tuple(zones)
 
 
 def _per_joint(spec: FileRobotSpec, name: str) -> np.ndarray:

@@ -166,6 +166,10 @@ class FileRobotSpec:
     touch_zones: tuple[TouchZone, ...] = ()
     """Regions of the links that sense a normal force (``touch`` in a frame): ``[[touch_zones]]``
     tables in the robot config, each with a name, a link, a center and half_extents."""
+    touch_sites: str = ""
+    """A regular expression: the MJCF's sites whose names match it become touch zones too (their
+    box, or a sphere's bounding box, on the link that carries them), as a model that declares
+    MuJoCo touch sensors on sites describes its touch array; empty for none."""
     package_dirs: tuple[str, ...] = ()
     """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
     NAME folder); the URDF's own package folder is found without it."""

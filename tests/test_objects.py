@@ -13,8 +13,9 @@ import trimesh
 from sim_backend import CATALOG, HandSpec, Population, PopulationConfig, load_catalog, load_mesh_object
 
 
-def test_catalog_has_the_papers_three_objects_with_their_physics():
-    assert set(CATALOG) == {"spam_can", "foam_brick", "toy_banana"}
+def test_catalog_has_the_papers_three_objects_and_the_block_with_their_physics():
+    assert set(CATALOG) == {"spam_can", "foam_brick", "toy_banana", "block"}
+    assert CATALOG["block"].box_half_extents == pytest.approx((0.025, 0.025, 0.025))  # a `box` entry
     for obj in CATALOG.values():
         lo, hi = obj.mass_range
         assert 0 < lo <= obj.mass <= hi

@@ -12,7 +12,7 @@ in the sensor frame, force-weighted slip and spin against thresholds).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mujoco
@@ -57,6 +57,11 @@ class MujocoScene:
     """Each sensor frame in its body's frame, (L, 7): position [m], quaternion (x, y, z, w)."""
     nominal_mass: float
     """The object's mass as built [kg]."""
+    touch_sensors: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """sensordata address of the MuJoCo touch sensor of each touch zone, (Z,)."""
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """Where the tracker's world origin lies in the model's world [m]: a scene written by others
+    places the robot where its authors chose."""
 
 
 def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
@@ -140,10 +145,10 @@ def _run(
     d = mujoco.MjData(m)
     d.qpos[scene.qpos] = demo.q
     p = demo.object_pose.astype(np.float64)
-    d.qpos[scene.object_qpos : scene.object_qpos + 7] = [*p[:3], p[6], *p[3:6]]
+    d.qpos[scene.object_qpos : scene.object_qpos + 7] = [*(p[:3] + scene.origin), p[6], *p[3:6]]
     d.ctrl[:] = demo.q[scene.actuator_joint]
     mujoco.mj_forward(m, d)
-    steps = round(1.0 / (FRAME_RATE * STEP))
+    steps = round(1.0 / (FRAME_RATE * m.opt.timestep))  # the model's own step, as near as the rate allows
     m.opt.timestep = 1.0 / (FRAME_RATE * steps)
     sensing = {f.name: [] for f in SENSING if f.name != "controls"}
     poses = []
@@ -155,11 +160,14 @@ def _run(
         last = u
         for name, value in _observe(scene, d, slip_speed, spin_speed).items():
             sensing[name].append(value)
-        x, q = d.xpos[scene.object_body], d.xquat[scene.object_body]
+        x, q = d.xpos[scene.object_body] - scene.origin, d.xquat[scene.object_body]
         poses.append([*x, q[1], q[2], q[3], q[0]])
     stack = lambda rows: np.asarray(rows, np.float32)[:, None]  # noqa: E731
+    # A robot without fingertip sensors sends no forces, slip or spin: those groups are absent.
+    pads = len(scene.sensor_bodies) > 0 or not len(scene.touch_sensors)
+    sensed = {k: stack(v) if pads or k in ("q", "touch") else None for k, v in sensing.items()}
     return Recording(
-        sensing={"controls": demo.controls[:, None], **{k: stack(v) for k, v in sensing.items()}},
+        sensing={"controls": demo.controls[:, None], **sensed},
         object_pose=stack(poses),
         initial_pose=demo.object_pose[None].astype(np.float32),
         initial_q=demo.q[None].astype(np.float32),
@@ -174,6 +182,9 @@ def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed
     """What the robot senses now, as :mod:`sim_backend.observe` computes it for a world."""
     m = scene.model
     L = len(scene.sensor_bodies)
+    if L == 0:  # a robot without fingertip sensors: joints and touch zones
+        none = observe.touch_from_sums(*np.zeros((3, 0, 3)), np.zeros(0), slip_speed, spin_speed)
+        return {"q": d.qpos[scene.qpos].copy(), **none, "touch": d.sensordata[scene.touch_sensors].astype(np.float32)}
     sensors = Rotation.from_matrix(d.xmat[scene.sensor_bodies].reshape(-1, 3, 3)) * Rotation.from_quat(
         scene.sensor_offsets[:, 3:]
     )  # each sensor frame in the world (scipy's quaternions are (x, y, z, w), as ours)
@@ -212,5 +223,5 @@ def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed
     return {
         "q": d.qpos[scene.qpos].copy(),
         **observe.touch_from_sums(forces, sliding, turning, weight, slip_speed, spin_speed),
-        "touch": np.zeros(0, np.float32),  # the robot's MJCF declares no touch zones
+        "touch": d.sensordata[scene.touch_sensors].astype(np.float32),
     }

@@ -70,7 +70,7 @@ def cost_ranking(
     names = [*TERM_NAMES, "frame cost", "window cost"]
     rho: list[np.ndarray] = []
     for f in range(rec.frames):
-        tracker.step(Frame(**{name: v[f] for name, v in rec.sensing.items()}))
+        tracker.step(Frame(**{name: None if v is None else v[f] for name, v in rec.sensing.items()}))
         terms = tracker.cost.last_terms.double().cpu().numpy()  # (G, K, terms)
         # The window restarts at an update: right after one it holds nothing to rank.
         window = (tracker.window / max(tracker.window_frames, 1)).double().cpu().numpy()

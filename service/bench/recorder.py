@@ -28,8 +28,9 @@ class Recording(SensingAttributes):
     really ends.
     """
 
-    sensing: dict[str, np.ndarray]
-    """Every field of protocol.SENSING, (F, G, ...): what the robots sent."""
+    sensing: dict[str, np.ndarray | None]
+    """Every field of protocol.SENSING, (F, G, ...): what the robots sent; None for a field of a
+    presence group no track sensed (a robot without fingertip sensors sends no forces)."""
     object_pose: np.ndarray
     """True object pose after each frame, (F, G, 7)."""
     initial_pose: np.ndarray
@@ -60,7 +61,7 @@ class Recording(SensingAttributes):
             mass=float(self.mass[g]),
             friction=float(self.friction[g]),
         )
-        sensing = {name: cut(v) for name, v in self.sensing.items()}
+        sensing = {name: None if v is None else cut(v) for name, v in self.sensing.items()}
         return Trajectory(self.names[g], robot, obj, FRAME_RATE, truth=truth, meta=dict(meta or {}), **sensing)
 
     @classmethod
@@ -71,7 +72,8 @@ class Recording(SensingAttributes):
         per_track = lambda name: np.stack([getattr(r, name)[g] for r, g in tracks])  # noqa: E731
         return cls(
             sensing={
-                name: np.stack([r.sensing[name][:, g] for r, g in tracks], axis=1) for name in tracks[0][0].sensing
+                name: None if v is None else np.stack([r.sensing[name][:, g] for r, g in tracks], axis=1)
+                for name, v in tracks[0][0].sensing.items()
             },
             object_pose=per_frame("object_pose"),
             **{name: per_track(name) for name in ("initial_pose", "initial_q", "mass", "friction", "lengths")},
@@ -91,8 +93,8 @@ class Recording(SensingAttributes):
 
     @classmethod
     def stack(cls, trajectories: Sequence[Trajectory]) -> Recording:
-        """G trajectories (with truth) side by side, padded to the longest; touch a trajectory
-        lacks is zero."""
+        """G trajectories (with truth) side by side, padded to the longest; a field a trajectory
+        lacks is zero, one they all lack None."""
         if any(t.truth is None for t in trajectories):
             raise ValueError("recording: every trajectory needs its ground truth")
         lengths = np.array([t.frames for t in trajectories])
@@ -110,7 +112,9 @@ class Recording(SensingAttributes):
                 [pad(t.sensing[s.name], t.frames, s.shape(d, l_count, z_count)) for t in trajectories], axis=1
             )
             for s in SENSING
+            if any(t.sensing[s.name] is not None for t in trajectories)
         }
+        sensing |= {s.name: None for s in SENSING if s.name not in sensing}
         return cls(
             sensing=sensing,
             object_pose=np.stack([pad(t.truth.pose, t.frames, (7,)) for t in trajectories], axis=1),

@@ -66,6 +66,9 @@ def _head(results: dict, command: str) -> list[str | None]:
         (
             "- truth recorded in MuJoCo C from the robot's MJCF (1 ms step, its own collision detection)"
             if suite.get("engine") == "mujoco"
+            else f"- truth recorded in MuJoCo C from `{suite['scene']['path']}` as its authors ship it"
+            " (robot mount, actuators, object, contact settings, step and touch sensors)"
+            if suite.get("engine") == "scene"
             else f"- truth physics off from the tracker's: {suite['gap']}"
         )
         + f"; sensor noise: {suite['sensors']}",

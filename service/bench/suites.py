@@ -14,6 +14,7 @@ from sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
 from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS
 from .palm_motions import PALM_MOTION_KINDS
+from .scene_truth import MANIPULATE_BLOCK, SceneFile
 
 __all__ = [
     "EXPLORATION",
@@ -59,6 +60,10 @@ class SensorNoise:
     """Fingertip force bias, standard deviation per sensor and axis, fixed per track [N]."""
     slip_miss: float = 0.0
     """Fraction of slip events the slip detector misses."""
+    touch_sigma: float = 0.0
+    """Touch-zone noise while pressed, standard deviation [N]."""
+    touch_deadband: float = 0.0
+    """A touch zone reads 0 under this force [N]."""
 
 
 @dataclass(frozen=True)
@@ -75,8 +80,11 @@ class Suite:
     sensors: SensorNoise = SensorNoise()
     seed: int = 0
     engine: str = "newton"
-    """What records the truth: "newton" (the tracker's own simulator, the demos) or "mujoco"
-    (MuJoCo C from the robot's MJCF, the motions of :mod:`.motions`)."""
+    """What records the truth: "newton" (the tracker's own simulator, the demos), "mujoco"
+    (MuJoCo C from the robot's MJCF, the motions of :mod:`.motions`) or "scene" (MuJoCo C from a
+    scene file someone else wrote: :attr:`scene`)."""
+    scene: SceneFile | None = None
+    """The scene file of an engine "scene" suite: robot, object and physics as its authors ship them."""
     drop: bool = False
     """The object slips out of the hand in the middle of the first carry, a drop that the robot
     did not command and the tracker is not told of (its friction falls to 0.02 in the truth). Its
@@ -93,7 +101,9 @@ class Suite:
         )  # fmt: skip
 
 
-_REAL_SENSORS = SensorNoise(joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2)
+_REAL_SENSORS = SensorNoise(
+    joint_sigma=0.005, force_sigma=0.05, force_bias=0.05, slip_miss=0.2, touch_sigma=0.05, touch_deadband=0.1
+)
 """What the suites that stand in for a real robot add to its sensing."""
 
 _SHADOW_OBJECTS = ("spam_can", "foam_brick")
@@ -131,6 +141,17 @@ SUITES: dict[str, Suite] = {
         gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
         sensors=_REAL_SENSORS,
         robot="shadow_hand",
+    ),
+    "manipulate": Suite(
+        "manipulate",
+        ("block",),
+        PALM_MOTION_KINDS,
+        1,
+        seconds=15.0,
+        sensors=_REAL_SENSORS,
+        engine="scene",
+        scene=MANIPULATE_BLOCK,
+        robot="shadow_touch",
     ),
     "cross-engine-shadow": Suite(
         "cross-engine-shadow",

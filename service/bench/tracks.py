@@ -262,7 +262,7 @@ def _follow(
     vision = torch.Generator().manual_seed(run.suite.seed + 1)
     cov = np.diag([run.vision_sigma[0] ** 2] * 3 + [run.vision_sigma[1] ** 2] * 3)
     for f in range(frames):
-        est = tracker.step(Frame(**{name: v[f, rows] for name, v in rec.sensing.items()}))
+        est = tracker.step(Frame(**{name: None if v is None else v[f, rows] for name, v in rec.sensing.items()}))
         for name, series in said.items():
             series[f] = getattr(est, name)
         diverged += est.reseeded

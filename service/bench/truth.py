@@ -32,6 +32,7 @@ from .motions import make_motion
 from .mujoco_truth import MujocoScene, export_scene, record_mujoco
 from .palm_motions import make_palm_motion
 from .recorder import Recording, record
+from .scene_truth import load_scene
 from .suites import SensorNoise, Suite, robot_spec
 
 __all__ = ["ground_truth", "open_loop_disagreement"]
@@ -49,7 +50,8 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
     written to ``cache``) with hidden mass and friction drawn from the tracker's prior (among those
     with which the hand keeps hold of the object): the demos (or a palm-carrying hand's palm
     motions) in the tracker's own simulator (one population per object, one group per physics draw
-    of a demo), or the motions in MuJoCo C (``suite.engine``)."""
+    of a demo), or the motions in MuJoCo C from the robot's MJCF or the suite's scene file
+    (``suite.engine``)."""
     spec = robot_spec(suite.robot, suite.gap.finger_damping)
     kin = Kinematics(robot_spec(suite.robot))  # the robot's own model plans the demos
     on_palm = kin.layout.carries_on_palm  # palm motions; a hand that pinches gets the demos and motions
@@ -88,10 +90,14 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
         log.info(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
         t0 = time.perf_counter()
         rng = np.random.default_rng([suite.seed, o])
-        if suite.engine == "mujoco":
+        if suite.engine in ("mujoco", "scene"):
             with tempfile.TemporaryDirectory() as tmp:
                 xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
-                scene = export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
+                scene = (
+                    load_scene(suite.scene, kin.layout, obj.mass)
+                    if suite.scene is not None
+                    else export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
+                )
                 recordings, rounds = _held_mujoco(scene, obj, demos, rng, margin)
             tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
         else:

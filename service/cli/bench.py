@@ -134,10 +134,13 @@ def bench_load(
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
 
 
+SUITE_HELP = "smoke, paper, reality-gap, cross-engine (+ -shadow), manipulate or loss"
+
+
 @bench.command("accuracy")
 def bench_accuracy(
     ctx: typer.Context,
-    suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap, cross-engine (+ -shadow) or loss")] = "smoke",
+    suite: Annotated[str, typer.Option(help=SUITE_HELP)] = "smoke",
     short: Annotated[bool, typer.Option(help="the suite in short form: one object, two kinds, 10 s tracks")] = False,
     methods: Annotated[str, typer.Option(help="comma-separated: OLP, EYE, WRS, REPS, PBO")] = "OLP,EYE,WRS,REPS,PBO",
     noise: Annotated[str, typer.Option(help="initial pose noise levels: low, med, high")] = "low,med,high",
@@ -212,7 +215,7 @@ def bench_accuracy(
 
 @bench.command("cost-ranking")
 def bench_cost_ranking(
-    suite: Annotated[str, typer.Option(help="smoke, paper, reality-gap, cross-engine (+ -shadow) or loss")] = "smoke",
+    suite: Annotated[str, typer.Option(help=SUITE_HELP)] = "smoke",
     short: Annotated[bool, typer.Option(help="the suite in short form")] = False,
     method: Annotated[str, typer.Option(help="the optimizer that runs the population")] = "PBO",
     worlds: Annotated[int, typer.Option(help="K, worlds per track")] = 40,

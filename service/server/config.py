@@ -47,10 +47,12 @@ class PhysicsSettings(BaseModel):
     """The solver's convergence tolerance on the scaled cost improvement and gradient."""
     ls_tolerance: float = Field(PopulationConfig.ls_tolerance, gt=0, lt=1)
     """Its line search's tolerance: the search stops once the slope has fallen to this share of its start."""
-    contacts_per_world: int = Field(PopulationConfig.contacts_per_world, ge=1)
-    """Contacts a world holds; a world that makes more drops the excess and the service says so."""
-    constraints_per_world: int = Field(PopulationConfig.constraints_per_world, ge=1)
-    """Constraint rows a world holds (joint limits, contacts' normal and friction rows)."""
+    contacts_per_world: int | None = Field(PopulationConfig.contacts_per_world, ge=1)
+    """Contacts a world holds (default: sized from the robot and object); a world that makes more
+    drops the excess and the service says so, with the numbers."""
+    constraints_per_world: int | None = Field(PopulationConfig.constraints_per_world, ge=1)
+    """Constraint rows a world holds (joint limits, contacts' normal and friction rows; default:
+    five per contact)."""
 
     def population(self, groups: int, worlds: int, device: str) -> PopulationConfig:
         """The population's config for ``groups`` x ``worlds`` worlds with these physics."""

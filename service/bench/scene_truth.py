@@ -1,0 +1,93 @@
+"""Ground truth from a scene someone else wrote: an MJCF that holds the robot, the object and
+their physics as its authors ship them, run in MuJoCo C. Nothing of it passes through this
+project's model building: the hand's mount, its actuators, the object, the contact settings and
+the touch sensors are the file's own, and only the tracker's robot config says how its joints and
+touch zones are named there.
+
+The scene's touch sensors are read as the robot's touch array (MuJoCo's touch sensor: the normal
+force of the contacts inside its site), one per touch zone of the tracker's robot, matched by
+site name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from sim_backend.robot_files import python_package_path
+from sim_backend.robot_specs import RobotLayout
+
+from .mujoco_truth import MujocoScene
+
+__all__ = ["MANIPULATE_BLOCK", "SceneFile", "load_scene"]
+
+
+@dataclass(frozen=True)
+class SceneFile:
+    """A scene file and what the truth needs to know of it."""
+
+    path: str
+    """The MJCF, a path or ``python://PACKAGE/...``."""
+    object_body: str
+    """The body of the object the robot handles."""
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Where the tracker's world origin lies in the scene's world [m] (the robot config's ``base``
+    moves the same mount there)."""
+
+
+MANIPULATE_BLOCK = SceneFile(
+    "python://gymnasium_robotics/envs/assets/hand/manipulate_block_touch_sensors.xml", "object", (1.0, 1.0, 0.0)
+)
+"""Gymnasium-Robotics' HandManipulateBlockTouchSensors scene: the Shadow hand palm up on its mount,
+the 5 cm block, its 2 ms step and solver, and 92 touch sensors over palm and phalanges. (The
+package's egg and pen scenes are left alone: an independent check.)"""
+
+
+def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float) -> MujocoScene:
+    """``scene`` in MuJoCo C, with the tracker's robot ``layout`` found in it by name: its joints,
+    the joint each actuator drives, and the touch sensor on each touch zone's site. A ValueError
+    names what the scene lacks."""
+    path = Path(python_package_path(scene.path))
+    model = mujoco.MjModel.from_xml_path(str(path))
+
+    def find(kind: mujoco.mjtObj, name: str, what: str) -> int:
+        i = mujoco.mj_name2id(model, kind, name)
+        if i < 0:
+            raise ValueError(f"scene '{path.name}': no {what} '{name}' (the robot config '{layout.name}' names it)")
+        return i
+
+    joints = [find(mujoco.mjtObj.mjOBJ_JOINT, n, "joint") for n in layout.joint_names]
+    qpos = np.array([model.jnt_qposadr[j] for j in joints])
+    index = {j: d for d, j in enumerate(joints)}
+    actuator_joint = []
+    for a in range(model.nu):
+        j = int(model.actuator_trnid[a, 0])
+        if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or j not in index:
+            raise ValueError(f"scene '{path.name}': actuator '{model.actuator(a).name}' drives no joint of the robot")
+        actuator_joint.append(index[j])
+    touch_of_site = {
+        int(model.sensor_objid[s]): int(model.sensor_adr[s])
+        for s in range(model.nsensor)
+        if model.sensor_type[s] == mujoco.mjtSensor.mjSENS_TOUCH
+    }
+    sites = [find(mujoco.mjtObj.mjOBJ_SITE, n, "site") for n in layout.zone_names]
+    missing = [n for n, s in zip(layout.zone_names, sites, strict=True) if s not in touch_of_site]
+    if missing:
+        raise ValueError(f"scene '{path.name}': no touch sensor on the sites {missing}")
+    body = find(mujoco.mjtObj.mjOBJ_BODY, scene.object_body, "body")
+    return MujocoScene(
+        model=model,
+        xml=path,
+        qpos=qpos,
+        actuator_joint=np.array(actuator_joint),
+        object_body=body,
+        object_qpos=int(model.jnt_qposadr[model.body_jntadr[body]]),
+        sensor_bodies=np.zeros(0, np.int64),  # the scene's robot has no fingertip force sensors
+        sensor_offsets=np.zeros((0, 7)),
+        nominal_mass=nominal_mass,
+        touch_sensors=np.array([touch_of_site[s] for s in sites], np.int64),
+        origin=np.asarray(scene.origin, np.float64),
+    )

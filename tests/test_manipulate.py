@@ -1,0 +1,119 @@
+"""The manipulate suite: Gymnasium-Robotics' HandManipulateBlockTouchSensors scene as its authors
+ship it, run in MuJoCo C as the truth, its 92 touch sensors as the robot's touch array, and the
+tracker on its own config of that hand (`shadow_touch`)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from service.bench.mujoco_truth import record_mujoco
+from service.bench.palm_motions import PALM_MOTION_KINDS, make_palm_motion
+from service.bench.recorder import record
+from service.bench.scene_truth import MANIPULATE_BLOCK, SceneFile, load_scene
+from service.bench.suites import robot_spec
+from service.cli import app
+from sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
+from sim_backend.robot_specs import FileRobotSpec
+
+GRAVITY = 9.81
+
+
+@pytest.fixture(scope="module")
+def hand():
+    spec = robot_spec("shadow_touch")
+    return spec, Kinematics(spec)
+
+
+@pytest.fixture(scope="module")
+def roll(hand):
+    """A roll of the block on the palm, in the package's scene and in the tracker's physics."""
+    spec, kin = hand
+    obj = catalog_object("block")
+    demo = make_palm_motion(kin, obj, "roll", seconds=8.0)
+    scene = load_scene(MANIPULATE_BLOCK, kin.layout, obj.mass)
+    truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
+    ours = record(Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu")), demo,
+                  np.array([obj.mass]), np.array([obj.friction]))  # fmt: skip
+    return scene, demo, truth, ours
+
+
+def test_the_robot_config_takes_its_touch_zones_from_the_models_touch_sites(hand):
+    _, kin = hand
+    names = kin.layout.zone_names
+    assert len(names) == 92 and names[0] == "robot0:T_palm_b0"
+    palm = kin.layout.zone_boxes[0]  # the site's box as the package writes it
+    assert palm == pytest.approx([0.011, -0.005, 0.006, 0.033, 0.007, 0.019])
+    tip = kin.layout.zone_boxes[names.index("robot0:T_fftip_tip")]
+    assert tip[3:] == pytest.approx([0.008] * 3)  # a sphere site: its bounding cube
+
+
+def test_a_touch_sites_pattern_that_matches_nothing_is_named(hand):
+    spec, _ = hand
+    assert isinstance(spec, FileRobotSpec)
+    with pytest.raises(ValueError, match=r"robot 'shadow_touch' touch_sites: no site of .* matches 'robot0:X_.\*'"):
+        Kinematics(replace(spec, touch_sites="robot0:X_.*"))
+    with pytest.raises(ValueError, match=r"touch_sites: not a regular expression"):
+        Kinematics(replace(spec, touch_sites="(["))
+
+
+def test_the_scene_is_the_packages_own(roll):
+    scene, *_ = roll
+    m = scene.model
+    assert m.opt.timestep == pytest.approx(1 / 30 / 17)  # its 2 ms step, as near as 30 Hz frames allow
+    assert m.nu == 20 and len(scene.touch_sensors) == 92  # its actuators; no servo on a distal joint
+    assert m.body(scene.object_body).name == "object" and m.geom("object").size == pytest.approx([0.025] * 3)
+    with pytest.raises(ValueError, match=r"scene 'manipulate_block_touch_sensors.xml': no body 'mug'"):
+        load_scene(SceneFile(MANIPULATE_BLOCK.path, "mug"), Kinematics(robot_spec("shadow_touch")).layout, 0.07)
+
+
+def test_the_block_stays_on_the_palm_and_its_weight_is_felt_there(roll):
+    _, demo, truth, ours = roll
+    assert truth.held([demo], margin=-0.03)[0]
+    assert truth.force is None and truth.slip is None  # the scene's hand has no fingertip sensors
+    assert truth.touch.shape == (demo.frames, 1, 92)
+    mass = catalog_object("block").mass
+    settled = slice(8, 17)  # resting on the open palm before the fingers move
+    weight = mass * GRAVITY
+    felt = truth.touch[settled, 0].sum(-1)
+    assert np.all(np.abs(felt - weight) < 0.25 * weight), (felt, weight)
+    # The tracker's worlds feel it on the same zones: the same sites on the same links.
+    ours_felt = ours.touch[settled, 0]
+    assert np.all(np.abs(ours_felt.sum(-1) - weight) < 0.25 * weight), ours_felt.sum(-1)
+    pressed = lambda t: set(np.flatnonzero(t[settled, 0].mean(0) > 0.05 * weight))  # noqa: E731
+    assert pressed(truth.touch) & pressed(ours.touch), (pressed(truth.touch), pressed(ours.touch))
+
+
+@pytest.mark.slow
+def test_the_manipulate_suite_in_short_form_tracks_the_block_on_the_palm(tmp_path):
+    out = tmp_path / "out"
+    args = ["bench", "accuracy", "--suite", "manipulate", "--short", "--methods", "OLP,PBO", "--noise", "med"]
+    args += ["--worlds", "8", "--device", "cpu", "--out", str(out), "--cache", str(tmp_path / "cache")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    results = json.loads((out / "results.json").read_text())
+    assert results["suite"]["engine"] == "scene" and results["suite"]["name"] == "manipulate-short"
+    summary = {m: results["summary"][m]["med"]["mean_mm"] for m in ("OLP", "PBO")}
+    # On the palm, not lost (a hypothesis off the hand costs 100 mm or more); the accuracy is a
+    # claim over many starts at K=40 and 1024, for the GPU benchmark.
+    assert max(summary.values()) < 40.0, summary
+    assert "manipulate_block_touch_sensors.xml" in (out / "report.md").read_text()
+    assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
+        f"manipulate-short-block_{k}_0.traj" for k in sorted(PALM_MOTION_KINDS[:2])
+    ]
+
+
+def test_touch_noise_has_a_deadband_and_a_field_the_robot_lacks_stays_absent():
+    touch = np.zeros((200, 1, 3), np.float32)
+    touch[:, 0, 1], touch[:, 0, 2] = 0.05, 2.0  # a graze under the deadband, a press
+    sensing = {"q": np.zeros((200, 1, 4), np.float32), "force": None, "slip": None, "spin": None, "touch": touch}
+    add_sensor_noise(sensing, np.random.default_rng(0), joint_sigma=0.005, touch_sigma=0.05, touch_deadband=0.1)
+    noisy = sensing["touch"][:, 0]
+    assert (noisy[:, 0] == 0).all(), "an untouched zone reads nothing"
+    assert (noisy[:, 1] == 0).mean() > 0.8, "under the deadband it reads 0 (but for noise past it)"
+    assert abs(noisy[:, 2].std() - 0.05) < 0.01 and abs(noisy[:, 2].mean() - 2.0) < 0.02
+    assert sensing["force"] is None and sensing["slip"] is None
