@@ -404,3 +404,7 @@ class SessionStatus(_Message):
     """Whether the session's worlds explore their contacts' softness and impratio: their lowest
     cost said the model's contacts are wrong (a session of 1024 worlds or more; the tracker's
     ``contact_gate_cost``)."""
+    joints_off: dict[str, float] = Field(default_factory=dict)
+    """The model check: joints whose simulated motion runs from the measured one by more than the
+    service's ``model_check`` over the last seconds, by name: their RMS difference [rad or m]. The
+    robot config's servos are not the robot's; ``inhand-tracker calibrate`` fits them."""

@@ -190,7 +190,7 @@ class _HandBuilder:
 
     def layout(self) -> RobotLayout:
         self.builder.add_articulation(self.joints, label=self.spec.name)
-        coord, _ = joint_coord_dof(self.builder, self.joints)
+        coord, dof = joint_coord_dof(self.builder, self.joints)
         low, up = np.asarray(self.lower), np.asarray(self.upper)
         if self.spec.default_q:
             default_q = np.asarray(self.spec.default_q, dtype=np.float64)
@@ -207,6 +207,7 @@ class _HandBuilder:
             name=self.spec.name,
             joint_names=tuple(self.names),
             coord_indices=coord,
+            dof_indices=dof,
             lower=low,
             upper=up,
             default_q=default_q,

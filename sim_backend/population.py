@@ -25,7 +25,7 @@ from .build import build_model, contact_capacity, make_physics
 from .config import PopulationConfig, resolve_device
 from .objects import ObjectSpec
 from .params import ObjectParams
-from .robots import RobotLayout, RobotSpec
+from .robots import SERVO_ARRAYS, RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 from .separate import separate_objects
 from .step import frame_arrays, simulate
@@ -376,6 +376,29 @@ class Population:
             self.params.write_contacts(timeconst, impratio)
         if any(x is not None for x in (mass, friction, timeconst, impratio)):
             self.params.notify(self.device)
+
+    def servos(self, name: str) -> torch.Tensor:
+        """The robot's servo setting ``name`` ("ke": gain [N m/rad or N/m], "kd": damping [N m s/rad
+        or N s/m], "effort": limit [N m or N]) in every world, (G, K, D): a view of the model."""
+        every = wp.to_torch(getattr(self.model, SERVO_ARRAYS[name])).view(self.G, self.K, self._dofs)
+        return every[..., torch.as_tensor(self.layout.dof_indices, device=self.torch_device)]
+
+    def set_servos(self, **settings: torch.Tensor | np.ndarray) -> None:
+        """Give each world its own servos: ``ke``, ``kd`` and ``effort`` as in :meth:`servos`, each
+        (G, K, D) or broadcastable, finite and >= 0 (a ValueError names the setting). Eager (the
+        solver republishes the DOF settings), so not for a captured frame: a calibration's
+        candidates, a model with its servos fitted."""
+        dof = torch.as_tensor(self.layout.dof_indices, device=self.torch_device)
+        for name, value in settings.items():
+            if name not in SERVO_ARRAYS:
+                raise ValueError(f"servos: unknown setting '{name}' (known: {sorted(SERVO_ARRAYS)})")
+            value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
+            if not bool(torch.isfinite(value).all() and (value >= 0).all()):
+                raise ValueError(f"servos {name}: expected finite values >= 0, got min {value.min().item():.4g}")
+            every = wp.to_torch(getattr(self.model, SERVO_ARRAYS[name])).view(self.G, self.K, self._dofs)
+            every[..., dof] = value.expand(self.G, self.K, self.D)
+        with self.on_stream():
+            self.solver.notify_model_changed(newton.ModelFlags.JOINT_DOF_PROPERTIES)
 
     def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
         """``value`` as a (G, K) float32 tensor on the device, after checking it on the host."""

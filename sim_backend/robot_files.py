@@ -112,6 +112,7 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
         name=spec.name,
         joint_names=tuple(spec.joints),
         coord_indices=coord,
+        dof_indices=dof,
         lower=lower,
         upper=upper,
         default_q=default_q,

@@ -71,6 +71,9 @@ class RobotLayout:
     """Actuated joints, shape (D,)."""
     coord_indices: np.ndarray
     """Index of each actuated joint in a world's ``joint_q``, shape (D,), int."""
+    dof_indices: np.ndarray
+    """Index of each actuated joint in a world's ``joint_qd`` and per-DOF settings (its servo's
+    gains and effort limit), shape (D,), int."""
     lower: np.ndarray
     """Lower joint limits, shape (D,) [rad or m]."""
     upper: np.ndarray
@@ -133,6 +136,9 @@ class HandSpec:
     default_q: tuple[float, ...] = field(default=())
     touch_zones: tuple[TouchZone, ...] = ()
     """Regions of the links that sense a normal force (``touch`` in a frame); none by default."""
+    servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    """Servo settings per actuated joint that replace the config's, as a calibration fitted them:
+    ("ke" | "kd" | "effort", one value per joint); the ``[servos]`` table of a config."""
     """Start joints (D=22); empty means wrist at 0.3 m height and an open hand."""
 
 
@@ -166,6 +172,9 @@ class FileRobotSpec:
     touch_zones: tuple[TouchZone, ...] = ()
     """Regions of the links that sense a normal force (``touch`` in a frame): ``[[touch_zones]]``
     tables in the robot config, each with a name, a link, a center and half_extents."""
+    servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    """Servo settings per actuated joint that replace the config's, as a calibration fitted them:
+    ("ke" | "kd" | "effort", one value per joint); the ``[servos]`` table of a config."""
     touch_sites: str = ""
     """A regular expression: the MJCF's sites whose names match it become touch zones too (their
     box, or a sphere's bounding box, on the link that carries them), as a model that declares
@@ -178,14 +187,38 @@ class FileRobotSpec:
 RobotSpec = HandSpec | FileRobotSpec
 
 
-def load_robot(path: str | os.PathLike) -> RobotSpec:
-    """A robot from a TOML file (see configs/robots/): ``kind = "hand"`` for the procedural hand,
-    ``kind = "file"`` for a URDF/MJCF robot whose ``path`` is relative to the TOML file."""
-    path = Path(path)
+SERVO_ARRAYS = {"ke": "joint_target_ke", "kd": "joint_target_kd", "effort": "joint_effort_limit"}
+"""Each servo setting a config's ``[servos]`` may give per joint, and the builder's and model's
+per-DOF array that holds it."""
+
+
+def _read_config(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    """A robot config's table, its file paths made absolute; an overlay (``extends = "BASE.toml"``,
+    relative to it) is its base's table with the overlay's keys replacing the base's."""
     try:
         table = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"robot config: cannot read '{path}': {exc}") from exc
+    if table.get("kind") == "file" or "path" in table:
+        if "path" in table and not str(table["path"]).startswith("python://"):
+            table["path"] = str(path.parent / table["path"])
+        if "package_dirs" in table:
+            table["package_dirs"] = [str(path.parent / d) for d in table["package_dirs"]]
+    base = table.pop("extends", None)
+    if base is None:
+        return table
+    base_path = (path.parent / base).resolve()
+    if base_path in seen:
+        raise ValueError(f"robot config '{path}' extends: '{base}' extends itself in a loop")
+    return _read_config(base_path, (*seen, base_path)) | table
+
+
+def load_robot(path: str | os.PathLike) -> RobotSpec:
+    """A robot from a TOML file (see configs/robots/): ``kind = "hand"`` for the procedural hand,
+    ``kind = "file"`` for a URDF/MJCF robot whose ``path`` is relative to the TOML file; an overlay
+    (``extends = "BASE.toml"``, as a calibration writes) changes its base's keys."""
+    path = Path(path)
+    table = _read_config(path)
     kind = table.pop("kind", None)
     cls = {"hand": HandSpec, "file": FileRobotSpec}.get(kind)
     if cls is None:
@@ -195,10 +228,12 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
     if unknown:
         raise ValueError(f"robot config '{path}': unknown keys {unknown} for kind '{kind}' (known: {sorted(known)})")
     if kind == "file":
-        if not str(table.get("path", "")).startswith("python://"):
-            table["path"] = str(path.parent / table["path"])
-        table["package_dirs"] = tuple(str(path.parent / d) for d in table.get("package_dirs", ()))
+        table["package_dirs"] = tuple(table.get("package_dirs", ()))
         table["sensor_offsets"] = tuple(tuple(o) for o in table.get("sensor_offsets", ()))
+    servos = table.pop("servos", {})
+    if not isinstance(servos, dict) or sorted(set(servos) - set(SERVO_ARRAYS)):
+        raise ValueError(f"robot config '{path}' servos: expected a table of {list(SERVO_ARRAYS)}, got {servos!r}")
+    table["servos"] = tuple((k, tuple(float(x) for x in v)) for k, v in servos.items())
     try:
         zones = tuple(TouchZone(**{k: tuple(v) if isinstance(v, list) else v for k, v in z.items()})
                       for z in table.pop("touch_zones", ()))  # fmt: skip

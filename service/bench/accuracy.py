@@ -71,6 +71,9 @@ class AccuracyRun:
     """Where generated ground truth is kept (None: nowhere)."""
     quiet: bool = False
     """No progress bar."""
+    servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    """The tracker's robot servos in place of its config's, as a calibration's overlay sets them
+    (:attr:`sim_backend.FileRobotSpec.servos`); the truth keeps its own."""
     frames_to: Path | None = None
     """Where :func:`.tracks.save_frames` writes every track's per-frame estimate against the truth."""
 
@@ -144,7 +147,7 @@ def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None
     bar = progress_bar(total, "tracking", unit="world-frames", disable=run.quiet)
     results: list[TrackResult] = []
     for o, ts in by_object.items():
-        drift = open_loop_disagreement(ts, run.device, run.physics)
+        drift, pressing = open_loop_disagreement(ts, run.device, run.physics, run.servos)
         first = len(results)
         by_k: dict[int, list[TrackSetting]] = {}
         for s in plan[o]:
@@ -154,6 +157,7 @@ def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None
             results += run_tracks(ts, k_tracks, run, bar.update)
             for r in results[first:]:
                 r.open_loop = drift[: r.add.shape[0], r.setting.trajectory]
+                r.open_loop_force_ratio = float(pressing[r.setting.trajectory])
             frames, seconds = max(t.frames for t in ts), time.perf_counter() - t1
             log.info(
                 f"tracked {o}: {len(k_tracks)} tracks x {k} worlds, {frames} frames in {seconds:.0f} s"
@@ -245,6 +249,7 @@ def _collect(run: AccuracyRun, results: list[TrackResult], t_truth: float, t_tra
         "tracker": _changed(asdict(run.config), asdict(TrackerConfig())),
         "substeps": run.substeps,
         "population": dict(run.population),
+        **({"servos": {k: list(v) for k, v in run.servos}} if run.servos else {}),
         "observations": vision,
         "seconds": {"ground_truth": t_truth, "tracking": t_track},
         "summary": fig2,

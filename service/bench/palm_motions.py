@@ -54,6 +54,16 @@ def palm_rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
     return np.array([PALM_CENTRE[0] + offset[0], PALM_CENTRE[1] + offset[1], z, *quat])
 
 
+def distal_coupling(lay) -> tuple[list[int], list[int]] | None:
+    """The Shadow Hand's middle joints (J1) and the distal joints (J0) its tendons make follow them,
+    by index in the robot's order; None for a robot without them."""
+    index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}
+    pairs = [(index.get(f"{f}J1"), index.get(f"{f}J0")) for f in _FINGERS]
+    if any(m is None or d is None for m, d in pairs):
+        return None
+    return [m for m, _ in pairs], [d for _, d in pairs]  # type: ignore[misc]
+
+
 def _shadow_joints(lay) -> dict[str, int]:
     """Each of the Shadow Hand's joints the motions move, by its short name, in the robot's order."""
     index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}

@@ -74,6 +74,10 @@ def _head(results: dict, command: str) -> list[str | None]:
         + f"; sensor noise: {suite['sensors']}",
         f"- tracker settings other than the defaults: {results['tracker']}" if results.get("tracker") else None,
         f"- tracker physics other than the defaults: {results['population']}" if results.get("population") else None,
+        "- the tracker's robot has its servos from a calibration on the robot's own recording"
+        f" ({', '.join(results['servos'])} per joint; the truth keeps its own)"
+        if results.get("servos")
+        else None,
         (
             f"- a camera's pose estimates reach the tracker: {seen['schedule']}, with noise"
             f" {seen['vision_sigma'][0] * 1e3:g} mm and {seen['vision_sigma'][1]:g} rad"
@@ -204,7 +208,8 @@ def _per_trajectory(results: dict, methods: list[str], noises: list[str], out: P
         "",
         "The open-loop column is how far the tracker's physics, started at the true pose with the true"
         " mass and friction, drifts from the truth (mean / max ADD, mm): the engines' disagreement"
-        " about the track's motion.",
+        " about the track's motion; and, after the x, how hard its hand presses against the truth's"
+        " (summed touch or fingertip force, simulated over true).",
         "",
         "| trajectory | open loop | " + " | ".join(methods) + " |",
         "|---|---|" + "---|" * len(methods),
@@ -219,8 +224,10 @@ def _per_trajectory(results: dict, methods: list[str], noises: list[str], out: P
             for m in methods
         ]
         first_track = next(t for t in tracks if t["trajectory"] == name)
+        ratio = first_track.get("open_loop_force_ratio")
         drift = (
             f"{first_track['open_loop_mean_mm']:.1f} / {first_track['open_loop_max_mm']:.1f}"
+            + (f" x{ratio:.2f}" if ratio is not None else "")
             if "open_loop_mean_mm" in first_track
             else "-"
         )

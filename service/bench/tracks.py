@@ -114,6 +114,10 @@ class TrackResult:
     """ADD of the tracker's physics run open loop from the true start with the true mass and
     friction, per frame, (F,) [m]: how far the engines disagree about this track's motion."""
 
+    open_loop_force_ratio: float | None = None
+    """How hard the tracker's hand presses in that open-loop run against the truth's: summed
+    touch-zone (or fingertip) force over the true one."""
+
     def summary(self) -> dict:
         return {
             **asdict(self.setting),
@@ -149,6 +153,7 @@ class TrackResult:
                 if self.open_loop is None
                 else {
                     "open_loop_mean_mm": float(self.open_loop.mean() * 1e3),
+                    "open_loop_force_ratio": self.open_loop_force_ratio,
                     "open_loop_max_mm": float(self.open_loop.max() * 1e3),
                 }
             ),
@@ -199,6 +204,7 @@ def run_tracks(
     every method, so methods are compared on equal footing; each repeat draws its own."""
     obj = catalog_object(trajectories[0].object)
     spec = robot_spec(trajectories[0].robot)
+    spec = replace(spec, servos=run.servos) if run.servos else spec
     rec = Recording.stack(trajectories)
     gen = torch.Generator().manual_seed(run.suite.seed)
     start = torch.tensor(rec.initial_pose, dtype=torch.float32)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -240,20 +240,32 @@ def _add_sensor_noise(rec: Recording, noise: SensorNoise, rng: np.random.Generat
 
 
 def open_loop_disagreement(
-    trajectories: list[Trajectory], device: str = "auto", population: dict | None = None
-) -> np.ndarray:
-    """How far the tracker's own physics, started exactly where the truth started and given its
-    hidden mass and friction, drifts from the truth over each track: ADD per frame, (F, n) [m],
-    zero past a track's end. What no tracker can beat by simulating alone: where it is large the
-    two engines disagree about the motion, and only the sensing can bring an estimate back."""
+    trajectories: list[Trajectory],
+    device: str = "auto",
+    population: dict | None = None,
+    servos: tuple = (),
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far the tracker's own physics (with ``servos`` in place of its config's, a
+    calibration's), started exactly where the truth started and given its hidden mass and
+    friction, drifts from the truth over each track: ADD per frame, (F, n) [m], zero past a track's
+    end; and how hard its hand presses against the truth's: the summed touch-zone (else fingertip)
+    force over the summed true one, (n,). What no tracker can beat by simulating alone: where the
+    drift is large the two engines disagree about the motion, and only the sensing can bring an
+    estimate back."""
     obj = catalog_object(trajectories[0].object)
     config = PopulationConfig(groups=len(trajectories), worlds=1, device=device, **(population or {}))
-    pop = Population(robot_spec(trajectories[0].robot), obj, config)
+    spec = robot_spec(trajectories[0].robot)
+    pop = Population(replace(spec, servos=servos) if servos else spec, obj, config)
     demos = [Demo(t.name, t.controls, t.truth.initial_pose, t.truth.initial_q, phases=()) for t in trajectories]
     mass = np.array([t.truth.mass for t in trajectories], np.float32)
     friction = np.array([t.truth.friction for t in trajectories], np.float32)
     rec = record(pop, demos, mass, friction)
     truth = Recording.stack(trajectories)
     add = add_error(obj.surface_points(1000), truth.object_pose, rec.object_pose)
-    add[np.arange(add.shape[0])[:, None] >= truth.lengths[None]] = 0.0
-    return add
+    within = np.arange(add.shape[0])[:, None] < truth.lengths[None]
+    add[~within] = 0.0
+    pressed = lambda r: (  # noqa: E731
+        r.touch.sum(-1) if r.touch is not None and r.touch.size else np.linalg.norm(r.force, axis=-1).sum(-1)
+    )
+    ratio = (pressed(rec) * within).sum(0) / np.maximum((pressed(truth) * within).sum(0), 1e-9)
+    return add, ratio

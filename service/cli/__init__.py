@@ -2,9 +2,9 @@
 
 Heavy imports (torch, warp, newton) happen inside the commands that need them, so `replay` and
 `--help` stay light. The commands live beside this file by concern: the service and the robot
-side (:mod:`.tracking`), the benchmarks (:mod:`.bench`). Defaults live in the settings they belong
-to (ServiceConfig, PopulationConfig, TrackerConfig, the protocol); an option left out takes that
-default.
+side (:mod:`.tracking`), the benchmarks (:mod:`.bench`), the robot's calibration
+(:mod:`.calibrate`). Defaults live in the settings they belong to (ServiceConfig,
+PopulationConfig, TrackerConfig, the protocol); an option left out takes that default.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Annotated
 
 import typer
 
-from . import bench, tracking  # noqa: F401  (their commands register on the apps)
+from . import bench, calibrate, tracking  # noqa: F401  (their commands register on the apps)
 from .common import app, version_callback
 
 __all__ = ["app", "main"]

@@ -159,6 +159,10 @@ def bench_accuracy(
     vision_sigma: Annotated[
         str, typer.Option(help="their noise, position [m] and rotation [rad], comma-separated")
     ] = "0.005,0.05",
+    robot_overlay: Annotated[
+        Path | None,
+        typer.Option(help="the tracker's servos from this calibration overlay (`calibrate`); the truth keeps its own"),
+    ] = None,
     device: Device = "auto",
     out: Annotated[Path | None, typer.Option(help="output folder (default bench-results/accuracy-SUITE)")] = None,
     cache: Annotated[Path | None, typer.Option(help="where generated trajectories are kept")] = None,
@@ -183,6 +187,7 @@ def bench_accuracy(
         raise fail(f"bench accuracy: vision-sigma: expected POSITION,ROTATION, got {vision_sigma!r}") from None
     out = out or Path(f"bench-results/accuracy-{suite}")
     command = command_line(ctx)
+    servos = _overlay_servos(robot_overlay, suite_named(suite, short).robot) if robot_overlay else ()
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps}.items() if v}
     try:
         run = AccuracyRun(
@@ -199,6 +204,7 @@ def bench_accuracy(
             device=device,
             cache=cache or CACHE_DIR,
             frames_to=out / "frames.npz" if save_frames else None,
+            servos=servos,
             **chosen,
         )
         with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the report or JSON
@@ -211,6 +217,66 @@ def bench_accuracy(
     else:
         typer.echo(report.read_text().split("\n## Ablation")[0].split("\n## Per trajectory")[0])
         typer.echo(f"report: {report}")
+
+
+@bench.command("calibration")
+def bench_calibration(
+    ctx: typer.Context,
+    suite: Annotated[str, typer.Option(help=SUITE_HELP)] = "manipulate",
+    seconds: Annotated[float, typer.Option(help="length of the calibration recording [s]")] = 20.0,
+    settings: Annotated[str, typer.Option(help="what to fit, comma-separated: ke, kd, effort")] = "ke,kd",
+    worlds: Annotated[int, typer.Option(help="candidates per generation")] = 128,
+    generations: Annotated[int, typer.Option(help="CMA-ES generations")] = 30,
+    device: Device = "auto",
+    out: Annotated[Path | None, typer.Option(help="output folder (default bench-results/calibration-SUITE)")] = None,
+) -> None:
+    """The suite's calibration recording (its robot moving every joint, the object out of reach,
+    recorded by the suite's truth), and the tracker's servos fitted to it: an overlay of the robot's
+    config for `bench accuracy --robot-overlay`, and a report."""
+    gpu_stack()
+    from service.bench.calibration import calibration_recording
+    from service.calibration import calibration_report, fit_servos, write_overlay
+    from service.paths import CONFIG_DIR
+    from sim_backend import catalog_object
+
+    chosen = suite_named(suite, False)
+    out = out or Path(f"bench-results/calibration-{suite}")
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            traj = calibration_recording(chosen, device, seconds)
+            traj.save(out / f"{suite}-calibration.traj")
+            spec = robot_spec_of(chosen.robot)
+            fit = fit_servos(spec, catalog_object(traj.object), [traj], tuple(names(settings) or ()), worlds,
+                             generations, device)  # fmt: skip
+    except ValueError as exc:
+        raise fail(f"bench calibration: {exc}") from None
+    config = CONFIG_DIR / "robots" / f"{chosen.robot}.toml"
+    overlay = write_overlay(fit, config, out / f"{chosen.robot}.calibrated.toml", command_line(ctx))
+    overlay.with_suffix(".md").write_text(calibration_report(fit))
+    overlay.with_suffix(".json").write_text(json.dumps(fit.summary() | {"device": device}, indent=2))
+    typer.echo(calibration_report(fit) + f"\noverlay: {overlay}")
+
+
+def robot_spec_of(name: str):
+    from service.bench.suites import robot_spec
+
+    return robot_spec(name)
+
+
+def _overlay_servos(path: Path, robot: str) -> tuple:
+    """The servos of a calibration overlay of ``robot``'s config, or exit 2 naming what is wrong."""
+    from sim_backend import load_robot
+
+    try:
+        spec = load_robot(path)
+    except ValueError as exc:
+        raise fail(f"--robot-overlay: {exc}") from None
+    if spec.name != robot:
+        raise fail(f"--robot-overlay: '{path}' is robot '{spec.name}', the suite's is '{robot}'")
+    if not spec.servos:
+        raise fail(f"--robot-overlay: '{path}' has no [servos] table (write one with `calibrate`)")
+    return spec.servos
 
 
 @bench.command("cost-ranking")

@@ -101,7 +101,9 @@ def command_line(ctx: typer.Context) -> str:
         repeated = isinstance(value, tuple) or getattr(param, "multiple", False)  # e.g. --set, once per value
         for v in value if repeated else (value,):
             shown = ",".join(map(str, v)) if isinstance(v, list) else str(v)
-            if shown != str(param.default):
+            if param.param_type_name == "argument":  # positional: as typed, one word each
+                words += [shlex.quote(str(x)) for x in (v if isinstance(v, list) else [v])]
+            elif shown != str(param.default):
                 words += [param.opts[0], shlex.quote(shown)]
     return " ".join(words)
 

@@ -109,6 +109,10 @@ class ServiceConfig(BaseSettings):
     """Frames in a row behind the session's seq after which the service takes the robot's counter
     as the truth and re-synchronises to it (a stray frame ran the seq ahead): a robot is never
     silenced by its own counter."""
+    model_check: float = Field(0.03, gt=0)
+    """RMS difference between the worlds' joints and the robot's past which the session's status
+    names a joint and the log says so once [rad, or m for a slide]: the robot config's servos are
+    not the robot's (measured joints read with a few mrad of noise)."""
     max_pending: int = Field(30, ge=1)
     """Frames queued per session at most; the oldest is dropped for a new one (a robot wants its
     newest frame tracked, not a backlog)."""

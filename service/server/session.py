@@ -18,6 +18,9 @@ if TYPE_CHECKING:
 
 __all__ = ["Session"]
 
+_CHECK_AFTER = 30
+"""Frames before the model check speaks: the worlds settle into their grasp first."""
+
 
 @dataclass
 class Session:
@@ -62,6 +65,26 @@ class Session:
     """Whether the session was told its worlds ran out of contact room."""
     heard: float = field(default_factory=time.monotonic)
     """When the session last received a frame (or opened) [s, monotonic]."""
+    joints_off: dict[str, float] = field(default_factory=dict)
+    """The model check: joints the worlds hold away from the robot's, by name: RMS [rad or m]."""
+
+    def check_model(self, rms: np.ndarray, joints: tuple[str, ...], threshold: float) -> str | None:
+        """Take the model check's latest RMS per joint (D,); once the session has a second of
+        frames, the joints past ``threshold`` [rad or m] are named in the status. Returns what to
+        say when that set grows, else None."""
+        if self.frames < _CHECK_AFTER:
+            return None
+        off = {name: round(float(r), 4) for name, r in zip(joints, rms, strict=True) if r > threshold}
+        grew = set(off) - set(self.joints_off)
+        self.joints_off = off
+        if not grew:
+            return None
+        worst = sorted(off.items(), key=lambda kv: -kv[1])
+        said = ", ".join(f"{n.rsplit(':', 1)[-1]} {r * 1e3:.0f}" for n, r in worst[:4])
+        return (
+            f"model: the worlds' joints run from the robot's ({said} mrad or mm RMS): the robot config's servos"
+            f" are not the robot's; `inhand-tracker calibrate` fits them from a recording"
+        )
 
     def status(self, budget_ms: float, load_ms: float) -> SessionStatus:
         """The session's status, beside the service's frame budget and load [ms]."""
@@ -88,6 +111,7 @@ class Session:
             budget_ms=budget_ms,
             load_ms=load_ms,
             contacts_explored=s.contacts_explored,
+            joints_off=s.joints_off,
         )
 
     def estimate(self, frame: RobotFrame, est: GroupEstimates, latency: float) -> Estimate:

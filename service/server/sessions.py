@@ -315,6 +315,7 @@ class SessionManager:
         if pool.steps % MEASURED_STEPS == 0:  # the device's curve learns from every population
             self.frame_times.observe(pool.worlds, self.gate.step_ms(pool))
         out = []
+        joint_names, threshold = pool.tracker.pop.layout.joint_names, self.config.model_check
         for s, frame, received in stepped:
             g = s.group
             s.frames += 1
@@ -327,6 +328,9 @@ class SessionManager:
                     f" than its {cfg.constraints_per_world} constraint rows) and dropped the excess: set the service's"
                     " [physics] contacts_per_world higher"
                 )
+            if est.joint_rms is not None and (said := s.check_model(est.joint_rms[g], joint_names, threshold)):
+                log.warning("session %s (%s): %s", s.id, s.robot, said)
+                s.notice = said
             s.latest = s.estimate(frame, est, latency)
             s.notice = None
             s.contacts_explored = bool(est.contacts_explored[g])

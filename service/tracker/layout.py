@@ -180,6 +180,9 @@ class GroupEstimates:
     overflow: np.ndarray | None = None
     """Whether a world of each group dropped contacts or constraint rows for want of room this
     frame, (G,) bool: its physics is then not the robot's (PopulationConfig.contacts_per_world)."""
+    joint_rms: np.ndarray | None = None
+    """How far the worlds' joints run from the robot's, RMS over the last seconds, (G, D) [rad or
+    m]: the model check (:class:`.joint_check.JointCheck`)."""
     reseeded: np.ndarray | None = None
     """Whether each group was re-seeded after this frame, (G,) bool (never an open-loop group)."""
 

@@ -31,6 +31,7 @@ from .config import TrackerConfig
 from .contacts import ContactExplorer
 from .cost import TERMS, Cost, RealObservation
 from .estimate import pose_statistics
+from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
 from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, update
@@ -161,6 +162,7 @@ class Tracker:
             self.frame = self.window_frames = 0
             self._window_frames.zero_()
         self.cost.reset(torch.as_tensor(mask, device=self.device))
+        self.joints.start(torch.as_tensor(mask, device=self.device))
         self.contacts.start(torch.as_tensor(mask, device=self.device), self.olp)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
@@ -249,8 +251,10 @@ class Tracker:
         views = self.inputs.views(self._inputs)
         self._controls = views.pop("controls")
         self.real = RealObservation(sensor_pos=self.fk.pos, sensor_rot=self.fk.rot, **views)
-        self._packed = torch.zeros(G, ESTIMATE.width, device=dev)
-        self._host_out = torch.zeros(G, ESTIMATE.width, pin_memory=pinned)
+        # The packed estimate, then each joint's RMS disagreement with the robot (the model check).
+        self._packed = torch.zeros(G, ESTIMATE.width + self.D, device=dev)
+        self._host_out = torch.zeros(G, ESTIMATE.width + self.D, pin_memory=pinned)
+        self.joints = JointCheck(G, self.D, dev)
         self._fetched = torch.cuda.Event() if pinned else None
 
     def step(self, frame: Frame) -> GroupEstimates:
@@ -274,7 +278,8 @@ class Tracker:
         if self._fetched is not None:
             self._fetched.synchronize()  # the one wait of the frame: the estimate itself
         packed = self._host_out.numpy().copy()
-        estimate = GroupEstimates.unpack(packed, self.frame, self.recovery.status.copy())
+        estimate = GroupEstimates.unpack(packed[:, : ESTIMATE.width], self.frame, self.recovery.status.copy())
+        estimate.joint_rms = packed[:, ESTIMATE.width :]
         has = lambda group: self.inputs.columns.view(self._staged, f"has_{group}") > 0  # noqa: E731
         hand = ESTIMATE.view(packed, "hand")
         reseeds = self.recovery.watch(estimate, frame.force, has("force"), hand, frame.touch, has("touch"))
@@ -323,7 +328,9 @@ class Tracker:
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
         self._window_frames += 1
-        self._packed.copy_(self._summary(self.scored(), lost))
+        self.joints.update(pop.obs.q, self.real.q)
+        self._packed[:, : ESTIMATE.width].copy_(self._summary(self.scored(), lost))
+        self._packed[:, ESTIMATE.width :].copy_(self.joints.rms())
 
     def _lost(self) -> torch.Tensor:
         """Which worlds lost their object, (G, K) bool. An object far from the hand is lost only

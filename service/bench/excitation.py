@@ -1,0 +1,59 @@
+"""A calibration recording's script: the hand moves every joint on its own, with the object out of
+its reach, so that each servo's stiffness and damping show in how its joint follows.
+
+Each joint steps between targets drawn across most of its range, held 0.3-0.8 s, with fast
+minimum-jerk moves between them (a servo's gain shows in how far it lags and overshoots, its
+damping in how it settles); the joints step at their own times, so one joint's motion is not
+confused with another's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_backend.kinematics import Kinematics
+from sim_backend.objects import ObjectSpec
+
+from .demos import FRAME_RATE, Demo
+from .motions import minimum_jerk
+
+__all__ = ["excitation_demo"]
+
+_MOVE = 0.05
+"""How long a step between targets takes [s]."""
+
+
+def excitation_demo(
+    kin: Kinematics,
+    obj: ObjectSpec,
+    seconds: float = 20.0,
+    seed: int = 0,
+    follow: tuple[list[int], list[int], float] | None = None,
+) -> Demo:
+    """``seconds`` of every joint stepping through its range, the object lying a metre away.
+    ``follow`` (leaders, followers, ratio): joints the robot's driver commands as a multiple of
+    others (a tendon-coupled finger's distal joint), as it would."""
+    if not (2.0 <= seconds <= 300.0):
+        raise ValueError(f"excitation seconds: expected 2 to 300, got {seconds}")
+    lay = kin.layout
+    rng = np.random.default_rng(seed)
+    frames = round(seconds * FRAME_RATE)
+    lo, hi = lay.lower + 0.1 * (lay.upper - lay.lower), lay.upper - 0.1 * (lay.upper - lay.lower)
+    controls = np.empty((frames, lay.dof_count))
+    t = np.arange(frames) / FRAME_RATE
+    for j in range(lay.dof_count):
+        q, at, path = lay.default_q[j], 0.0, np.empty(frames)
+        while at < seconds:
+            hold = rng.uniform(0.3, 0.8)
+            target = rng.uniform(lo[j], hi[j])
+            span = (t >= at) & (t < at + hold)
+            progress = minimum_jerk(np.clip((t[span] - at) / _MOVE, 0.0, 1.0))
+            path[span] = q + (target - q) * progress
+            q, at = target, at + hold
+        controls[:, j] = path
+    if follow is not None:
+        leaders, followers, ratio = follow
+        controls[:, followers] = np.clip(ratio * controls[:, leaders], lay.lower[followers], lay.upper[followers])
+    away = np.array([1.0, 1.0, -obj.mesh.bounds[0, 2], 0.0, 0.0, 0.0, 1.0])
+    return Demo(f"{obj.name}_excitation_{seed}", controls.astype(np.float32), away.astype(np.float32),
+                lay.default_q.astype(np.float32), phases=(("move", 0),))  # fmt: skip

@@ -1,0 +1,78 @@
+"""What a calibration leaves beside the robot's config: an overlay that the service loads in its
+place (the config with the fitted servos), and a report of what was fitted and how well."""
+
+from __future__ import annotations
+
+import datetime
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .servos import ServoFit
+
+__all__ = ["calibration_report", "write_overlay"]
+
+
+def _numbers(values: np.ndarray) -> str:
+    return "[" + ", ".join(f"{v:.6g}" for v in values) + "]"
+
+
+def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command: str = "") -> Path:
+    """Write the overlay of ``config`` with ``fit``'s servos (default ``NAME.calibrated.toml``
+    beside it); returns its path."""
+    out = out or config.with_name(f"{config.stem}.calibrated.toml")
+    before, after = (float(np.sqrt(np.mean(r**2))) * 1e3 for r in (fit.rms_before, fit.rms_after))
+    pinned = sum(int(v.sum()) for v in fit.identified.values())
+    lines = [
+        f"# Robot '{fit.robot}' with its servos fitted to its own recordings"
+        + (f" by `{command}`" if command else "")
+        + f" on {datetime.date.today().isoformat()}:",
+        f"# joint RMS error {before:.2f} -> {after:.2f} mrad (mm for slides) over {fit.frames} frames; {pinned} of"
+        f" {sum(v.size for v in fit.identified.values())} settings",
+        "# were pinned by the data, the others keep the config's values. Name this file in the service's",
+        "# `robots` setting in place of the config.",
+        f'extends = "{Path(os.path.relpath(config.resolve(), out.resolve().parent)).as_posix()}"',
+        "",
+        "[servos]  # one value per joint, in the config's joint order",
+        *(f"{s} = {_numbers(fit.fitted[s])}" for s in fit.settings),
+        "",
+    ]
+    out.write_text("\n".join(lines))
+    return out
+
+
+def calibration_report(fit: ServoFit) -> str:
+    """A markdown table per joint: RMS joint error before and after, each setting's fitted value
+    against the config's with its spread, and whether the data excited the joint."""
+    head = "| joint | RMS before | RMS after | " + " | ".join(fit.settings) + " |"
+    rows = [head, "|" + "---|" * (3 + len(fit.settings))]
+    for j, name in enumerate(fit.joints):
+        cells = []
+        for s in fit.settings:
+            nominal, fitted, spread = fit.nominal[s][j], fit.fitted[s][j], fit.spread[s][j]
+            cells.append(
+                f"{fitted:.4g} (config {nominal:.4g}, ±{spread * 100:.0f} %)"
+                if fit.identified[s][j]
+                else f"{nominal:.4g} kept (±{spread * 100:.0f} %)"
+            )
+        note = "" if fit.excited[j] else " (not excited)"
+        errors = f"{fit.rms_before[j] * 1e3:.2f} | {fit.rms_after[j] * 1e3:.2f}"
+        rows.append(f"| {name}{note} | {errors} | " + " | ".join(cells) + " |")
+    quiet = [n for n, e in zip(fit.joints, fit.excited, strict=True) if not e]
+    return "\n".join(
+        [
+            f"# Servo calibration of `{fit.robot}`",
+            "",
+            f"{fit.worlds} candidates a generation, {fit.generations} generations, {fit.frames} frames,"
+            f" {fit.seconds:.0f} s. RMS joint error in mrad (mm for slides); a setting's spread is how far the"
+            " best quarter of the last generation disagrees; one over 15 % keeps the config's value.",
+            "",
+            *rows,
+            "",
+            f"Joints the recording did not excite (moved less than a tenth of their range): {', '.join(quiet)}"
+            if quiet
+            else "Every joint was excited.",
+            "",
+        ]
+    )

@@ -1,0 +1,232 @@
+"""Servo identification: the robot's position servos (gain, damping, effort limit per joint) fitted
+to a recording of its commands and measured joints, with the population as the sampler.
+
+Every world of a population replays the recording's commands with a candidate of its own; the
+candidates are scaled from the robot config's values by log factors that CMA-ES (the ``cmaes``
+package) proposes, a generation per replay, and scored by the squared difference between each
+world's joints and the measured ones. A factor is kept only where the data pins it: the spread of
+the best quarter of the last generation says how well, and a setting the recording did not excite
+stays the config's.
+
+The recording should be free motion of the hand, or grasps of an object whose pose it carries
+(``.traj`` files with ground truth): the worlds simulate the object where the truth says it is,
+else far from the hand, where a grasp's blocked joints read as a servo too weak.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from cmaes import CMA
+
+from protocol import Trajectory
+from sim_backend import Population, PopulationConfig
+from sim_backend.objects import ObjectSpec
+from sim_backend.robots import RobotSpec
+
+__all__ = ["SERVO_SETTINGS", "ServoFit", "fit_servos"]
+
+log = logging.getLogger(__name__)
+
+SERVO_SETTINGS = ("ke", "kd", "effort")
+"""What can be fitted: gain [N m/rad or N/m], damping [N m s/rad or N s/m], effort limit [N m or N]."""
+_FACTOR = math.log(10.0)
+"""Candidates stay within a factor of 10 of the config's value either way."""
+_PINNED = 0.15
+"""A setting counts as identified when the best quarter of the last generation agrees on its log
+factor within this standard deviation (about +-15 %)."""
+_EXCITED = 0.1
+"""A joint counts as excited when its measured motion spans this share of its range."""
+
+
+@dataclass(frozen=True)
+class ServoFit:
+    """What a calibration found, per actuated joint (D,)."""
+
+    robot: str
+    joints: tuple[str, ...]
+    settings: tuple[str, ...]
+    """The servo settings fitted (of :data:`SERVO_SETTINGS`)."""
+    nominal: dict[str, np.ndarray]
+    """The robot config's values, each (D,)."""
+    fitted: dict[str, np.ndarray]
+    """The fitted values, each (D,): the config's where the data did not pin them."""
+    spread: dict[str, np.ndarray]
+    """How far the best candidates disagree, each (D,): a relative standard deviation."""
+    identified: dict[str, np.ndarray]
+    """Whether the data pinned each value, each (D,) bool."""
+    excited: np.ndarray
+    """Whether each joint moved enough to say anything, (D,) bool."""
+    rms_before: np.ndarray
+    """RMS joint error replaying the recording with the config's servos, (D,) [rad or m]."""
+    rms_after: np.ndarray
+    """The same with the fitted servos, (D,) [rad or m]."""
+    worlds: int
+    generations: int
+    frames: int
+    seconds: float
+    history: list[float] = field(default_factory=list)
+    """The best candidate's mean squared joint error per generation [rad^2 or m^2]."""
+
+    def summary(self) -> dict:
+        """As JSON-able numbers, per joint."""
+        per_joint = [
+            {
+                "joint": name,
+                "excited": bool(self.excited[j]),
+                "rms_before": float(self.rms_before[j]),
+                "rms_after": float(self.rms_after[j]),
+                **{
+                    s: {
+                        "nominal": float(self.nominal[s][j]),
+                        "fitted": float(self.fitted[s][j]),
+                        "spread": float(self.spread[s][j]),
+                        "identified": bool(self.identified[s][j]),
+                    }
+                    for s in self.settings
+                },
+            }
+            for j, name in enumerate(self.joints)
+        ]
+        return {
+            "robot": self.robot,
+            "settings": list(self.settings),
+            "worlds": self.worlds,
+            "generations": self.generations,
+            "frames": self.frames,
+            "seconds": self.seconds,
+            "rms_before": float(np.sqrt(np.mean(self.rms_before**2))),
+            "rms_after": float(np.sqrt(np.mean(self.rms_after**2))),
+            "joints": per_joint,
+        }
+
+
+@dataclass
+class _Series:
+    """The recordings side by side on the device: G groups of the population, one per recording."""
+
+    controls: torch.Tensor  # (F, G, D)
+    q: torch.Tensor  # (F, G, D)
+    valid: torch.Tensor  # (F, G, 1, 1): frames within each recording
+    q0: np.ndarray  # (G, D)
+    start: np.ndarray  # (G, 7)
+
+    @property
+    def frames(self) -> int:
+        return int(self.controls.shape[0])
+
+
+def _series(trajectories: list[Trajectory], obj: ObjectSpec, device: torch.device) -> _Series:
+    lengths = np.array([t.frames for t in trajectories])
+    f = int(lengths.max())
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        return np.concatenate([a, np.repeat(a[-1:], f - len(a), axis=0)]) if len(a) < f else a
+
+    stack = lambda name: torch.as_tensor(  # noqa: E731
+        np.stack([pad(np.asarray(getattr(t, name), np.float32)) for t in trajectories], axis=1), device=device
+    )
+    valid = torch.as_tensor(np.arange(f)[:, None] < lengths[None], dtype=torch.float32, device=device)
+    # Without a truth the object lies on the table a metre away, out of the hand's reach.
+    away = np.array([1.0, 1.0, -obj.mesh.bounds[0, 2], 0.0, 0.0, 0.0, 1.0])
+    start = np.stack([t.truth.initial_pose if t.truth is not None else away for t in trajectories])
+    q0 = np.stack([t.truth.initial_q if t.truth is not None else t.q[0] for t in trajectories])
+    return _Series(stack("controls"), stack("q"), valid[..., None, None], q0, start)
+
+
+def _replay(pop: Population, series: _Series, servos: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Every world replays the recording with its servos, (K, D) each; returns each world's summed
+    squared joint error over the groups' frames, (K, D)."""
+    pop.set_servos(**{name: v[None] for name, v in servos.items()})
+    pop.reset_state(series.start, series.q0)
+    err = torch.zeros((pop.G, pop.K, pop.D), device=pop.torch_device)
+    for f in range(series.frames):
+        pop.set_targets(series.controls[f])
+        pop.step()
+        err += (pop.obs.q - series.q[f][:, None]) ** 2 * series.valid[f]
+    return err.sum(0)
+
+
+def fit_servos(
+    spec: RobotSpec,
+    obj: ObjectSpec,
+    trajectories: list[Trajectory],
+    settings: tuple[str, ...] = ("ke", "kd"),
+    worlds: int = 64,
+    generations: int = 25,
+    device: str = "auto",
+    seed: int = 0,
+    progress: Callable[[int, float], None] | None = None,
+) -> ServoFit:
+    """Fit ``settings`` of every actuated joint of ``spec`` to ``trajectories`` (commands and
+    measured joints of that robot; ``obj`` is what the population simulates beside it) with
+    ``worlds`` candidates a generation; ``progress(generation, best)`` after each. A ValueError
+    names a bad argument."""
+    unknown = sorted(set(settings) - set(SERVO_SETTINGS))
+    if unknown or not settings:
+        raise ValueError(f"calibrate settings: expected some of {list(SERVO_SETTINGS)}, got {list(settings)}")
+    if worlds < 4 or generations < 1:
+        raise ValueError(f"calibrate: expected worlds >= 4 and generations >= 1, got {worlds} and {generations}")
+    if not trajectories:
+        raise ValueError("calibrate: no recording given")
+    if wrong := [t.name for t in trajectories if t.robot != trajectories[0].robot]:
+        raise ValueError(f"calibrate: recordings of several robots ({trajectories[0].robot} and {wrong[0]})")
+    t0 = time.perf_counter()
+    pop = Population(spec, obj, PopulationConfig(groups=len(trajectories), worlds=worlds, device=device, seed=seed))
+    d = pop.D
+    if (given := trajectories[0].controls.shape[1]) != d:
+        raise ValueError(f"calibrate: the recordings have {given} joints, robot '{spec.name}' {d}")
+    series = _series(trajectories, obj, pop.torch_device)
+    nominal = {s: pop.servos(s)[0, 0].cpu().numpy().astype(np.float64) for s in settings}
+    base = torch.as_tensor(np.stack([nominal[s] for s in settings]), dtype=torch.float32, device=pop.torch_device)
+
+    def candidates(x: np.ndarray) -> dict[str, torch.Tensor]:
+        factor = torch.exp(torch.as_tensor(x, dtype=torch.float32, device=pop.torch_device).view(-1, len(settings), d))
+        return {s: base[i] * factor[:, i] for i, s in enumerate(settings)}
+
+    n = len(settings) * d
+    cma = CMA(np.zeros(n), 0.5, bounds=np.tile([-_FACTOR, _FACTOR], (n, 1)), population_size=worlds, seed=seed)
+    history: list[float] = []
+    frames_valid = float(series.valid.sum())
+    for generation in range(generations):
+        xs = np.stack([cma.ask() for _ in range(worlds)])
+        cost = (_replay(pop, series, candidates(xs)).sum(-1) / (frames_valid * d)).cpu().numpy()
+        cma.tell(list(zip(xs, cost.astype(np.float64), strict=True)))
+        history.append(float(cost.min()))
+        if progress is not None:
+            progress(generation + 1, history[-1])
+    elite = xs[np.argsort(cost)[: max(2, worlds // 4)]].reshape(-1, len(settings), d)
+    spread = elite.std(axis=0)  # (S, D) in log factors
+    measured = series.q.cpu().numpy()
+    motion = measured.max(axis=(0, 1)) - measured.min(axis=(0, 1))
+    excited = motion >= _EXCITED * (pop.layout.upper - pop.layout.lower)
+    identified = (spread < _PINNED) & excited[None]
+    x_fit = np.where(identified, cma.mean.reshape(len(settings), d), 0.0)
+    # One more replay scores the config's servos (world 0) against the fitted ones (the others).
+    check = np.stack([np.zeros(n)] + [x_fit.ravel()] * (worlds - 1))
+    err = _replay(pop, series, candidates(check)).cpu().numpy()
+    rms = np.sqrt(err / frames_valid)
+    fitted = {s: nominal[s] * np.exp(x_fit[i]) for i, s in enumerate(settings)}
+    return ServoFit(
+        robot=spec.name,
+        joints=pop.layout.joint_names,
+        settings=tuple(settings),
+        nominal=nominal,
+        fitted=fitted,
+        spread={s: np.expm1(spread[i]) for i, s in enumerate(settings)},
+        identified={s: identified[i] for i, s in enumerate(settings)},
+        excited=excited,
+        rms_before=rms[0],
+        rms_after=rms[1],
+        worlds=worlds,
+        generations=generations,
+        frames=series.frames,
+        seconds=time.perf_counter() - t0,
+        history=history,
+    )

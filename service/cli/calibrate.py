@@ -1,0 +1,61 @@
+"""`calibrate`: the robot's servos fitted to its own recordings, written as an overlay of its config."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .common import Device, Json, app, check_device, command_line, fail, gpu_stack, names
+
+
+@app.command()
+def calibrate(
+    ctx: typer.Context,
+    recordings: Annotated[list[Path], typer.Argument(help="the robot's recordings: .traj or the service's .mcap")],
+    robot: Annotated[Path, typer.Option(help="the robot's config (TOML) the recordings were made with")],
+    settings: Annotated[str, typer.Option(help="what to fit, comma-separated: ke, kd, effort")] = "ke,kd",
+    worlds: Annotated[int, typer.Option(help="candidates per generation (worlds of the population)")] = 64,
+    generations: Annotated[int, typer.Option(help="CMA-ES generations, each a replay of the recordings")] = 25,
+    object_: Annotated[
+        str | None, typer.Option("--object", help="what the worlds simulate beside the hand (default: the recordings')")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="the overlay (default: NAME.calibrated.toml beside it)")] = None,
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """Fit the robot's position servos to its recordings (commands and measured joints) and write
+    an overlay of its config with them, and a report: joint error before and after, the fitted
+    values with their spread, and the joints the recordings did not excite."""
+    check_device(device, "calibrate")
+    if not robot.is_file():
+        raise fail(f"calibrate --robot: no such file '{robot}'")
+    if missing := [str(r) for r in recordings if not r.is_file()]:
+        raise fail(f"calibrate: no such recording {missing[0]}")
+    gpu_stack()
+    from protocol import Trajectory
+    from protocol.recording import SessionRecording
+    from service.calibration import calibration_report, fit_servos, write_overlay
+    from sim_backend import catalog_object, load_robot
+
+    try:
+        spec = load_robot(robot)
+        trajs = [SessionRecording.load(r).trajectory if r.suffix == ".mcap" else Trajectory.load(r) for r in recordings]
+        obj = catalog_object(object_ or trajs[0].object)
+        with contextlib.redirect_stdout(sys.stderr):
+            fit = fit_servos(
+                spec, obj, trajs, settings=tuple(names(settings) or ()), worlds=worlds, generations=generations,
+                device=device,
+            )  # fmt: skip
+    except ValueError as exc:
+        raise fail(f"calibrate: {exc}") from None
+    overlay = write_overlay(fit, robot, out, command_line(ctx))
+    report = overlay.with_suffix(".md")
+    report.write_text(calibration_report(fit))
+    (overlay.with_suffix(".json")).write_text(json.dumps(fit.summary(), indent=2))
+    typer.echo(json.dumps(fit.summary(), indent=2) if json_ else calibration_report(fit))
+    typer.echo(f"overlay: {overlay}\nreport: {report}", err=json_)

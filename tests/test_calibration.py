@@ -1,0 +1,109 @@
+"""The robot's model from its own data: `calibrate` fits a robot's servos to its recording and
+writes an overlay of its config; the service's model check names a joint whose servo is not the
+config's and stays quiet on a robot that matches it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from protocol import OpenSession
+from service.bench.demos import make_demo
+from service.bench.excitation import excitation_demo
+from service.bench.recorder import record
+from service.cli import app
+from service.paths import CONFIG_DIR
+from service.server.config import ServiceConfig
+from service.server.sessions import SessionManager
+from sim_backend import HandSpec, Kinematics, Population, PopulationConfig, catalog_object, load_catalog, load_robot
+
+GRIPPER = CONFIG_DIR / "robots" / "example_gripper.toml"
+TRUE_KE, TRUE_KD = (300.0, 150.0), (10.0, 20.0)
+"""The synthetic robot: the example gripper with its right servo half as stiff and twice as damped
+as its config says."""
+
+
+@pytest.fixture(scope="module")
+def gripper_recording(tmp_path_factory) -> tuple[Path, Path]:
+    """The synthetic robot's free motion recorded as a .traj without ground truth, and a copy of
+    its config to write the overlay beside."""
+    folder = tmp_path_factory.mktemp("gripper")
+    for f in GRIPPER.parent.glob("example_gripper.*"):
+        shutil.copy(f, folder)
+    spec, obj = load_robot(GRIPPER), catalog_object("foam_brick")
+    demo = excitation_demo(Kinematics(spec), obj, seconds=4.0)
+    truth = Population(replace(spec, ke=TRUE_KE, kd=TRUE_KD), obj, PopulationConfig(groups=1, worlds=1, device="cpu"))
+    traj = record(truth, demo, np.array([obj.mass]), np.array([obj.friction])).trajectory(0, spec.name, obj.name)
+    traj.truth = None  # the robot's own data: commands and measured joints
+    traj.save(folder / "free.traj")
+    return folder / "free.traj", folder / "example_gripper.toml"
+
+
+def test_calibrate_recovers_known_gains_of_a_synthetic_robot_and_writes_an_overlay(gripper_recording):
+    recording, config = gripper_recording
+    args = ["calibrate", str(recording), "--robot", str(config), "--worlds", "24", "--generations", "30"]
+    result = CliRunner().invoke(app, [*args, "--device", "cpu", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    fitted = {s: [j[s]["fitted"] for j in summary["joints"]] for s in ("ke", "kd")}
+    assert fitted["ke"] == pytest.approx(TRUE_KE, rel=0.1) and fitted["kd"] == pytest.approx(TRUE_KD, rel=0.1), fitted
+    right = summary["joints"][1]
+    assert right["rms_after"] < 0.2 * right["rms_before"], right
+    # The overlay extends the config and changes the population built from it.
+    overlay = config.with_name("example_gripper.calibrated.toml")
+    assert 'extends = "example_gripper.toml"' in overlay.read_text()
+    spec = load_robot(overlay)
+    assert spec.name == "example_gripper" and dict(spec.servos)["ke"] == pytest.approx(TRUE_KE, rel=0.1)
+    pop = Population(spec, catalog_object("foam_brick"), PopulationConfig(groups=1, worlds=2, device="cpu"))
+    assert pop.servos("ke")[0, 1].tolist() == pytest.approx(TRUE_KE, rel=0.1)
+    assert "| right_slide |" in config.with_name("example_gripper.calibrated.md").read_text()
+
+
+def test_calibrate_names_a_bad_setting_and_a_missing_recording(gripper_recording, tmp_path):
+    recording, config = gripper_recording
+    result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "none.traj"), "--robot", str(config)])
+    assert result.exit_code == 2 and "no such recording" in result.output
+    args = ["calibrate", str(recording), "--robot", str(config), "--settings", "gain", "--device", "cpu"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and "calibrate settings: expected some of ['ke', 'kd', 'effort']" in result.output
+
+
+@pytest.fixture(scope="module")
+def pick():
+    """A pick and place by the procedural hand, and the hand's index-finger joint it halves."""
+    spec, obj = HandSpec(), catalog_object("foam_brick")
+    kin = Kinematics(spec)
+    demo = make_demo(kin, obj, "pick_place", 0, seconds=6.0, pace=0.7)
+    return spec, obj, demo, kin.layout.joint_names.index("index_1")
+
+
+def _joints_off(spec: HandSpec, truth_spec: HandSpec, obj, demo) -> dict[str, float]:
+    truth = Population(truth_spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu"))
+    traj = record(truth, demo, np.array([0.03]), np.array([1.0])).trajectory(0, spec.name, obj.name)
+    manager = SessionManager(ServiceConfig(groups=1, device="cpu", rate_hz=0), {spec.name: spec}, load_catalog())
+    start = {"p0": traj.truth.initial_pose, "q0": traj.truth.initial_q}
+    info = manager.open(OpenSession(robot=spec.name, object=obj.name, worlds=32, **start))
+    pool = manager.sessions[info.session].pool
+    for i in range(traj.frames):
+        manager.submit(traj.frame(i, info.session, token=info.token))
+        manager.step(pool)
+    return manager.status(info.session, info.token).joints_off
+
+
+def test_the_model_check_names_a_joint_whose_gain_was_halved(pick):
+    spec, obj, demo, j = pick
+    ke = np.array([spec.wrist_ke] * 6 + [spec.finger_ke] * (len(demo.q) - 6))
+    ke[j] *= 0.5
+    off = _joints_off(spec, replace(spec, servos=(("ke", tuple(ke)),)), obj, demo)
+    assert list(off) == ["index_1"] and off["index_1"] > 0.03, off
+
+
+def test_the_model_check_stays_quiet_on_a_robot_that_matches_its_config(pick):
+    spec, obj, demo, _ = pick
+    assert _joints_off(spec, spec, obj, demo) == {}
