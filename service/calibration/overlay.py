@@ -30,8 +30,8 @@ def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command:
         + f" on {datetime.date.today().isoformat()}:",
         f"# joint RMS error {before:.2f} -> {after:.2f} mrad (mm for slides) over {fit.frames} frames; {pinned} of"
         f" {sum(v.size for v in fit.identified.values())} settings",
-        "# were pinned by the data, the others keep the config's values. Name this file in the service's",
-        "# `robots` setting in place of the config.",
+        "# were fitted, the others keep the config's values (the fit did not lower their joint's error).",
+        "# Name this file in the service's `robots` setting in place of the config.",
         f'extends = "{Path(os.path.relpath(config.resolve(), out.resolve().parent)).as_posix()}"',
         "",
         "[servos]  # one value per joint, in the config's joint order",
@@ -65,8 +65,9 @@ def calibration_report(fit: ServoFit) -> str:
             f"# Servo calibration of `{fit.robot}`",
             "",
             f"{fit.worlds} candidates a generation, {fit.generations} generations, {fit.frames} frames,"
-            f" {fit.seconds:.0f} s. RMS joint error in mrad (mm for slides); a setting's spread is how far the"
-            " best quarter of the last generation disagrees; one over 15 % keeps the config's value.",
+            f" {fit.seconds:.0f} s. RMS joint error in mrad (mm for slides); a joint keeps its fitted servo where"
+            " that lowers its own error by 5 % or more; a setting's spread is how far the best quarter of the"
+            " last generation disagrees.",
             "",
             *rows,
             "",
