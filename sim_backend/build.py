@@ -104,6 +104,18 @@ def contact_capacity(built: BuiltModel, cfg: PopulationConfig) -> PopulationConf
     return replace(cfg, contacts_per_world=contacts, constraints_per_world=cfg.constraints_per_world or 5 * contacts)
 
 
+def robot_contacts(robot: RobotSpec, cfg: PopulationConfig) -> PopulationConfig:
+    """``cfg`` with the contact model the robot's model was written for, where its config names one
+    (:attr:`FileRobotSpec.cone`, :attr:`FileRobotSpec.impratio`): a model tuned under MuJoCo's
+    pyramidal cone grips differently under an elliptic one."""
+    cone, impratio = getattr(robot, "cone", ""), getattr(robot, "impratio", 0.0)
+    if cone and cone not in ("pyramidal", "elliptic"):
+        raise ValueError(f"robot '{robot.name}' cone: expected 'pyramidal' or 'elliptic', got {cone!r}")
+    if impratio < 0:
+        raise ValueError(f"robot '{robot.name}' impratio: expected > 0, got {impratio}")
+    return replace(cfg, cone=cone or cfg.cone, impratio=impratio or cfg.impratio)
+
+
 def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:
     """The MuJoCo-Warp solver with ``cfg``'s budget, and Newton's collision pipeline feeding it."""
     settings = cfg.solver_settings

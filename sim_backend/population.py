@@ -21,7 +21,7 @@ import torch
 import warp as wp
 
 from . import observe
-from .build import build_model, contact_capacity, make_physics
+from .build import build_model, contact_capacity, make_physics, robot_contacts
 from .config import PopulationConfig, resolve_device
 from .objects import ObjectSpec
 from .params import ObjectParams
@@ -77,7 +77,7 @@ class Population:
 
         self.built = built = build_model(robot, obj, cfg, self.device, turn)
         """The replicated model and what one world of it holds (static)."""
-        self.config = cfg = contact_capacity(built, cfg)
+        self.config = cfg = robot_contacts(robot, contact_capacity(built, cfg))
         self.model = built.model
         self.layout: RobotLayout = built.layout
         self.object_body, self.bodies, self.coords, self._dofs = (

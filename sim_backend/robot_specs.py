@@ -179,6 +179,12 @@ class FileRobotSpec:
     """A regular expression: the MJCF's sites whose names match it become touch zones too (their
     box, or a sphere's bounding box, on the link that carries them), as a model that declares
     MuJoCo touch sensors on sites describes its touch array; empty for none."""
+    cone: str = ""
+    """The friction cone the robot's model was written for ("pyramidal" or "elliptic"; an MJCF's
+    ``<option cone>``, MuJoCo's default pyramidal where it says none); empty: the service's."""
+    impratio: float = 0.0
+    """The frictional-to-normal impedance ratio it was written for (an MJCF's ``<option impratio>``,
+    MuJoCo's default 1); 0: the service's."""
     package_dirs: tuple[str, ...] = ()
     """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
     NAME folder); the URDF's own package folder is found without it."""
