@@ -65,10 +65,12 @@ settings are compared with paired runs and `--repeats`, with standard errors.
 _TAIL = """## Reproduce
 
 - Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap,cross-engine}[-shadow]
-  --noise low,med,high --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--set NAME=VALUE] [--short]
-  [--save-frames]` writes `results.json`, `report.md`, charts and (with `--save-frames`) each
-  frame's error, covariance and cost to `bench-results/accuracy-SUITE/`; the README describes the
+  (or manipulate) --noise low,med,high --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--set NAME=VALUE]
+  [--short] [--save-frames] [--robot-overlay FILE]` writes `results.json`, `report.md`, charts and
+  (with `--save-frames`) each frame's error, covariance and cost to `bench-results/accuracy-SUITE/`; the README describes the
   suites' truths. `--short` runs a suite's first object and two kinds of 10 s tracks, as CI does.
+- Calibration: `inhand-tracker bench calibration --suite SUITE` records the suite's calibration
+  recording in its truth and writes the tracker's fitted servos as an overlay for `--robot-overlay`.
 - Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8]
   [--caps default,4x4] --json > docs/results/speed/DEVICE.json`, one file per device.
 - The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
@@ -90,16 +92,32 @@ def _chart(path: Path, title: str, chart: dict, note: str) -> Path:
     )
 
 
+_PAGES = {"hands": "Benchmarks on other hands"}
+"""Pages of their own beside the main one, by the name a result file gives as its ``page``."""
+
+
 def render(results: Path, out: Path) -> Path:
     """Write ``out`` (the page) and its charts beside the results; returns the page's path. Result
     files named ``*-tracks.json`` (per-track detail) go to a page of their own beside it,
-    ``out``'s name with ``-tracks``, which the main page links."""
+    ``out``'s name with ``-tracks``, and those that name a ``page`` (:data:`_PAGES`) to ``out``'s
+    name with ``-PAGE``; the main page links them."""
     files = sorted(results.glob("*.json"))
     tracks = [p for p in files if p.stem.endswith("-tracks")]
+    paged = {p: json.loads(p.read_text()).get("page") for p in files if p not in tracks}
     detail = out.with_name(f"{out.stem}-tracks.md")
     lines = [_HEAD]
-    for path in (p for p in files if p not in tracks):
+    for path in (p for p in files if p not in tracks and not paged.get(p)):
         lines += _section(path, results, out)
+    for name, title in _PAGES.items():
+        own = [p for p, page in paged.items() if page == name]
+        if not own:
+            continue
+        page_path = out.with_name(f"{out.stem}-{name}.md")
+        page = [f"# {title}", "", f"A part of [{out.name}]({out.name}), generated with it.", ""]
+        for path in own:
+            page += _section(path, results, page_path)
+        page_path.write_text("\n".join(page))
+        lines += [f"{title}: [{page_path.name}]({page_path.name}).", ""]
     for path in sorted((results / "speed").glob("*.json")):
         r = json.loads(path.read_text())
         lines += [f"## Speed: {r['device']}", "", f"{r['date']}: `{r['command']}`", "", _SPEED_ABOUT, ""]
