@@ -67,8 +67,9 @@ _TAIL = """## Reproduce
 - Accuracy: `inhand-tracker bench accuracy --suite {smoke,paper,reality-gap,cross-engine}[-shadow]
   (or manipulate) --noise low,med,high --methods OLP,EYE,WRS,REPS,PBO [--repeats N] [--set NAME=VALUE]
   [--short] [--save-frames] [--robot-overlay FILE]` writes `results.json`, `report.md`, charts and
-  (with `--save-frames`) each frame's error, covariance and cost to `bench-results/accuracy-SUITE/`; the README describes the
-  suites' truths. `--short` runs a suite's first object and two kinds of 10 s tracks, as CI does.
+  (with `--save-frames`) each frame's error, covariance and cost to `bench-results/accuracy-SUITE/`;
+  the README describes the suites' truths. `--short` runs a suite's first object and two kinds of
+  10 s tracks, as CI does.
 - Calibration: `inhand-tracker bench calibration --suite SUITE` records the suite's calibration
   recording in its truth and writes the tracker's fitted servos as an overlay for `--robot-overlay`.
 - Speed: `inhand-tracker bench speed --worlds 40,1024,4096,8192 --groups 1 [--substeps 4,6,8]
