@@ -46,6 +46,8 @@ class ServiceProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "service.cli", "serve", *endpoints, "--device", "cpu"],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            # A write past a file-size limit (:meth:`limit_files`) fails instead of killing it.
+            preexec_fn=lambda: signal.signal(signal.SIGXFSZ, signal.SIG_IGN),
         )  # fmt: skip
 
     def wait_ready(self, client: TrackerClient, timeout: float = 900.0) -> None:
@@ -60,6 +62,13 @@ class ServiceProcess:
             except (TimeoutError, TrackerError):
                 time.sleep(0.2)
         raise TimeoutError("service did not come up")
+
+    def limit_files(self, size: int) -> None:
+        """From now on no file of the process may grow past ``size`` bytes: the kernel refuses the
+        write (EFBIG), as a full disk does (ENOSPC)."""
+        import resource
+
+        resource.prlimit(self.proc.pid, resource.RLIMIT_FSIZE, (size, size))
 
     def stop(self) -> float:
         """SIGTERM; returns how long it took to exit."""

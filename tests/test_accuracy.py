@@ -89,3 +89,26 @@ def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
         d2 = np.einsum("fi,fi->f", error, np.linalg.solve(covariance + 1e-10 * np.eye(6), error[..., None])[..., 0])
         assert np.mean(d2 <= CHI2_6DOF_95) == pytest.approx(track["coverage_95"], abs=1e-3)
         assert np.isfinite(frames[f"{i}/cost"]).all() and frames[f"{i}/lost"].shape == error.shape[:1]
+
+
+def test_bench_accuracy_scores_a_users_own_files(tmp_path):
+    """A lab with motion capture scores the tracker on its own recordings: `--files` takes .traj
+    (or .mcap) files that carry the truth, in place of a suite; one without it is refused."""
+    from typer.testing import CliRunner
+
+    from protocol import Trajectory
+    from service.cli import app
+
+    mine = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+    args = ["bench", "accuracy", "--files", str(mine), "--methods", "OLP,PBO", "--noise", "med", "--worlds", "8"]
+    result = CliRunner().invoke(app, [*args, "--device", "cpu", "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert results["suite"]["name"] == "files" and results["suite"]["robot"] == "allegro"
+    assert {t["trajectory"] for t in results["tracks"]} == {Trajectory.load(mine).name}
+    assert results["summary"]["PBO"]["med"]["mean_mm"] < results["summary"]["OLP"]["med"]["mean_mm"]
+    blind = Trajectory.load(mine)
+    blind.truth = None
+    blind.save(tmp_path / "blind.traj")
+    result = CliRunner().invoke(app, ["bench", "accuracy", "--files", str(tmp_path / "blind.traj"), "--device", "cpu"])
+    assert result.exit_code == 2 and "blind.traj' carries no ground truth" in result.output

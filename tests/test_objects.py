@@ -49,7 +49,7 @@ def test_config_overrides_physics_and_adds_mesh_objects(tmp_path):
 def test_bad_config_names_the_file_and_entry(tmp_path):
     cfg = tmp_path / "objects.toml"
     cfg.write_text("[teapot]\nmass = 0.3\n")
-    with pytest.raises(ValueError, match="'teapot' is not a catalog shape and has no 'mesh'"):
+    with pytest.raises(ValueError, match="'teapot' is not a catalog shape and has no 'box' or 'mesh'"):
         load_catalog(cfg)
     cfg.write_text("[foam_brick]\nmass = 2.0\n")
     with pytest.raises(ValueError, match=r"object 'foam_brick' mass: need 0 < 0.015 <= 2.0 <= 0.05 kg"):

@@ -126,3 +126,66 @@ def test_a_recording_that_cannot_be_written_stops_for_its_session_and_says_so(tm
     recorder.frame(traj.frame(0, info.session))
     recorder.drop(info.session)
     assert said[info.session].startswith("recording: stopped for this session: ") and "recordings" in said[info.session]
+
+
+def _stream(svc: ServiceProcess, traj: Trajectory, seconds: float, then=None) -> tuple[TrackerClient, int]:
+    """A robot streaming ``traj`` to ``svc`` at 30 Hz for ``seconds``, ``then()`` called once the
+    first estimate came (every kernel compiled); returns its client (open) and the last seq the
+    service answered."""
+    import time
+
+    client = TrackerClient(connect=[svc.endpoint])
+    svc.wait_ready(client)
+    client.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+    client.send(traj.frame(0, client.info.session, seq=0))
+    client.latest_pose(timeout=120, after_seq=-1)
+    if then is not None:
+        then()
+    began, i, last = time.monotonic(), 1, 0
+    while time.monotonic() - began < seconds:
+        client.send(traj.frame(i % traj.frames, client.info.session, seq=i))
+        with contextlib.suppress(TimeoutError):
+            last = client.latest_pose(timeout=0.1, after_seq=last).seq
+        i += 1
+        time.sleep(1 / 30)
+    return client, last
+
+
+def test_a_service_killed_with_sigkill_leaves_a_readable_recording(tmp_path):
+    """kill -9 of a real `serve --record`: the chunks flushed each second read back, so at most
+    the last second is lost."""
+    from mcap.data_stream import EndOfFile
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    traj = Trajectory.load(TRAJECTORY)
+    svc = ServiceProcess(free_port(), record=str(tmp_path))
+    client, last = _stream(svc, traj, 4.0)
+    svc.proc.kill()
+    svc.proc.wait(timeout=10)
+    client.close()
+    (path,) = tmp_path.glob("*.mcap")
+    records = []
+    with contextlib.suppress(EndOfFile):  # the file ends where the process stopped
+        records.extend(StreamReader(path.open("rb"), skip_magic=False).records)
+    channel = next(r.id for r in records if isinstance(r, Channel) and r.topic == CHANNELS["estimate"])
+    estimates = [json.loads(r.data)["seq"] for r in records if isinstance(r, Message) and r.channel_id == channel]
+    assert last > 60, f"the service answered up to seq {last}"
+    # The chunks are flushed every second: at most the last second (30 frames) is lost.
+    assert max(estimates) >= last - 45, f"estimates read back up to seq {max(estimates)}; answered up to {last}"
+
+
+def test_a_full_disk_stops_the_recording_and_the_session_tracks_on(tmp_path):
+    """Writes past 64 KiB fail in the service's process once it tracks (the kernel's file-size
+    limit: EFBIG, as a full disk's ENOSPC): the recording stops for the session and its status
+    says so; the session keeps tracking."""
+    traj = Trajectory.load(TRAJECTORY)
+    svc = ServiceProcess(free_port(), record=str(tmp_path))
+    client, last = _stream(svc, traj, 4.0, then=lambda: svc.limit_files(64 * 1024))
+    try:
+        status = client.status()
+        assert status.last_error is not None and status.last_error.startswith("recording: stopped"), status
+        assert last > 60 and status.frames > 60, (last, status.frames)  # tracking went on
+    finally:
+        client.close()
+        svc.stop()

@@ -29,7 +29,7 @@ from .suites import K_ABLATION, NOISE_LEVELS, Suite
 from .tracks import OBSERVATIONS, TrackResult, TrackSetting, per_frame, plan_tracks, run_tracks, save_frames
 from .truth import ground_truth, open_loop_disagreement
 
-__all__ = ["ABLATIONS", "AccuracyRun", "parse_settings", "run_suite"]
+__all__ = ["ABLATIONS", "AccuracyRun", "files_suite", "load_files", "parse_settings", "run_suite"]
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +71,10 @@ class AccuracyRun:
     """Where generated ground truth is kept (None: nowhere)."""
     quiet: bool = False
     """No progress bar."""
+    files: tuple[Path, ...] = ()
+    """The user's own recordings to score instead of the suite's truth: ``.traj`` files (or the
+    service's ``.mcap`` recordings) of one robot that carry their ground truth, e.g. from motion
+    capture (:func:`files_suite` makes the suite that describes them)."""
     servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
     """The tracker's robot servos in place of its config's, as a calibration's overlay sets them
     (:attr:`sim_backend.FileRobotSpec.servos`); the truth keeps its own."""
@@ -98,6 +102,33 @@ class AccuracyRun:
     def physics(self) -> dict[str, int | float | bool]:
         """The tracker's PopulationConfig settings other than its layout."""
         return {"substeps": self.substeps, **self.population}
+
+
+def load_files(paths: Sequence[Path]) -> list[Trajectory]:
+    """The trajectories of a user's files (``.traj``, or the service's ``.mcap``); a ValueError
+    names a file that cannot be read, carries no ground truth, or is of another robot."""
+    from protocol.recording import SessionRecording
+
+    out = []
+    for path in paths:
+        try:
+            t = SessionRecording.load(path).trajectory if path.suffix == ".mcap" else Trajectory.load(path)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"files: {exc}") from None
+        if t.truth is None:
+            raise ValueError(f"files: '{path}' carries no ground truth (the object's true pose per frame)")
+        if out and t.robot != out[0].robot:
+            raise ValueError(f"files: '{path}' is of robot '{t.robot}', the first file's is '{out[0].robot}'")
+        out.append(t)
+    return out
+
+
+def files_suite(paths: Sequence[Path]) -> Suite:
+    """The suite a user's files make: their objects and robot, as they were recorded."""
+    trajectories = load_files(paths)
+    objects = tuple(dict.fromkeys(t.object for t in trajectories))
+    seconds = max(t.frames / t.frame_rate for t in trajectories)
+    return Suite("files", objects, (), 1, seconds=round(seconds, 1), robot=trajectories[0].robot)
 
 
 def parse_settings(settings: Sequence[str]) -> tuple[TrackerConfig, dict]:
@@ -134,7 +165,7 @@ def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
     gets the partial results after each population."""
     t0 = time.perf_counter()
-    trajectories = ground_truth(run.suite, run.device, run.cache)
+    trajectories = load_files(run.files) if run.files else ground_truth(run.suite, run.device, run.cache)
     t_truth = time.perf_counter() - t0
     by_object: dict[str, list[Trajectory]] = {}
     for t in trajectories:

@@ -153,6 +153,19 @@ def _replay(pop: Population, series: _Series, servos: dict[str, torch.Tensor]) -
     return err.sum(0)
 
 
+def _check(settings: tuple[str, ...], worlds: int, generations: int, trajectories: list[Trajectory]) -> None:
+    """A ValueError naming a bad argument of :func:`fit_servos`."""
+    unknown = sorted(set(settings) - set(SERVO_SETTINGS))
+    if unknown or not settings:
+        raise ValueError(f"calibrate settings: expected some of {list(SERVO_SETTINGS)}, got {list(settings)}")
+    if worlds < 4 or generations < 1:
+        raise ValueError(f"calibrate: expected worlds >= 4 and generations >= 1, got {worlds} and {generations}")
+    if not trajectories:
+        raise ValueError("calibrate: no recording given")
+    if wrong := [t.name for t in trajectories if t.robot != trajectories[0].robot]:
+        raise ValueError(f"calibrate: recordings of several robots ({trajectories[0].robot} and {wrong[0]})")
+
+
 def fit_servos(
     spec: RobotSpec,
     obj: ObjectSpec,
@@ -168,15 +181,7 @@ def fit_servos(
     measured joints of that robot; ``obj`` is what the population simulates beside it) with
     ``worlds`` candidates a generation; ``progress(generation, best)`` after each. A ValueError
     names a bad argument."""
-    unknown = sorted(set(settings) - set(SERVO_SETTINGS))
-    if unknown or not settings:
-        raise ValueError(f"calibrate settings: expected some of {list(SERVO_SETTINGS)}, got {list(settings)}")
-    if worlds < 4 or generations < 1:
-        raise ValueError(f"calibrate: expected worlds >= 4 and generations >= 1, got {worlds} and {generations}")
-    if not trajectories:
-        raise ValueError("calibrate: no recording given")
-    if wrong := [t.name for t in trajectories if t.robot != trajectories[0].robot]:
-        raise ValueError(f"calibrate: recordings of several robots ({trajectories[0].robot} and {wrong[0]})")
+    _check(settings, worlds, generations, trajectories)
     t0 = time.perf_counter()
     pop = Population(spec, obj, PopulationConfig(groups=len(trajectories), worlds=worlds, device=device, seed=seed))
     d = pop.D

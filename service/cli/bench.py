@@ -159,6 +159,10 @@ def bench_accuracy(
     vision_sigma: Annotated[
         str, typer.Option(help="their noise, position [m] and rotation [rad], comma-separated")
     ] = "0.005,0.05",
+    files: Annotated[
+        str | None,
+        typer.Option(help="score your own .traj or .mcap files with ground truth instead of a suite, comma-separated"),
+    ] = None,
     robot_overlay: Annotated[
         Path | None,
         typer.Option(help="the tracker's servos from this calibration overlay (`calibrate`); the truth keeps its own"),
@@ -181,17 +185,14 @@ def bench_accuracy(
         config, population = parse_settings(set_ or [])
     except ValueError as exc:
         raise fail(f"--set: {exc}") from None
-    try:
-        sigma_t, sigma_r = (float(v) for v in vision_sigma.split(","))
-    except ValueError:
-        raise fail(f"bench accuracy: vision-sigma: expected POSITION,ROTATION, got {vision_sigma!r}") from None
-    out = out or Path(f"bench-results/accuracy-{suite}")
+    chosen_suite, paths, servos = _what_to_track(suite, short, files, robot_overlay)
+    out = out or Path(f"bench-results/accuracy-{chosen_suite.name}")
     command = command_line(ctx)
-    servos = _overlay_servos(robot_overlay, suite_named(suite, short).robot) if robot_overlay else ()
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps}.items() if v}
     try:
         run = AccuracyRun(
-            suite_named(suite, short),
+            chosen_suite,
+            files=paths,
             methods=tuple(names(methods)),
             noises=tuple(names(noise)),
             ablations=tuple(ABLATIONS if ablations == "all" else names(ablations)),
@@ -200,7 +201,7 @@ def bench_accuracy(
             config=config,
             population=population,
             observations=observations,
-            vision_sigma=(sigma_t, sigma_r),
+            vision_sigma=_vision_sigma(vision_sigma),
             device=device,
             cache=cache or CACHE_DIR,
             frames_to=out / "frames.npz" if save_frames else None,
@@ -212,11 +213,9 @@ def bench_accuracy(
     except ValueError as exc:
         raise fail(f"bench accuracy: {exc}") from None
     report = write_report(results, out, command=command)
-    if json_:
-        typer.echo(json.dumps({"summary": results["summary"], "ablations": results["ablations"]}, indent=2))
-    else:
-        typer.echo(report.read_text().split("\n## Ablation")[0].split("\n## Per trajectory")[0])
-        typer.echo(f"report: {report}")
+    summary = {"summary": results["summary"], "ablations": results["ablations"]}
+    text = report.read_text().split("\n## Ablation")[0].split("\n## Per trajectory")[0] + f"\nreport: {report}"
+    typer.echo(json.dumps(summary, indent=2) if json_ else text)
 
 
 @bench.command("calibration")
@@ -262,6 +261,28 @@ def robot_spec_of(name: str):
     from service.bench.suites import robot_spec
 
     return robot_spec(name)
+
+
+def _vision_sigma(text: str) -> tuple[float, float]:
+    """``--vision-sigma`` as (position [m], rotation [rad]), or exit 2 naming it."""
+    try:
+        sigma_t, sigma_r = (float(v) for v in text.split(","))
+    except ValueError:
+        raise fail(f"bench accuracy: vision-sigma: expected POSITION,ROTATION, got {text!r}") from None
+    return sigma_t, sigma_r
+
+
+def _what_to_track(suite: str, short: bool, files: str | None, overlay: Path | None) -> tuple:
+    """The suite (or the user's files) and the tracker's servos (an overlay's), or exit 2 naming
+    what is wrong."""
+    from service.bench.accuracy import files_suite
+
+    paths = tuple(Path(p) for p in names(files) or ())
+    try:
+        chosen = files_suite(paths) if paths else suite_named(suite, short)
+    except ValueError as exc:
+        raise fail(f"bench accuracy --{exc}") from None
+    return chosen, paths, _overlay_servos(overlay, chosen.robot) if overlay else ()
 
 
 def _overlay_servos(path: Path, robot: str) -> tuple:
