@@ -117,3 +117,13 @@ def test_touch_noise_has_a_deadband_and_a_field_the_robot_lacks_stays_absent():
     assert (noisy[:, 1] == 0).mean() > 0.8, "under the deadband it reads 0 (but for noise past it)"
     assert abs(noisy[:, 2].std() - 0.05) < 0.01 and abs(noisy[:, 2].mean() - 2.0) < 0.02
     assert sensing["force"] is None and sensing["slip"] is None
+
+
+def test_contact_capacity_is_sized_from_the_robot_and_object():
+    """A block rolled over a Shadow hand's palm made over 32 contacts in a world (the old fixed
+    capacity): the capacity is sized from the robot's collision shapes, unless set."""
+    spec, obj = robot_spec("shadow_touch"), catalog_object("block")
+    sized = Population(spec, obj, PopulationConfig(groups=1, worlds=2, device="cpu", use_graph=False)).config
+    assert sized.contacts_per_world > 32 and sized.constraints_per_world == 5 * sized.contacts_per_world
+    chosen = PopulationConfig(groups=1, worlds=2, device="cpu", use_graph=False, contacts_per_world=40)
+    assert Population(spec, obj, chosen).config.contacts_per_world == 40
