@@ -17,7 +17,7 @@ __all__ = ["write_report"]
 _STUDY_TITLES = {
     "exploration": "Exploration (parameter and wrench noise x0.25, x1, x4)",
     "worlds": "Worlds per track K",
-    "contact": "Contact terms (w4-w6)",
+    "contact": "Contact terms (w4-w6, touch zones w11-w12)",
     "slip": "Slip terms (w7-w10)",
 }
 

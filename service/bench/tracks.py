@@ -36,7 +36,7 @@ nothing (a closed hand hides the object)."""
 _ADDS_EVERY = 10
 """ADD-S is scored on every tenth frame (a nearest-point search per surface point)."""
 
-_CONTACT_TERMS = (3, 4, 5)  # contact disagreement, force magnitude, force direction
+_CONTACT_TERMS = (3, 4, 5, 10, 11)  # fingertips: contact, force magnitude, direction; touch zones: contact, force
 _SLIP_TERMS = (6, 7, 8, 9)
 
 
