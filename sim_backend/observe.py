@@ -119,7 +119,8 @@ def accumulate_contacts(
     touch: wp.array2d[float],
 ):
     """Sum, per sensor, the force from its world's object and the force-weighted slip velocity;
-    per touch zone, the normal force of the contacts inside it (:func:`.zones.press_zones`).
+    per touch zone, the normal force of every contact inside it, the object's or not
+    (:func:`.zones.press_zones`).
 
     ``sensor_row[b]`` is w * L + l when body b carries sensor l of world w, else -1;
     ``object_world[b]`` is w when body b is world w's object, else -1. Launch dim: contact capacity.
@@ -129,13 +130,15 @@ def accumulate_contacts(
         return
     b0 = shape_body[shape0[c]]
     b1 = shape_body[shape1[c]]
-    if b0 < 0 or b1 < 0:
-        return
     # contact_force is the force on shape 0; flip it when the sensor is shape 1.
     f = wp.spatial_top(contact_force[c])
-    point = wp.transform_point(body_q[b0], point0[c])
+    point = point0[c]  # on a static shape (the table), already in the world frame
+    if b0 >= 0:
+        point = wp.transform_point(body_q[b0], point0[c])
     press_zones(b0, b1, f, normal[c], point, body_q, object_world, bodies_per_world,
                 zone_first, zone_index, zone_center, zone_half, touch)  # fmt: skip
+    if b0 < 0 or b1 < 0:
+        return
     sensor = b0
     obj = b1
     sign = 1.0
