@@ -34,6 +34,8 @@ from protocol import (
 )
 from protocol.auth import sign, signed_query
 
+from .builds import BuildWatch
+
 __all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError", "zenoh_config", "zenoh_encoding"]
 
 
@@ -96,14 +98,15 @@ class TrackerClient:
         scouting: bool = False,
         timeout: float = 120.0,
         zenoh_file: str | os.PathLike | None = None,
+        open_timeout: float = 900.0,
     ):
         """``service``: its name, or None to choose at each open. ``zenoh_file``: a Zenoh JSON5 config
-        (TLS or mTLS certificates) under the endpoints given."""
+        (TLS or mTLS certificates) under the endpoints given. ``open_timeout``: an open's wait [s]."""
         self._route = service is None
         self.keys = Keys(service or "default")
         self.endpoints = list(connect) or ["(scouting)"]
         """Where this client looks for its service, for the errors that say it found none."""
-        self.timeout = timeout
+        self.timeout, self.open_timeout = timeout, open_timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file))
         self.info: SessionInfo | None = None
         self._seq = 0
@@ -145,8 +148,7 @@ class TrackerClient:
         return self._get(self.keys.info, None, ServiceInfo, timeout)
 
     def services(self, timeout: float = 2.0) -> list[ServiceInfo]:
-        """Every service that answers on this Zenoh network, the roomiest first (free worlds, then
-        free sessions)."""
+        """Every service that answers on this Zenoh network, the roomiest first (free worlds, sessions)."""
         replies = self._zenoh.get(
             Keys.services("info"),
             target=zenoh.QueryTarget.ALL,
@@ -260,20 +262,20 @@ class TrackerClient:
         return info
 
     def _open(self, request: OpenSession) -> SessionInfo:
-        """Open at the named service; without a name, at the roomiest ready one, going on to the
-        next while they answer ``capacity``."""
-        if not self._route:
-            return self._get(self.keys.open, request, SessionInfo)
-        full: TrackerError | None = None
-        for info in (i for i in self.services() if i.ready):
-            self.keys = Keys(info.name)
-            try:
-                return self._get(self.keys.open, request, SessionInfo)
-            except TrackerError as exc:
-                if exc.code != ErrorCode.CAPACITY:
-                    raise
-                full = exc
-        raise full or TimeoutError("no ready service answered")
+        """Open at the named service; else at the roomiest ready one, the next while they say ``capacity``."""
+        with BuildWatch(self.service_info):  # an open waits for its population's build, and says so
+            if not self._route:
+                return self._get(self.keys.open, request, SessionInfo, self.open_timeout)
+            full: TrackerError | None = None
+            for info in (i for i in self.services() if i.ready):
+                self.keys = Keys(info.name)
+                try:
+                    return self._get(self.keys.open, request, SessionInfo, self.open_timeout)
+                except TrackerError as exc:
+                    if exc.code != ErrorCode.CAPACITY:
+                        raise
+                    full = exc
+            raise full or TimeoutError("no ready service answered")
 
     def reopen(self, p0=None, q0=None) -> SessionInfo:
         """Open a new session like the last one, from ``p0`` (default: the last estimate, else the

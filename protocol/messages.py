@@ -132,6 +132,11 @@ class ServiceInfo(_Message):
     is full."""
     ready: bool = True
     """False while the service compiles its kernels on start; opens wait until it is ready."""
+    building: int = 0
+    """Populations being built now: an open that needs one is answered when it is built."""
+    build_s: float = 0.0
+    """How long the service's last population build took [s] (0: none yet): what an open that
+    needs a build waits."""
 
 
 class OpenSession(_Message):

@@ -6,6 +6,7 @@ its caller when the estimate it holds is stale or the service went away."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shutil
@@ -601,13 +602,16 @@ def test_a_loop_that_stops_coming_round_takes_the_service_down_loudly(traj):
     assert svc.proc.returncode == 1 and "has not come round" in log and "withdrawing" in log, log[-2000:]
 
 
-def test_an_open_that_builds_a_population_does_not_freeze_running_sessions(traj):
+def test_an_open_that_builds_a_population_does_not_freeze_running_sessions(traj, caplog):
     """A robot streams at 10 Hz while another opens with a K that needs a population of its own:
-    the build runs beside the loop, so the first robot's estimates keep coming through it."""
+    the build runs beside the loop, so the first robot's estimates keep coming through it; the
+    newcomer waits for the build past its client's query timeout, is told it waited for it, and
+    its client's log says the service was building while it waited."""
     svc = ServiceProcess(free_port(), groups=1)
     rate = 10.0
     try:
-        with TrackerClient(connect=[svc.endpoint]) as robot, TrackerClient(connect=[svc.endpoint]) as newcomer:
+        newcomer = TrackerClient(connect=[svc.endpoint], timeout=1.0)  # the build outlasts its queries
+        with TrackerClient(connect=[svc.endpoint]) as robot, newcomer:
             svc.wait_ready(robot)
             robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
             arrivals: list[float] = []
@@ -627,7 +631,8 @@ def test_an_open_that_builds_a_population_does_not_freeze_running_sessions(traj)
             try:
                 time.sleep(1.0)
                 began = time.monotonic()
-                newcomer.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=1024)
+                with caplog.at_level(logging.INFO, logger="inhand_tracker.client"):
+                    opened = newcomer.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=1024)
                 ended = time.monotonic()
             finally:
                 stop.set()
@@ -635,6 +640,10 @@ def test_an_open_that_builds_a_population_does_not_freeze_running_sessions(traj)
             during = [t for t in arrivals if began <= t <= ended]
             gaps = np.diff([began, *during, ended])
             assert ended - began > 1.0, "the build was too quick to tell"
+            assert "its population was built for it" in (opened.notice or ""), opened.notice
+            assert newcomer.service_info().build_s > 1.0
+            if ended - began > 4.0:  # the client's first look is 2 s into the wait
+                assert "is building a population for this open" in caplog.text, caplog.text
             # On the CPU each device stage of the build (a frame of 1024 worlds) holds the loop for
             # up to a second; frames it holds up past max_frame_age_s are counted stale, not stepped.
             assert len(during) >= 3, (during, began, ended)

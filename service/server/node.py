@@ -89,6 +89,8 @@ class TrackerNode:
         self._waiting: dict[PoolKey, list[tuple[OpenSession, Future | None, str | None]]] = {}
         """Opens waiting for their population's build, by population key: the request with the
         worlds granted, and why fewer than asked (when so)."""
+        self._build_s = 0.0
+        """How long the last population build took [s]."""
         self._token = None
         self.session: zenoh.Session | None = None
         self._others: set[str] = set()
@@ -179,6 +181,8 @@ class TrackerNode:
             load_ms=self._room[0],
             free_worlds=self._room[1] if self.ready else 0,
             ready=self.ready,
+            building=len(m.building),
+            build_s=self._build_s,
         )
         self._reply(query, info)
 
@@ -423,8 +427,12 @@ class TrackerNode:
                 answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
             return
         self.manager.adopt(pool)
-        log.info("population built in %.1f s", time.monotonic() - began)
+        self._build_s = time.monotonic() - began
+        log.info("population built in %.1f s", self._build_s)
         for request, done, notice in waiting:
+            # The robot is told why its open took as long: on a fresh GPU machine, minutes.
+            built = f"its population was built for it: {self._build_s:.0f} s"
+            notice = f"{notice}; {built}" if notice else built
             self._inbox.handle(Request("open", functools.partial(self._open, request, notice), done), self._refusal)
 
     def _drop(self, session: str, why: str = "its robot closed it") -> None:
