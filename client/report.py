@@ -116,6 +116,9 @@ def _latency(result: ReplayResult, status: SessionStatus, say: Callable[[str], N
             f"latency, frame put to estimate received (client): p50 {np.percentile(rt, 50):.1f} ms, "
             f"p99 {np.percentile(rt, 99):.1f} ms"
         )
+    if status.joints_off:  # the model check: the robot config's servos are not the robot's
+        off = ", ".join(f"{name} {rms * 1e3:.0f}" for name, rms in status.joints_off.items())
+        say(f"model check: joints the worlds hold away from the robot's (RMS, mrad or mm): {off}; see `calibrate`")
 
 
 def _summary(traj: Trajectory, estimates: list, say: Callable[[str], None]) -> None:

@@ -107,3 +107,18 @@ def test_the_model_check_names_a_joint_whose_gain_was_halved(pick):
 def test_the_model_check_stays_quiet_on_a_robot_that_matches_its_config(pick):
     spec, obj, demo, _ = pick
     assert _joints_off(spec, spec, obj, demo) == {}
+
+
+def test_the_replay_report_names_the_joints_the_model_check_found():
+    from client.replay import ReplayResult
+    from client.report import _latency
+    from protocol import SessionStatus
+
+    counters = dict(frames=90, gaps=0, duplicates=0, late=0, errors=0, latency_p50_ms=5.0, latency_p99_ms=9.0)
+    status = SessionStatus(session="s", cost=1.0, spread_m=0.01, joints_off={"robot0:FFJ2": 0.035}, **counters)
+    said: list[str] = []
+    _latency(ReplayResult([], []), status, said.append)
+    assert said[-1].startswith("model check: ") and "robot0:FFJ2 35" in said[-1], said
+    said.clear()
+    _latency(ReplayResult([], []), status.model_copy(update={"joints_off": {}}), said.append)
+    assert not any("model check" in s for s in said)
