@@ -30,7 +30,7 @@ import numpy as np
 from .messages import Estimate
 from .trajectory import Trajectory
 
-__all__ = ["CHANNELS", "POPULATION_FIELDS", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording"]
+__all__ = ["CHANNELS", "POPULATION_FIELDS", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording", "load_trajectory"]
 
 CHANNELS = {
     "frame": "/inhand/frame",
@@ -105,3 +105,9 @@ class SessionRecording:
         )  # fmt: skip
         estimates.sort(key=lambda e: e.seq)
         return cls(opened, trajectory, estimates, population)
+
+
+def load_trajectory(path: str | os.PathLike) -> Trajectory:
+    """The trajectory of a ``.traj`` file, or what the robot sent in a session recording (``.mcap``)."""
+    path = Path(path)
+    return SessionRecording.load(path).trajectory if path.suffix == ".mcap" else Trajectory.load(path)

@@ -112,7 +112,7 @@ def robot_contacts(robot: RobotSpec, cfg: PopulationConfig) -> PopulationConfig:
     if cone and cone not in ("pyramidal", "elliptic"):
         raise ValueError(f"robot '{robot.name}' cone: expected 'pyramidal' or 'elliptic', got {cone!r}")
     if impratio < 0:
-        raise ValueError(f"robot '{robot.name}' impratio: expected > 0, got {impratio}")
+        raise ValueError(f"robot '{robot.name}' impratio: expected > 0 (or 0: the service's), got {impratio}")
     return replace(cfg, cone=cone or cfg.cone, impratio=impratio or cfg.impratio)
 
 

@@ -134,12 +134,12 @@ class HandSpec:
     gravity_compensation: bool = True
     """Cancel gravity on the robot's links, as the arm's and hand's controllers do."""
     default_q: tuple[float, ...] = field(default=())
+    """Start joints (D=22); empty means wrist at 0.3 m height and an open hand."""
     touch_zones: tuple[TouchZone, ...] = ()
     """Regions of the links that sense a normal force (``touch`` in a frame); none by default."""
     servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
     """Servo settings per actuated joint that replace the config's, as a calibration fitted them:
     ("ke" | "kd" | "effort", one value per joint); the ``[servos]`` table of a config."""
-    """Start joints (D=22); empty means wrist at 0.3 m height and an open hand."""
 
 
 @dataclass(frozen=True)

@@ -17,37 +17,6 @@ __all__ = ["press_zones", "zone_arrays"]
 
 
 @wp.func
-def _press_link(
-    link: int,
-    pressed: float,
-    point: wp.vec3,
-    body_q: wp.array[wp.transform],
-    object_world: wp.array[wp.int32],
-    bodies_per_world: int,
-    zone_first: wp.array[wp.int32],
-    zone_index: wp.array[wp.int32],
-    zone_center: wp.array[wp.vec3],
-    zone_half: wp.array[wp.vec3],
-    touch: wp.array2d[float],
-):
-    """Add ``pressed`` [N] to the zones of body ``link`` (global index) that hold ``point``."""
-    if link < 0 or object_world[link] >= 0:  # the table, or an object: no zones
-        return
-    w = link // bodies_per_world
-    local = link - w * bodies_per_world
-    first = zone_first[local]
-    last = zone_first[local + 1]
-    if first == last:
-        return
-    p = wp.transform_point(wp.transform_inverse(body_q[link]), point)
-    for i in range(first, last):
-        d = p - zone_center[i]
-        h = zone_half[i]
-        if wp.abs(d[0]) <= h[0] and wp.abs(d[1]) <= h[1] and wp.abs(d[2]) <= h[2]:
-            wp.atomic_add(touch, w, zone_index[i], pressed)
-
-
-@wp.func
 def press_zones(
     b0: int,
     b1: int,
@@ -75,10 +44,20 @@ def press_zones(
     pressed = wp.abs(wp.dot(force, wp.normalize(normal)))
     if pressed == 0.0:  # inside the detection gap, not touching
         return
-    _press_link(b0, pressed, point, body_q, object_world, bodies_per_world, zone_first, zone_index, zone_center,
-                zone_half, touch)  # fmt: skip
-    _press_link(b1, pressed, point, body_q, object_world, bodies_per_world, zone_first, zone_index, zone_center,
-                zone_half, touch)  # fmt: skip
+    for side in range(2):
+        link = b0
+        if side == 1:
+            link = b1
+        if link < 0 or object_world[link] >= 0:  # the table, or an object: no zones
+            continue
+        w = link // bodies_per_world
+        local = link - w * bodies_per_world
+        p = wp.transform_point(wp.transform_inverse(body_q[link]), point)
+        for i in range(zone_first[local], zone_first[local + 1]):
+            d = p - zone_center[i]
+            h = zone_half[i]
+            if wp.abs(d[0]) <= h[0] and wp.abs(d[1]) <= h[1] and wp.abs(d[2]) <= h[2]:
+                wp.atomic_add(touch, w, zone_index[i], pressed)
 
 
 def zone_arrays(pop: Population) -> dict[str, wp.array]:

@@ -93,7 +93,7 @@ def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
 
 def test_bench_accuracy_scores_a_users_own_files(tmp_path):
     """A lab with motion capture scores the tracker on its own recordings: `--files` takes .traj
-    (or .mcap) files that carry the truth, in place of a suite; one without it is refused."""
+    files that carry the truth, in place of a suite; one without it is refused."""
     from typer.testing import CliRunner
 
     from protocol import Trajectory

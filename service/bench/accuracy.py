@@ -71,10 +71,9 @@ class AccuracyRun:
     """Where generated ground truth is kept (None: nowhere)."""
     quiet: bool = False
     """No progress bar."""
-    files: tuple[Path, ...] = ()
-    """The user's own recordings to score instead of the suite's truth: ``.traj`` files (or the
-    service's ``.mcap`` recordings) of one robot that carry their ground truth, e.g. from motion
-    capture (:func:`files_suite` makes the suite that describes them)."""
+    files: tuple[Trajectory, ...] = ()
+    """The user's own trajectories to score instead of the suite's truth, each with its ground
+    truth, e.g. from motion capture (:func:`load_files`; :func:`files_suite` describes them)."""
     servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
     """The tracker's robot servos in place of its config's, as a calibration's overlay sets them
     (:attr:`sim_backend.FileRobotSpec.servos`); the truth keeps its own."""
@@ -104,15 +103,15 @@ class AccuracyRun:
         return {"substeps": self.substeps, **self.population}
 
 
-def load_files(paths: Sequence[Path]) -> list[Trajectory]:
-    """The trajectories of a user's files (``.traj``, or the service's ``.mcap``); a ValueError
-    names a file that cannot be read, carries no ground truth, or is of another robot."""
-    from protocol.recording import SessionRecording
+def load_files(paths: Sequence[Path]) -> tuple[Trajectory, ...]:
+    """The trajectories of a user's ``.traj`` files; a ValueError names a file that cannot be read,
+    carries no ground truth (a session recording never does), or is of another robot."""
+    from protocol.recording import load_trajectory
 
-    out = []
+    out: list[Trajectory] = []
     for path in paths:
         try:
-            t = SessionRecording.load(path).trajectory if path.suffix == ".mcap" else Trajectory.load(path)
+            t = load_trajectory(path)
         except (OSError, ValueError) as exc:
             raise ValueError(f"files: {exc}") from None
         if t.truth is None:
@@ -120,12 +119,11 @@ def load_files(paths: Sequence[Path]) -> list[Trajectory]:
         if out and t.robot != out[0].robot:
             raise ValueError(f"files: '{path}' is of robot '{t.robot}', the first file's is '{out[0].robot}'")
         out.append(t)
-    return out
+    return tuple(out)
 
 
-def files_suite(paths: Sequence[Path]) -> Suite:
-    """The suite a user's files make: their objects and robot, as they were recorded."""
-    trajectories = load_files(paths)
+def files_suite(trajectories: Sequence[Trajectory]) -> Suite:
+    """The suite a user's trajectories make: their objects and robot, as they were recorded."""
     objects = tuple(dict.fromkeys(t.object for t in trajectories))
     seconds = max(t.frames / t.frame_rate for t in trajectories)
     return Suite("files", objects, (), 1, seconds=round(seconds, 1), robot=trajectories[0].robot)
@@ -165,7 +163,7 @@ def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None
     (``summary`` per method and noise, ``ablations``, ``tracks`` with per-frame ADD). ``checkpoint``
     gets the partial results after each population."""
     t0 = time.perf_counter()
-    trajectories = load_files(run.files) if run.files else ground_truth(run.suite, run.device, run.cache)
+    trajectories = list(run.files) if run.files else ground_truth(run.suite, run.device, run.cache)
     t_truth = time.perf_counter() - t0
     by_object: dict[str, list[Trajectory]] = {}
     for t in trajectories:

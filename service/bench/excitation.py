@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.calibration.servos import out_of_reach
 from sim_backend.kinematics import Kinematics
 from sim_backend.objects import ObjectSpec
 
@@ -54,6 +55,5 @@ def excitation_demo(
     if follow is not None:
         leaders, followers, ratio = follow
         controls[:, followers] = np.clip(ratio * controls[:, leaders], lay.lower[followers], lay.upper[followers])
-    away = np.array([1.0, 1.0, -obj.mesh.bounds[0, 2], 0.0, 0.0, 0.0, 1.0])
-    return Demo(f"{obj.name}_excitation_{seed}", controls.astype(np.float32), away.astype(np.float32),
+    return Demo(f"{obj.name}_excitation_{seed}", controls.astype(np.float32), out_of_reach(obj),
                 lay.default_q.astype(np.float32), phases=(("move", 0),))  # fmt: skip

@@ -163,11 +163,8 @@ def _run(
         x, q = d.xpos[scene.object_body] - scene.origin, d.xquat[scene.object_body]
         poses.append([*x, q[1], q[2], q[3], q[0]])
     stack = lambda rows: np.asarray(rows, np.float32)[:, None]  # noqa: E731
-    # A robot without fingertip sensors sends no forces, slip or spin: those groups are absent.
-    pads = len(scene.sensor_bodies) > 0 or not len(scene.touch_sensors)
-    sensed = {k: stack(v) if pads or k in ("q", "touch") else None for k, v in sensing.items()}
-    return Recording(
-        sensing={"controls": demo.controls[:, None], **sensed},
+    return Recording(  # a field the robot does not sense (no fingertip sensors: no forces) is None
+        sensing={"controls": demo.controls[:, None], **{k: stack(v) if v else None for k, v in sensing.items()}},
         object_pose=stack(poses),
         initial_pose=demo.object_pose[None].astype(np.float32),
         initial_q=demo.q[None].astype(np.float32),
@@ -182,9 +179,9 @@ def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed
     """What the robot senses now, as :mod:`sim_backend.observe` computes it for a world."""
     m = scene.model
     L = len(scene.sensor_bodies)
-    if L == 0:  # a robot without fingertip sensors: joints and touch zones
-        none = observe.touch_from_sums(*np.zeros((3, 0, 3)), np.zeros(0), slip_speed, spin_speed)
-        return {"q": d.qpos[scene.qpos].copy(), **none, "touch": d.sensordata[scene.touch_sensors].astype(np.float32)}
+    joints_and_touch = {"q": d.qpos[scene.qpos].copy(), "touch": d.sensordata[scene.touch_sensors].astype(np.float32)}
+    if L == 0:  # a robot without fingertip sensors senses no forces, slip or spin
+        return joints_and_touch
     sensors = Rotation.from_matrix(d.xmat[scene.sensor_bodies].reshape(-1, 3, 3)) * Rotation.from_quat(
         scene.sensor_offsets[:, 3:]
     )  # each sensor frame in the world (scipy's quaternions are (x, y, z, w), as ours)
@@ -220,8 +217,4 @@ def _observe(scene: MujocoScene, d: mujoco.MjData, slip_speed: float, spin_speed
         weight[l] += w
     to_sensor = sensors.inv()
     forces, sliding, turning = (to_sensor.apply(v) for v in (force, slip_acc, spin_acc))
-    return {
-        "q": d.qpos[scene.qpos].copy(),
-        **observe.touch_from_sums(forces, sliding, turning, weight, slip_speed, spin_speed),
-        "touch": d.sensordata[scene.touch_sensors].astype(np.float32),
-    }
+    return joints_and_touch | observe.touch_from_sums(forces, sliding, turning, weight, slip_speed, spin_speed)

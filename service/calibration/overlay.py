@@ -4,6 +4,7 @@ place (the config with the fitted servos), and a report of what was fitted and h
 from __future__ import annotations
 
 import datetime
+import json
 import os
 from pathlib import Path
 
@@ -20,17 +21,17 @@ def _numbers(values: np.ndarray) -> str:
 
 def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command: str = "") -> Path:
     """Write the overlay of ``config`` with ``fit``'s servos (default ``NAME.calibrated.toml``
-    beside it); returns its path."""
+    beside it), and its report beside it as ``.md`` (:func:`calibration_report`) and ``.json``
+    (:meth:`ServoFit.summary`); returns the overlay's path."""
     out = out or config.with_name(f"{config.stem}.calibrated.toml")
     before, after = (float(np.sqrt(np.mean(r**2))) * 1e3 for r in (fit.rms_before, fit.rms_after))
-    pinned = sum(int(v.sum()) for v in fit.identified.values())
     lines = [
         f"# Robot '{fit.robot}' with its servos fitted to its own recordings"
         + (f" by `{command}`" if command else "")
-        + f" on {datetime.date.today().isoformat()}:",
-        f"# joint RMS error {before:.2f} -> {after:.2f} mrad (mm for slides) over {fit.frames} frames; {pinned} of"
-        f" {sum(v.size for v in fit.identified.values())} settings",
-        "# were fitted, the others keep the config's values (the fit did not lower their joint's error).",
+        + f" on {datetime.date.today().isoformat()} ({fit.device}):",
+        f"# joint RMS error {before:.2f} -> {after:.2f} mrad (mm for slides) over {fit.frames} frames;",
+        f"# {int(fit.identified.sum())} of {fit.identified.size} joints take their fitted servos, the others keep the"
+        " config's (the fit did not lower their error).",
         "# Name this file in the service's `robots` setting in place of the config.",
         f'extends = "{Path(os.path.relpath(config.resolve(), out.resolve().parent)).as_posix()}"',
         "",
@@ -39,6 +40,8 @@ def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command:
         "",
     ]
     out.write_text("\n".join(lines))
+    out.with_suffix(".md").write_text(calibration_report(fit))
+    out.with_suffix(".json").write_text(json.dumps(fit.summary(), indent=2))
     return out
 
 
@@ -53,7 +56,7 @@ def calibration_report(fit: ServoFit) -> str:
             nominal, fitted, spread = fit.nominal[s][j], fit.fitted[s][j], fit.spread[s][j]
             cells.append(
                 f"{fitted:.4g} (config {nominal:.4g}, ±{spread * 100:.0f} %)"
-                if fit.identified[s][j]
+                if fit.identified[j]
                 else f"{nominal:.4g} kept (±{spread * 100:.0f} %)"
             )
         note = "" if fit.excited[j] else " (not excited)"

@@ -30,7 +30,7 @@ from sim_backend import Population, PopulationConfig
 from sim_backend.objects import ObjectSpec
 from sim_backend.robots import RobotSpec
 
-__all__ = ["SERVO_SETTINGS", "ServoFit", "fit_servos"]
+__all__ = ["SERVO_SETTINGS", "ServoFit", "fit_servos", "out_of_reach"]
 
 log = logging.getLogger(__name__)
 
@@ -55,11 +55,12 @@ class ServoFit:
     nominal: dict[str, np.ndarray]
     """The robot config's values, each (D,)."""
     fitted: dict[str, np.ndarray]
-    """The fitted values, each (D,): the config's where the data did not pin them."""
+    """The fitted values, each (D,): the config's where the joint keeps its servo."""
     spread: dict[str, np.ndarray]
     """How far the best candidates disagree, each (D,): a relative standard deviation."""
-    identified: dict[str, np.ndarray]
-    """Whether the data pinned each value, each (D,) bool."""
+    identified: np.ndarray
+    """Whether each joint takes its fitted servo, (D,) bool: it was excited and the fit lowered its
+    own error."""
     excited: np.ndarray
     """Whether each joint moved enough to say anything, (D,) bool."""
     rms_before: np.ndarray
@@ -70,6 +71,7 @@ class ServoFit:
     generations: int
     frames: int
     seconds: float
+    device: str
     history: list[float] = field(default_factory=list)
     """The best candidate's mean squared joint error per generation [rad^2 or m^2]."""
 
@@ -79,6 +81,7 @@ class ServoFit:
             {
                 "joint": name,
                 "excited": bool(self.excited[j]),
+                "identified": bool(self.identified[j]),
                 "rms_before": float(self.rms_before[j]),
                 "rms_after": float(self.rms_after[j]),
                 **{
@@ -86,7 +89,6 @@ class ServoFit:
                         "nominal": float(self.nominal[s][j]),
                         "fitted": float(self.fitted[s][j]),
                         "spread": float(self.spread[s][j]),
-                        "identified": bool(self.identified[s][j]),
                     }
                     for s in self.settings
                 },
@@ -95,6 +97,7 @@ class ServoFit:
         ]
         return {
             "robot": self.robot,
+            "device": self.device,
             "settings": list(self.settings),
             "worlds": self.worlds,
             "generations": self.generations,
@@ -122,6 +125,11 @@ class _Series:
         return int(self.controls.shape[0])
 
 
+def out_of_reach(obj: ObjectSpec) -> np.ndarray:
+    """Where the object lies while the hand moves freely: on the table a metre away, (7,)."""
+    return np.array([1.0, 1.0, -obj.mesh.bounds[0, 2], 0.0, 0.0, 0.0, 1.0], np.float32)
+
+
 def _series(trajectories: list[Trajectory], obj: ObjectSpec, device: torch.device) -> _Series:
     lengths = np.array([t.frames for t in trajectories])
     f = int(lengths.max())
@@ -133,9 +141,7 @@ def _series(trajectories: list[Trajectory], obj: ObjectSpec, device: torch.devic
         np.stack([pad(np.asarray(getattr(t, name), np.float32)) for t in trajectories], axis=1), device=device
     )
     valid = torch.as_tensor(np.arange(f)[:, None] < lengths[None], dtype=torch.float32, device=device)
-    # Without a truth the object lies on the table a metre away, out of the hand's reach.
-    away = np.array([1.0, 1.0, -obj.mesh.bounds[0, 2], 0.0, 0.0, 0.0, 1.0])
-    start = np.stack([t.truth.initial_pose if t.truth is not None else away for t in trajectories])
+    start = np.stack([t.truth.initial_pose if t.truth is not None else out_of_reach(obj) for t in trajectories])
     q0 = np.stack([t.truth.initial_q if t.truth is not None else t.q[0] for t in trajectories])
     return _Series(stack("controls"), stack("q"), valid[..., None, None], q0, start)
 
@@ -223,9 +229,8 @@ def fit_servos(
     x_mean = cma.mean.reshape(len(settings), d)
     check = np.stack([np.zeros(n)] + [x_mean.ravel()] * (worlds - 1))
     rms = np.sqrt(_replay(pop, series, candidates(check)).cpu().numpy() / frames_valid)
-    helps = excited & (rms[1] < (1.0 - _GAIN) * rms[0])
-    identified = np.broadcast_to(helps, x_mean.shape)
-    rms = np.stack([rms[0], np.where(helps, rms[1], rms[0])])
+    identified = excited & (rms[1] < (1.0 - _GAIN) * rms[0])
+    rms = np.stack([rms[0], np.where(identified, rms[1], rms[0])])
     x_fit = np.where(identified, x_mean, 0.0)
     fitted = {s: nominal[s] * np.exp(x_fit[i]) for i, s in enumerate(settings)}
     return ServoFit(
@@ -235,7 +240,7 @@ def fit_servos(
         nominal=nominal,
         fitted=fitted,
         spread={s: np.expm1(spread[i]) for i, s in enumerate(settings)},
-        identified={s: identified[i] for i, s in enumerate(settings)},
+        identified=identified,
         excited=excited,
         rms_before=rms[0],
         rms_after=rms[1],
@@ -243,5 +248,6 @@ def fit_servos(
         generations=generations,
         frames=series.frames,
         seconds=time.perf_counter() - t0,
+        device=pop.device.alias,
         history=history,
     )

@@ -161,7 +161,7 @@ def bench_accuracy(
     ] = "0.005,0.05",
     files: Annotated[
         str | None,
-        typer.Option(help="score your own .traj or .mcap files with ground truth instead of a suite, comma-separated"),
+        typer.Option(help="score your own .traj files (with ground truth) instead of a suite, comma-separated"),
     ] = None,
     robot_overlay: Annotated[
         Path | None,
@@ -185,14 +185,14 @@ def bench_accuracy(
         config, population = parse_settings(set_ or [])
     except ValueError as exc:
         raise fail(f"--set: {exc}") from None
-    chosen_suite, paths, servos = _what_to_track(suite, short, files, robot_overlay)
+    chosen_suite, mine, servos = _what_to_track(suite, short, files, robot_overlay)
     out = out or Path(f"bench-results/accuracy-{chosen_suite.name}")
     command = command_line(ctx)
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps}.items() if v}
     try:
         run = AccuracyRun(
             chosen_suite,
-            files=paths,
+            files=mine,
             methods=tuple(names(methods)),
             noises=tuple(names(noise)),
             ablations=tuple(ABLATIONS if ablations == "all" else names(ablations)),
@@ -234,6 +234,7 @@ def bench_calibration(
     config for `bench accuracy --robot-overlay`, and a report."""
     gpu_stack()
     from service.bench.calibration import calibration_recording
+    from service.bench.suites import robot_spec
     from service.calibration import calibration_report, fit_servos, write_overlay
     from service.paths import CONFIG_DIR
     from sim_backend import catalog_object
@@ -245,22 +246,13 @@ def bench_calibration(
         with contextlib.redirect_stdout(sys.stderr):
             traj = calibration_recording(chosen, device, seconds)
             traj.save(out / f"{suite}-calibration.traj")
-            spec = robot_spec_of(chosen.robot)
-            fit = fit_servos(spec, catalog_object(traj.object), [traj], tuple(names(settings) or ()), worlds,
-                             generations, device)  # fmt: skip
+            spec, obj = robot_spec(chosen.robot), catalog_object(traj.object)
+            fit = fit_servos(spec, obj, [traj], tuple(names(settings) or ()), worlds, generations, device)
     except ValueError as exc:
         raise fail(f"bench calibration: {exc}") from None
     config = CONFIG_DIR / "robots" / f"{chosen.robot}.toml"
     overlay = write_overlay(fit, config, out / f"{chosen.robot}.calibrated.toml", command_line(ctx))
-    overlay.with_suffix(".md").write_text(calibration_report(fit))
-    overlay.with_suffix(".json").write_text(json.dumps(fit.summary() | {"device": device}, indent=2))
     typer.echo(calibration_report(fit) + f"\noverlay: {overlay}")
-
-
-def robot_spec_of(name: str):
-    from service.bench.suites import robot_spec
-
-    return robot_spec(name)
 
 
 def _vision_sigma(text: str) -> tuple[float, float]:
@@ -273,16 +265,16 @@ def _vision_sigma(text: str) -> tuple[float, float]:
 
 
 def _what_to_track(suite: str, short: bool, files: str | None, overlay: Path | None) -> tuple:
-    """The suite (or the user's files) and the tracker's servos (an overlay's), or exit 2 naming
-    what is wrong."""
-    from service.bench.accuracy import files_suite
+    """The suite (or the user's files' trajectories and the suite they make) and the tracker's
+    servos (an overlay's), or exit 2 naming what is wrong."""
+    from service.bench.accuracy import files_suite, load_files
 
-    paths = tuple(Path(p) for p in names(files) or ())
     try:
-        chosen = files_suite(paths) if paths else suite_named(suite, short)
+        mine = load_files([Path(p) for p in names(files) or ()])
     except ValueError as exc:
         raise fail(f"bench accuracy --{exc}") from None
-    return chosen, paths, _overlay_servos(overlay, chosen.robot) if overlay else ()
+    chosen = files_suite(mine) if mine else suite_named(suite, short)
+    return chosen, mine, _overlay_servos(overlay, chosen.robot) if overlay else ()
 
 
 def _overlay_servos(path: Path, robot: str) -> tuple:

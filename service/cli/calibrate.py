@@ -37,14 +37,13 @@ def calibrate(
     if missing := [str(r) for r in recordings if not r.is_file()]:
         raise fail(f"calibrate: no such recording {missing[0]}")
     gpu_stack()
-    from protocol import Trajectory
-    from protocol.recording import SessionRecording
+    from protocol.recording import load_trajectory
     from service.calibration import calibration_report, fit_servos, write_overlay
     from sim_backend import catalog_object, load_robot
 
     try:
         spec = load_robot(robot)
-        trajs = [SessionRecording.load(r).trajectory if r.suffix == ".mcap" else Trajectory.load(r) for r in recordings]
+        trajs = [load_trajectory(r) for r in recordings]
         obj = catalog_object(object_ or trajs[0].object)
         with contextlib.redirect_stdout(sys.stderr):
             fit = fit_servos(
@@ -54,8 +53,5 @@ def calibrate(
     except ValueError as exc:
         raise fail(f"calibrate: {exc}") from None
     overlay = write_overlay(fit, robot, out, command_line(ctx))
-    report = overlay.with_suffix(".md")
-    report.write_text(calibration_report(fit))
-    (overlay.with_suffix(".json")).write_text(json.dumps(fit.summary(), indent=2))
     typer.echo(json.dumps(fit.summary(), indent=2) if json_ else calibration_report(fit))
-    typer.echo(f"overlay: {overlay}\nreport: {report}", err=json_)
+    typer.echo(f"overlay: {overlay}\nreport: {overlay.with_suffix('.md')}", err=json_)

@@ -111,8 +111,9 @@ class ServiceConfig(BaseSettings):
     silenced by its own counter."""
     model_check: float = Field(0.03, gt=0)
     """RMS difference between the worlds' joints and the robot's past which the session's status
-    names a joint and the log says so once [rad, or m for a slide]: the robot config's servos are
-    not the robot's (measured joints read with a few mrad of noise)."""
+    names a joint, and the log and the robot's next estimate say so when it joins them [rad, or m
+    for a slide]: the robot config's servos are not the robot's (measured joints read with a few
+    mrad of noise)."""
     max_pending: int = Field(30, ge=1)
     """Frames queued per session at most; the oldest is dropped for a new one (a robot wants its
     newest frame tracked, not a backlog)."""

@@ -72,8 +72,8 @@ class Session:
         """Take the model check's latest RMS per joint (D,); once the session has a second of
         frames, the joints past ``threshold`` [rad or m] are named in the status. Returns what to
         say when that set grows, else None."""
-        if self.frames < _CHECK_AFTER:
-            return None
+        if self.frames < _CHECK_AFTER or not (self.joints_off or (rms > threshold).any()):
+            return None  # the common case, every frame: nothing to name
         off = {name: round(float(r), 4) for name, r in zip(joints, rms, strict=True) if r > threshold}
         grew = set(off) - set(self.joints_off)
         self.joints_off = off
