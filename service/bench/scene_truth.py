@@ -17,12 +17,13 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from service.paths import CONFIG_DIR
 from sim_backend.robot_files import python_package_path
 from sim_backend.robot_specs import RobotLayout
 
 from .mujoco_truth import MujocoScene
 
-__all__ = ["MANIPULATE_BLOCK", "SceneFile", "load_scene"]
+__all__ = ["ALLEGRO_PALM_BLOCK", "MANIPULATE_BLOCK", "SceneFile", "load_scene"]
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,10 @@ MANIPULATE_BLOCK = SceneFile(
 """Gymnasium-Robotics' HandManipulateBlockTouchSensors scene: the Shadow hand palm up on its mount,
 the 5 cm block, its 2 ms step and solver, and 92 touch sensors over palm and phalanges. (The
 package's egg and pen scenes are left alone: an independent check.)"""
+
+ALLEGRO_PALM_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_scene.xml"), "object")
+"""The Allegro Hand palm up with the 5 cm block on its palm, MuJoCo's own contact model and a 2 ms
+step, and a touch sensor on each of the hand's 14 touch sites (``configs/robots/allegro_palm.toml``)."""
 
 
 def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float) -> MujocoScene:

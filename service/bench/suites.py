@@ -14,7 +14,8 @@ from sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
 from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS
 from .palm_motions import PALM_MOTION_KINDS
-from .scene_truth import MANIPULATE_BLOCK, SceneFile
+from .push_motions import PUSH_MOTION_KINDS
+from .scene_truth import ALLEGRO_PALM_BLOCK, MANIPULATE_BLOCK, SceneFile
 
 __all__ = [
     "EXPLORATION",
@@ -152,6 +153,17 @@ SUITES: dict[str, Suite] = {
         engine="scene",
         scene=MANIPULATE_BLOCK,
         robot="shadow_touch",
+    ),
+    "allegro-palm": Suite(
+        "allegro-palm",
+        ("block",),
+        PUSH_MOTION_KINDS,
+        1,
+        seconds=15.0,
+        sensors=_REAL_SENSORS,
+        engine="scene",
+        scene=ALLEGRO_PALM_BLOCK,
+        robot="allegro_palm",
     ),
     "cross-engine-shadow": Suite(
         "cross-engine-shadow",

@@ -30,7 +30,8 @@ from sim_backend.robots import RobotSpec
 from .demos import Demo, make_demo
 from .motions import make_motion
 from .mujoco_truth import MujocoScene, export_scene, record_mujoco
-from .palm_motions import make_palm_motion
+from .palm_motions import PALM_MOTION_KINDS, make_palm_motion
+from .push_motions import make_push_motion
 from .recorder import Recording, record
 from .scene_truth import load_scene
 from .suites import SensorNoise, Suite, robot_spec
@@ -64,7 +65,7 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
         obj = catalog_object(name)
         if on_palm:
             demos = [
-                make_palm_motion(kin, obj, kind, v, suite.seconds)
+                (make_palm_motion if kind in PALM_MOTION_KINDS else make_push_motion)(kin, obj, kind, v, suite.seconds)
                 for kind in suite.kinds
                 for v in range(suite.variants)
             ]

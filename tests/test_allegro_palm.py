@@ -1,0 +1,79 @@
+"""The Allegro Hand palm up: the project's own model of it (``configs/robots/allegro_palm``), its
+scene in MuJoCo C as the truth with its 14 touch sensors as the robot's touch array, and motions
+in which the fingers push and the thumb slides the block lying on the palm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from service.bench.mujoco_truth import record_mujoco
+from service.bench.push_motions import PUSH_MOTION_KINDS, make_push_motion
+from service.bench.scene_truth import ALLEGRO_PALM_BLOCK, load_scene
+from service.bench.suites import SUITES, robot_spec
+from service.cli import app
+from sim_backend import Kinematics, catalog_object
+
+GRAVITY = 9.81
+
+
+@pytest.fixture(scope="module")
+def hand():
+    return Kinematics(robot_spec("allegro_palm"))
+
+
+@pytest.fixture(scope="module")
+def scene(hand):
+    return load_scene(ALLEGRO_PALM_BLOCK, hand.layout, catalog_object("block").mass)
+
+
+def test_the_model_has_the_hands_joints_limits_and_touch_array(hand):
+    lay = hand.layout
+    assert len(lay.joint_names) == 16 and lay.joint_names[12] == "thj0"
+    # the thumb's rotation starts at its lower limit, the published 0.263 rad
+    assert lay.lower[12] == pytest.approx(0.263) and lay.default_q[12] == pytest.approx(0.263)
+    assert lay.upper[1] == pytest.approx(1.61) and lay.lower[0] == pytest.approx(-0.47)
+    assert len(lay.zone_names) == 14 and lay.zone_names[:2] == ("T_palm_top", "T_palm_bottom")
+
+
+def test_the_scene_drives_every_joint_and_senses_every_zone(scene, hand):
+    m = scene.model
+    assert m.nu == 16 and sorted(scene.actuator_joint.tolist()) == list(range(16))
+    assert len(scene.touch_sensors) == 14
+    assert m.opt.cone == 0 and m.opt.impratio == pytest.approx(1.0)  # MuJoCo's own contact model
+
+
+@pytest.mark.parametrize("kind", ["push", "slide"])
+def test_the_block_stays_on_the_palm_moves_and_its_weight_is_felt_there(scene, hand, kind):
+    obj = catalog_object("block")
+    demo = make_push_motion(hand, obj, kind, seconds=8.0)
+    truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
+    assert truth.held([demo], margin=-0.03)[0]
+    assert truth.force is None and truth.touch.shape == (demo.frames, 1, 14)
+    settled = slice(8, 17)  # lying on the palm before the hand moves
+    felt = truth.touch[settled, 0].sum(axis=1)
+    assert felt.mean() == pytest.approx(obj.mass * GRAVITY, rel=0.1)
+    assert truth.touch[settled, 0, :2].sum(axis=1).mean() > 0.5 * obj.mass * GRAVITY  # mostly by the palm
+    path = truth.object_pose[:, 0, :2]
+    assert np.ptp(path, axis=0).max() > 0.004  # the fingers or thumb moved it on the palm
+
+
+def test_a_push_motion_refuses_what_it_cannot_script(hand):
+    obj = catalog_object("block")
+    with pytest.raises(ValueError, match=r"push motion kind: expected one of .*got 'wave'"):
+        make_push_motion(hand, obj, "wave")
+    with pytest.raises(ValueError, match=r"push motions need the Allegro Hand's joints; robot 'shadow_touch' lacks"):
+        make_push_motion(Kinematics(robot_spec("shadow_touch")), obj, "push")
+    assert SUITES["allegro-palm"].kinds == PUSH_MOTION_KINDS
+
+
+@pytest.mark.slow
+def test_the_short_suite_runs_on_a_cpu(tmp_path):
+    out = tmp_path / "out"
+    args = ["bench", "accuracy", "--suite", "allegro-palm", "--short", "--methods", "OLP,PBO", "--noise", "med"]
+    args += ["--worlds", "8", "--device", "cpu", "--out", str(out), "--cache", str(tmp_path / "cache")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    report = (out / "report.md").read_text()
+    assert "allegro-palm-short" in report and "| PBO |" in report
