@@ -5,6 +5,7 @@ its caller when the estimate it holds is stale or the service went away."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -24,7 +25,7 @@ import zenoh
 from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
-from client import ServiceLost, StaleEstimate, TrackerClient, TrackerError
+from client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config
 from protocol import (
     CloseSession,
     Error,
@@ -672,20 +673,22 @@ def test_a_tls_session_tracks_and_a_plain_peer_is_kept_out(traj, tmp_path):
         svc.stop()
 
 
-def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_router(traj, tmp_path):
-    """docker/compose-tls.yml's Zenoh files as shipped (certificates from make-certs.sh, their
-    paths and port moved here): a router that accepts only mTLS, the service as its client with
-    no endpoint of its own, a robot with its certificate tracking through it, the health check
-    through it, and a peer without a certificate kept out."""
+@contextlib.contextmanager
+def _hardened(tmp_path: Path):
+    """docker/compose-tls.yml's deployment from its Zenoh files as shipped, their certificate paths
+    and port moved here: make-certs.sh's certificates for two robots ("robot", "observer") and its
+    router.json5 with their access rules, a router running it, and the service as its client with
+    the service's certificate. Yields the router's endpoint, a function that gives a shipped Zenoh
+    file (``router.json5`` from the certificates' folder, the others from docker/tls) and the service."""
     certs = tmp_path / "certs"
     _certificates(certs)
     port = free_port()
 
-    def shipped(name: str) -> Path:
-        text = (ROOT / "docker/tls" / name).read_text()
+    def shipped(name: str, robot: str = "robot") -> Path:
+        text = (certs / name if name == "router.json5" else ROOT / "docker/tls" / name).read_text()
         text = text.replace("/certs/", f"{certs}/").replace('"certs/', f'"{certs}/').replace(":7447", f":{port}")
-        path = tmp_path / name
-        path.write_text(text)
+        path = tmp_path / f"{robot}-{name}"
+        path.write_text(text.replace("certs/robot.", f"certs/{robot}."))
         return path
 
     router = subprocess.Popen(
@@ -695,24 +698,84 @@ def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     assert router.stdout.readline().strip() == "up"
-    endpoint = f"tls/127.0.0.1:{port}"
     svc = ServiceProcess(0, listen=False, connect="", zenoh_config=str(shipped("service.json5")))
     try:
+        yield f"tls/127.0.0.1:{port}", shipped, svc
+    finally:
+        svc.stop()
+        router.kill()
+        router.wait()
+
+
+def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_router(traj, tmp_path):
+    """A router that accepts only mTLS, the service as its client with no endpoint of its own, a
+    robot with its certificate tracking through it, the health check through it, and a peer without
+    a certificate kept out."""
+    with _hardened(tmp_path) as (endpoint, shipped, svc):
         with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5")) as robot:
             svc.wait_ready(robot)
             info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
             robot.send(traj.frame(0, info.session))
             assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
-            env = os.environ | {"INHAND_ZENOH_CONFIG": str(tmp_path / "service.json5")}
+            env = os.environ | {"INHAND_ZENOH_CONFIG": str(tmp_path / "robot-service.json5")}
             health = subprocess.run([sys.executable, "-m", "client.health", endpoint], env=env, cwd=ROOT,
                                     capture_output=True, text=True, timeout=60)  # fmt: skip
             assert health.returncode == 0 and "healthy" in health.stdout, health.stderr
         stranger = tmp_path / "stranger.json5"
         stranger.write_text(json.dumps({"mode": "client", "transport": {"link": {"tls": {
-            "root_ca_certificate": str(certs / "ca.crt")}}}}))  # fmt: skip
+            "root_ca_certificate": str(tmp_path / "certs" / "ca.crt")}}}}))  # fmt: skip
         with pytest.raises(zenoh.ZError, match="Unable to connect"):  # a client must reach the router
             TrackerClient(connect=[endpoint], zenoh_file=stranger)
-    finally:
-        svc.stop()
-        router.kill()
-        router.wait()
+
+
+def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sniff_forge_nor_intercept(traj, tmp_path):
+    """A second robot with a valid certificate of the same lab subscribes to every session's
+    frames and observations, answers every service key in the service's place, publishes forged
+    estimates on the first robot's key and tries to close its session. The router's access rules
+    (make-certs.sh's router.json5) let none of it through: 0 frames sniffed, 0 queries caught, 0
+    forged estimates delivered, the session still open, and the first robot keeps >= 95 % of its
+    10 Hz estimate rate meanwhile."""
+    with _hardened(tmp_path) as (endpoint, shipped, svc):
+        attacker = zenoh.open(zenoh_config(connect=[endpoint], file=shipped("robot.json5", robot="observer")))
+        keys, caught, sniffed = Keys("default"), [], []
+        forged = []
+
+        def answer(query: zenoh.Query) -> None:
+            caught.append(str(query.key_expr))
+            query.reply(query.key_expr, b"forged")
+
+        remote = zenoh.Locality.REMOTE  # what it sends itself it would hear locally: not a leak
+        held = [attacker.declare_subscriber(keys.every(kind), sniffed.append, allowed_origin=remote)
+                for kind in ("frame", "observation")]  # fmt: skip
+        held += [attacker.declare_queryable(k, answer, allowed_origin=remote)
+                 for k in (keys.info, keys.open, keys.close, keys.every("pose"), keys.every("status"))]  # fmt: skip
+        held.append(attacker.liveliness().declare_token(keys.alive))
+        try:
+            with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5")) as robot:
+                svc.wait_ready(robot)
+                info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
+                got: list[int] = []
+                robot.on_pose(lambda est: (got.append(est.seq), est.seq >= 10**6 and forged.append(est)))
+                robot.send(traj.frame(0, info.session))
+                first = robot.latest_pose(timeout=60, after_seq=0)
+                fake = encode(first.model_copy(update={"seq": 10**6}))
+                seconds, rate, sent = 4.0, 10.0, 0
+                t0 = time.perf_counter()
+                while time.perf_counter() - t0 < seconds:
+                    time.sleep(max(0.0, t0 + sent / rate - time.perf_counter()))
+                    sent += 1
+                    robot.send(traj.frame(sent, info.session))
+                    attacker.put(keys.pose(info.session), fake)
+                    attacker.put(keys.frame(info.session), encode(traj.frame(sent, info.session, token="0" * 32)))
+                time.sleep(1.0)
+                guess = CloseSession(session=info.session, token="0" * 32)
+                list(attacker.get(keys.close, payload=encode(guess), timeout=3))
+                assert robot.status().frames >= sent  # still open: its status answers
+                answered = len([s for s in got if 0 < s <= sent])
+                assert answered >= 0.95 * sent, (answered, sent)
+                robot.close_session()
+        finally:
+            for h in held:
+                h.undeclare()
+            attacker.close()
+        assert sniffed == [] and caught == [] and forged == [], (len(sniffed), caught, len(forged))

@@ -3,6 +3,10 @@
 #   bash docker/tls/make-certs.sh DIR HOST [ROBOT ...]
 # HOST is the router's address as robots dial it (an IP or a DNS name). Keep ca.key offline; give
 # each robot its own certificate (its common name is what access-control rules match).
+# It also writes DIR/router.json5, the router's config with access control for those robots: a
+# robot may send frames and observations, ask the service, and hear its answers; only the
+# service's certificate may answer, publish estimates or declare the service's liveliness token,
+# and no robot receives another's frames. Run it again with every robot to add one.
 set -euo pipefail
 dir=$1 host=$2
 shift 2
@@ -23,4 +27,60 @@ issue router serverAuth
 issue inhand-service clientAuth
 for robot in "${robots[@]}"; do issue "$robot" clientAuth; done
 chmod 600 ./*.key
-echo "certificates in $dir: ca.crt, router, inhand-service, ${robots[*]}"
+names=$(printf '"%s", ' "${robots[@]}")
+cat > router.json5 <<EOF
+// The zenohd router of docker/compose-tls.yml, written by make-certs.sh for: ${robots[*]}.
+// The only listening endpoint on the network: TLS with client certificates (mTLS), so only peers
+// holding a certificate from the lab's CA connect, and access control by certificate name.
+{
+  mode: "router",
+  listen: { endpoints: ["tls/0.0.0.0:7447"] },
+  scouting: { multicast: { enabled: false }, gossip: { enabled: false } },
+  transport: {
+    link: {
+      tls: {
+        listen_certificate: "/certs/router.crt",
+        listen_private_key: "/certs/router.key",
+        root_ca_certificate: "/certs/ca.crt",
+        enable_mtls: true,
+      },
+    },
+  },
+  access_control: {
+    enabled: true,
+    default_permission: "deny",
+    rules: [
+      // what a robot sends: its frames and observations (signed per session), its presence, and questions
+      { id: "robot-sends", permission: "allow", flows: ["ingress"], messages: ["put"],
+        key_exprs: ["inhand/*/*/s/*/frame", "inhand/*/*/s/*/observation"] },
+      { id: "robot-present", permission: "allow", flows: ["ingress"], messages: ["liveliness_token"],
+        key_exprs: ["inhand/*/*/s/*/robot"] },
+      // a robot's publisher sends only where a subscriber is declared: the service's, on s/*/*
+      { id: "robot-is-heard", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"],
+        key_exprs: ["inhand/*/*/s/**"] },
+      { id: "robot-asks", permission: "allow", flows: ["ingress"],
+        messages: ["query", "liveliness_query", "declare_subscriber", "declare_liveliness_subscriber"],
+        key_exprs: ["inhand/**"] },
+      // what a robot hears: the service's answers, estimates, status and liveliness; never a frame
+      { id: "robot-hears", permission: "allow", flows: ["egress"],
+        messages: ["put", "reply", "liveliness_token", "declare_queryable", "declare_subscriber",
+                   "declare_liveliness_subscriber", "query", "liveliness_query"],
+        key_exprs: ["inhand/*/*/s/*/pose", "inhand/*/*/s/*/status", "inhand/*/*/alive", "inhand/*/*/info",
+                    "inhand/*/*/rpc/**"] },
+      { id: "service-all", permission: "allow", flows: ["ingress", "egress"],
+        messages: ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                   "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+        key_exprs: ["inhand/**"] },
+    ],
+    subjects: [
+      { id: "robots", cert_common_names: [${names%, }] },
+      { id: "service", cert_common_names: ["inhand-service"] },
+    ],
+    policies: [
+      { id: "robots", rules: ["robot-sends", "robot-present", "robot-is-heard", "robot-asks", "robot-hears"], subjects: ["robots"] },
+      { id: "service", rules: ["service-all"], subjects: ["service"] },
+    ],
+  },
+}
+EOF
+echo "certificates in $dir: ca.crt, router, inhand-service, ${robots[*]}; router.json5 admits those robots"
