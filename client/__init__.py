@@ -2,7 +2,8 @@
 pydantic only; never torch, warp or newton)."""
 
 from .replay import NOISE_LEVELS, ReplayResult, noisy_start, replay
-from .tracker_client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config, zenoh_encoding
+from .tracker_client import ServiceLost, StaleEstimate, TrackerClient, TrackerError
+from .zenoh_session import zenoh_config, zenoh_encoding
 
 __all__ = [
     "NOISE_LEVELS",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import threading
 import time
@@ -30,19 +29,13 @@ from protocol import (
     SessionStatus,
     decode,
     encode,
-    encoding_of,
 )
 from protocol.auth import sign, signed_query
 
 from .builds import BuildWatch
+from .zenoh_session import zenoh_config, zenoh_encoding
 
-__all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError", "zenoh_config", "zenoh_encoding"]
-
-
-@functools.cache
-def zenoh_encoding(model: type) -> zenoh.Encoding:
-    """The Zenoh encoding of a message: msgpack, with the message's name and version as schema."""
-    return zenoh.Encoding(encoding_of(model))
+__all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError"]
 
 
 class TrackerError(Exception):
@@ -62,21 +55,6 @@ class StaleEstimate(RuntimeError):
 class ServiceLost(ConnectionError):
     """The service's liveliness token went away while a session was open: it stopped or
     restarted, and the session is gone with it (:meth:`TrackerClient.reopen` starts a new one)."""
-
-
-def zenoh_config(listen=(), connect=(), scouting: bool = False, file: str | os.PathLike | None = None) -> zenoh.Config:
-    """A peer config: listen and connect endpoints, multicast scouting on or off; on top of the
-    Zenoh config ``file`` when given (TLS certificates, access control rules, ``mode: "client"``
-    behind a router)."""
-    conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
-    if conf.get_json("mode") == "null":
-        conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
-    if connect:
-        conf.insert_json5("connect/endpoints", str(list(connect)).replace("'", '"'))
-    if listen:
-        conf.insert_json5("listen/endpoints", str(list(listen)).replace("'", '"'))
-    return conf
 
 
 class TrackerClient:
@@ -99,11 +77,14 @@ class TrackerClient:
         timeout: float = 120.0,
         zenoh_file: str | os.PathLike | None = None,
         open_timeout: float = 900.0,
+        peer: str | None = None,
     ):
         """``service``: its name, or None to choose at each open. ``zenoh_file``: a Zenoh JSON5 config
-        (TLS or mTLS certificates) under the endpoints given. ``open_timeout``: an open's wait [s]."""
-        self._route = service is None
-        self.keys = Keys(service or "default")
+        (TLS or mTLS certificates) under the endpoints given. ``open_timeout``: an open's wait [s].
+        ``peer``: the name to open under, which the service's per-peer caps count (behind the
+        hardened compose's router, this robot's certificate name)."""
+        self._route, self.peer = service is None, peer
+        self.keys = Keys(service or "default", peer)
         self.endpoints = list(connect) or ["(scouting)"]
         """Where this client looks for its service, for the errors that say it found none."""
         self.timeout, self.open_timeout = timeout, open_timeout
@@ -268,7 +249,7 @@ class TrackerClient:
                 return self._get(self.keys.open, request, SessionInfo, self.open_timeout)
             full: TrackerError | None = None
             for info in (i for i in self.services() if i.ready):
-                self.keys = Keys(info.name)
+                self.keys = Keys(info.name, self.peer)
                 try:
                     return self._get(self.keys.open, request, SessionInfo, self.open_timeout)
                 except TrackerError as exc:

@@ -26,9 +26,12 @@ def check_name(kind: str, name: str) -> str:
 class Keys:
     """The key expressions of one service."""
 
-    def __init__(self, service: str = "default"):
+    def __init__(self, service: str = "default", peer: str | None = None):
         self.service = check_name("service", service)
         self.root = f"{PREFIX}/{self.service}"
+        self.peer = None if peer is None else check_name("peer", peer)
+        """The name a robot opens under (``rpc/open/PEER``), or None: the service counts its caps
+        per name, and a router's access rules can let each certificate open under its own name only."""
 
     @property
     def alive(self) -> str:
@@ -42,8 +45,20 @@ class Keys:
 
     @property
     def open(self) -> str:
-        """Queryable with payload: open a session."""
-        return f"{self.root}/rpc/open"
+        """Queryable with payload: open a session (under :attr:`peer`'s name when it has one)."""
+        return f"{self.root}/rpc/open" + (f"/{self.peer}" if self.peer else "")
+
+    @property
+    def opens(self) -> str:
+        """The service's open queryable: an open under any name, or none."""
+        return f"{self.root}/rpc/open/**"
+
+    def peer_of(self, key: str) -> str:
+        """The name an open on ``key`` was made under ("" for none)."""
+        head = f"{self.root}/rpc/open"
+        if not (key == head or key.startswith(head + "/")):
+            raise ValueError(f"key {key!r} is not an open key of service '{self.service}'")
+        return key[len(head) + 1 :]
 
     @property
     def close(self) -> str:

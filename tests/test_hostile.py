@@ -353,6 +353,29 @@ def test_caps_refuse_with_the_numbers_and_an_emptied_population_is_freed(traj):
     assert "opens: 2 in the last 60 s, this service's limit is 2" in exc.value.message
 
 
+def test_one_peer_spends_its_own_caps_and_leaves_the_others_theirs(traj):
+    """A peer that opens in a loop under its name fills its own session slots and per-minute
+    allowance, refused with the numbers; another robot's first open, and a reopen of its own,
+    still succeed."""
+    manager = _manager(max_sessions=8, max_sessions_per_peer=3, max_opens_per_minute_per_peer=5)
+    flood = [manager.open(_request(traj), peer="flood") for _ in range(3)]
+    with pytest.raises(ServiceError) as exc:
+        manager.open(_request(traj), peer="flood")
+    assert exc.value.code == ErrorCode.CAPACITY
+    assert "sessions: 3 open under peer 'flood', its limit is 3 (max_sessions_per_peer)" in exc.value.message
+    robot = manager.open(_request(traj), peer="robot")
+    for info in flood[:2]:  # closing and reopening spends the per-minute allowance
+        manager.close(info.session, info.token)
+        manager.open(_request(traj), peer="flood")
+    manager.close(flood[2].session, flood[2].token)
+    with pytest.raises(ServiceError) as exc:
+        manager.open(_request(traj), peer="flood")
+    assert "opens: 5 under peer 'flood' in the last 60 s, its limit is 5" in exc.value.message
+    manager.close(robot.session, robot.token)  # the robot lost its session: it opens again
+    assert manager.open(_request(traj), peer="robot").session
+    assert manager.open(_request(traj)).session  # an open under no name counts against the service's caps
+
+
 def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
     svc = ServiceProcess(free_port(), groups=2, timeout_s=1.0, idle_timeout_s="3")  # one population
     keys = Keys("default")
@@ -712,7 +735,7 @@ def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_
     robot with its certificate tracking through it, the health check through it, and a peer without
     a certificate kept out."""
     with _hardened(tmp_path) as (endpoint, shipped, svc):
-        with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5")) as robot:
+        with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5"), peer="robot") as robot:
             svc.wait_ready(robot)
             info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
             robot.send(traj.frame(0, info.session))
@@ -731,10 +754,10 @@ def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_
 def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sniff_forge_nor_intercept(traj, tmp_path):
     """A second robot with a valid certificate of the same lab subscribes to every session's
     frames and observations, answers every service key in the service's place, publishes forged
-    estimates on the first robot's key and tries to close its session. The router's access rules
-    (make-certs.sh's router.json5) let none of it through: 0 frames sniffed, 0 queries caught, 0
-    forged estimates delivered, the session still open, and the first robot keeps >= 95 % of its
-    10 Hz estimate rate meanwhile."""
+    estimates on the first robot's key, tries to close its session and to open under its name.
+    The router's access rules (make-certs.sh's router.json5) let none of it through: 0 frames
+    sniffed, 0 queries caught, 0 forged estimates delivered, the session still open, no open under
+    another's name, and the first robot keeps >= 95 % of its 10 Hz estimate rate meanwhile."""
     with _hardened(tmp_path) as (endpoint, shipped, svc):
         attacker = zenoh.open(zenoh_config(connect=[endpoint], file=shipped("robot.json5", robot="observer")))
         keys, caught, sniffed = Keys("default"), [], []
@@ -748,12 +771,17 @@ def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sni
         held = [attacker.declare_subscriber(keys.every(kind), sniffed.append, allowed_origin=remote)
                 for kind in ("frame", "observation")]  # fmt: skip
         held += [attacker.declare_queryable(k, answer, allowed_origin=remote)
-                 for k in (keys.info, keys.open, keys.close, keys.every("pose"), keys.every("status"))]  # fmt: skip
+                 for k in (keys.info, keys.opens, keys.close, keys.every("pose"), keys.every("status"))]  # fmt: skip
         held.append(attacker.liveliness().declare_token(keys.alive))
         try:
-            with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5")) as robot:
+            with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5"), peer="robot") as robot:
                 svc.wait_ready(robot)
                 info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=4)
+                request = encode(_request(traj))
+                assert list(attacker.get(Keys("default", "robot").open, payload=request, timeout=3)) == []
+                assert list(attacker.get(keys.open, payload=request, timeout=3)) == []  # under no name
+                (own,) = list(attacker.get(Keys("default", "observer").open, payload=request, timeout=60))
+                assert own.ok is not None  # under its own name it may open
                 got: list[int] = []
                 robot.on_pose(lambda est: (got.append(est.seq), est.seq >= 10**6 and forged.append(est)))
                 robot.send(traj.frame(0, info.session))

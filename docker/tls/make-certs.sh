@@ -4,9 +4,10 @@
 # HOST is the router's address as robots dial it (an IP or a DNS name). Keep ca.key offline; give
 # each robot its own certificate (its common name is what access-control rules match).
 # It also writes DIR/router.json5, the router's config with access control for those robots: a
-# robot may send frames and observations, ask the service, and hear its answers; only the
-# service's certificate may answer, publish estimates or declare the service's liveliness token,
-# and no robot receives another's frames. Run it again with every robot to add one.
+# robot may send frames and observations, open sessions under its own name, ask the service and
+# hear its answers; only the service's certificate may answer, publish estimates or declare the
+# service's liveliness token, and no robot receives another's frames. Run it again with every
+# robot to add one.
 set -euo pipefail
 dir=$1 host=$2
 shift 2
@@ -28,6 +29,16 @@ issue inhand-service clientAuth
 for robot in "${robots[@]}"; do issue "$robot" clientAuth; done
 chmod 600 ./*.key
 names=$(printf '"%s", ' "${robots[@]}")
+# Each robot opens sessions under its own name only (rpc/open/NAME): the service's per-peer caps
+# then count what each certificate opens, and no robot can spend another's.
+open_rules="" open_subjects="" open_policies=""
+for robot in "${robots[@]}"; do
+  open_rules+="      { id: \"open-as-$robot\", permission: \"allow\", flows: [\"ingress\"], messages: [\"query\"],"
+  open_rules+=$'\n'"        key_exprs: [\"inhand/*/*/rpc/open/$robot\"] },"$'\n'
+  open_subjects+="      { id: \"robot-$robot\", cert_common_names: [\"$robot\"] },"$'\n'
+  open_policies+="      { id: \"open-as-$robot\", rules: [\"open-as-$robot\"], subjects: [\"robot-$robot\"] },"$'\n'
+done
+open_rules=${open_rules%$'\n'} open_subjects=${open_subjects%$'\n'} open_policies=${open_policies%$'\n'}
 cat > router.json5 <<EOF
 // The zenohd router of docker/compose-tls.yml, written by make-certs.sh for: ${robots[*]}.
 // The only listening endpoint on the network: TLS with client certificates (mTLS), so only peers
@@ -58,9 +69,12 @@ cat > router.json5 <<EOF
       // a robot's publisher sends only where a subscriber is declared: the service's, on s/*/*
       { id: "robot-is-heard", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"],
         key_exprs: ["inhand/*/*/s/**"] },
-      { id: "robot-asks", permission: "allow", flows: ["ingress"],
-        messages: ["query", "liveliness_query", "declare_subscriber", "declare_liveliness_subscriber"],
+      { id: "robot-asks", permission: "allow", flows: ["ingress"], messages: ["query"],
+        key_exprs: ["inhand/*/*/info", "inhand/*/*/rpc/close", "inhand/*/*/s/*/pose", "inhand/*/*/s/*/status"] },
+      { id: "robot-listens", permission: "allow", flows: ["ingress"],
+        messages: ["liveliness_query", "declare_subscriber", "declare_liveliness_subscriber"],
         key_exprs: ["inhand/**"] },
+$open_rules
       // what a robot hears: the service's answers, estimates, status and liveliness; never a frame
       { id: "robot-hears", permission: "allow", flows: ["egress"],
         messages: ["put", "reply", "liveliness_token", "declare_queryable", "declare_subscriber",
@@ -75,9 +89,12 @@ cat > router.json5 <<EOF
     subjects: [
       { id: "robots", cert_common_names: [${names%, }] },
       { id: "service", cert_common_names: ["inhand-service"] },
+$open_subjects
     ],
     policies: [
-      { id: "robots", rules: ["robot-sends", "robot-present", "robot-is-heard", "robot-asks", "robot-hears"], subjects: ["robots"] },
+      { id: "robots", rules: ["robot-sends", "robot-present", "robot-is-heard", "robot-asks", "robot-listens",
+                              "robot-hears"], subjects: ["robots"] },
+$open_policies
       { id: "service", rules: ["service-all"], subjects: ["service"] },
     ],
   },

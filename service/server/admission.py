@@ -51,6 +51,8 @@ class Admission:
     pool: Pool | None = None
     """A population with a free group; None when one must be built first (or is being built:
     its key is in :attr:`Gate.building`)."""
+    peer: str = ""
+    """The name the robot opened under ("" for none)."""
 
 
 class Gate:
@@ -74,6 +76,8 @@ class Gate:
         """Each robot's own model (its joint layout), built once per robot."""
         self._opened: deque[float] = deque()
         """When sessions were opened in the last minute [s, monotonic]."""
+        self._opened_by: dict[str, deque[float]] = {}
+        """The same per peer name, for the peers that opened in the last minute."""
 
     # ------------------------------------------------------------------ the frame budget
     @property
@@ -163,18 +167,19 @@ class Gate:
         )
 
     # ------------------------------------------------------------------ an open
-    def admit(self, request: OpenSession, sessions: int) -> Admission:
-        """Validate an open with ``sessions`` open now (ServiceError with the field and the
-        numbers) and find its population: one with a free group, or none when one must be built
-        or is on its way."""
+    def admit(self, request: OpenSession, sessions: int, peer: str = "", peer_sessions: int = 0) -> Admission:
+        """Validate an open with ``sessions`` open now, ``peer_sessions`` of them under ``peer``'s
+        name (ServiceError with the field and the numbers), and find its population: one with a
+        free group, or none when one must be built or is on its way."""
         robot = self._check(request, sessions)
+        self._check_peer(peer, peer_sessions)
         tconf = self._tracker_config(request)
         self._check_q0(request, robot)
         overrides = tuple(sorted(request.overrides.items()))
         worlds, notice = self._grant(request, (request.robot, request.object, overrides))
         request = request.model_copy(update={"worlds": worlds})
         key = PoolKey(request.robot, request.object, worlds, overrides)
-        admission = Admission(request, key, robot, tconf, notice)
+        admission = Admission(request, key, robot, tconf, notice, peer=peer)
         for k, pool in self.pools.items():
             if k.unbuilt() == key and pool.joinable:
                 admission.pool = pool
@@ -198,9 +203,34 @@ class Gate:
             )
         return admission
 
-    def opened(self) -> None:
-        """Count an open against the per-minute cap."""
+    def opened(self, peer: str = "") -> None:
+        """Count an open against the per-minute caps (the service's, and its peer's)."""
         self._opened.append(time.monotonic())
+        if peer:
+            self._opened_by.setdefault(peer, deque()).append(time.monotonic())
+
+    def _check_peer(self, peer: str, sessions: int) -> None:
+        """Refuse an open under ``peer``'s name past that peer's own caps."""
+        if not peer:
+            return
+        cfg = self.config
+        if sessions >= cfg.max_sessions_per_peer:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"sessions: {sessions} open under peer '{peer}', its limit is {cfg.max_sessions_per_peer}"
+                " (max_sessions_per_peer)",
+            )
+        opened = self._opened_by.get(peer, deque())
+        while opened and time.monotonic() - opened[0] > 60.0:
+            opened.popleft()
+        if not opened:
+            self._opened_by.pop(peer, None)  # a peer gone quiet holds no memory
+        elif len(opened) >= cfg.max_opens_per_minute_per_peer:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"opens: {len(opened)} under peer '{peer}' in the last 60 s, its limit is"
+                f" {cfg.max_opens_per_minute_per_peer} (max_opens_per_minute_per_peer)",
+            )
 
     def _check(self, request: OpenSession, sessions: int) -> RobotSpec:
         """The request's robot, after refusing what cannot be opened: a protocol version, robot,

@@ -91,6 +91,12 @@ class ServiceConfig(BaseSettings):
     """Sessions open at once at most."""
     max_opens_per_minute: int = Field(120, ge=1)
     """Sessions opened in any 60 s at most (a peer opening in a loop is refused, not served)."""
+    max_sessions_per_peer: int = Field(16, ge=1)
+    """Sessions open at once under one peer name (``TrackerClient(peer=...)``), so that one peer
+    cannot take every slot; opens under no name count against the service's caps only."""
+    max_opens_per_minute_per_peer: int = Field(30, ge=1)
+    """Sessions opened in any 60 s under one peer name: a peer opening in a loop spends its own
+    allowance, not the other robots'."""
     max_populations: int = Field(16, ge=1)
     """Populations at once at most: each distinct robot, object, K and overrides builds one."""
     robots: Endpoints = ("configs/robots/allegro.toml",)

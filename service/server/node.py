@@ -86,7 +86,7 @@ class TrackerNode:
         """When the loop last came round [s, monotonic]."""
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
         """Builds populations off the loop thread."""
-        self._waiting: dict[PoolKey, list[tuple[OpenSession, Future | None, str | None]]] = {}
+        self._waiting: dict[PoolKey, list[tuple[OpenSession, Future | None, str | None, str]]] = {}
         """Opens waiting for their population's build, by population key: the request with the
         worlds granted, and why fewer than asked (when so)."""
         self._build_s = 0.0
@@ -110,7 +110,7 @@ class TrackerNode:
         self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting, file))
         self._entities = [
             s.declare_queryable(keys.info, self._on_info),
-            s.declare_queryable(keys.open, self._on_open),
+            s.declare_queryable(keys.opens, self._on_open),
             s.declare_queryable(keys.close, self._on_close),
             s.declare_queryable(keys.every("pose"), self._on_pose),
             s.declare_queryable(keys.every("status"), self._on_status),
@@ -142,7 +142,7 @@ class TrackerNode:
         # close waits for the handlers that wait on them: answer them, so the service can go.
         self._builder.shutdown(wait=False, cancel_futures=True)
         self._inbox.cancel(
-            (done for waits in self._waiting.values() for _, done, _ in waits), "the service is stopping"
+            (done for waits in self._waiting.values() for _, done, _, _ in waits), "the service is stopping"
         )
         self.outputs.close()
         if self.session is not None:
@@ -192,7 +192,8 @@ class TrackerNode:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
         except DecodeError as exc:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._inbox.call("open", functools.partial(self._open, request, None)))
+        peer = self.keys.peer_of(str(query.key_expr))
+        self._reply(query, self._inbox.call("open", functools.partial(self._open, request, None, peer)))
 
     @guarded
     def _on_close(self, query: zenoh.Query) -> None:
@@ -382,14 +383,14 @@ class TrackerNode:
         self._drop(request.session)
         return CloseSession(session=request.session)
 
-    def _open(self, request: OpenSession, notice: str | None, done: Future | None) -> SessionInfo | None:
+    def _open(self, request: OpenSession, notice: str | None, peer: str, done: Future | None) -> SessionInfo | None:
         """Open in a population with room, or queue the open behind the build of its population
         on the builder thread, so that the running sessions keep stepping meanwhile."""
         m = self.manager
-        admission = m.admit(request)
+        admission = m.admit(request, peer)
         admission.notice = admission.notice or notice
         if admission.pool is None:
-            self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice))
+            self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice, peer))
             if admission.key not in m.building:
                 m.reserve(admission)
                 robot, obj, worlds = admission.key.robot, admission.key.object, admission.key.worlds
@@ -423,17 +424,17 @@ class TrackerNode:
         except Exception as exc:
             self.manager.building.pop(admission.key, None)
             log.error("building a population for %s failed", admission.key, exc_info=exc)
-            for _, done, _ in waiting:
+            for _, done, _, _ in waiting:
                 answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
             return
         self.manager.adopt(pool)
         self._build_s = time.monotonic() - began
         log.info("population built in %.1f s", self._build_s)
-        for request, done, notice in waiting:
+        for request, done, notice, peer in waiting:
             # The robot is told why its open took as long: on a fresh GPU machine, minutes.
-            built = f"its population was built for it: {self._build_s:.0f} s"
-            notice = f"{notice}; {built}" if notice else built
-            self._inbox.handle(Request("open", functools.partial(self._open, request, notice), done), self._refusal)
+            notice = "; ".join(filter(None, (notice, f"its population was built for it: {self._build_s:.0f} s")))
+            opening = functools.partial(self._open, request, notice, peer)
+            self._inbox.handle(Request("open", opening, done), self._refusal)
 
     def _drop(self, session: str, why: str = "its robot closed it") -> None:
         s = self.manager.sessions.get(session)

@@ -34,6 +34,8 @@ class Session:
     group: int
     name: str = ""
     """The session's name: its ROS 2 topics and TF frame follow it."""
+    peer: str = ""
+    """The name its robot opened under ("" for none): per-peer caps count it."""
     next_seq: int = 0
     pending: deque = field(default_factory=deque)
     """Accepted frames not yet stepped, in seq order: (frame, receive time)."""

@@ -88,25 +88,27 @@ class SessionManager:
         return self.gate.free_worlds(len(self.sessions))
 
     # ------------------------------------------------------------------ open / close
-    def open(self, request: OpenSession) -> SessionInfo:
+    def open(self, request: OpenSession, peer: str = "") -> SessionInfo:
         """Open a session, building its population here if none has room (the service builds on
         another thread: :meth:`admit`, :meth:`build`, :meth:`adopt`, :meth:`attach`)."""
-        admission = self.admit(request)
+        admission = self.admit(request, peer)
         if admission.pool is None:
             self.reserve(admission)
             try:
                 self.adopt(self.build(admission))
             finally:
                 self.building.pop(admission.key, None)
-            notice, admission = admission.notice, self.admit(admission.request)
+            notice, admission = admission.notice, self.admit(admission.request, peer)
             admission.notice = admission.notice or notice
         return self.attach(admission)
 
-    def admit(self, request: OpenSession) -> Admission:
-        """Validate an open (ServiceError with the field and the numbers) and find its population:
-        one with a free group, or none when one must be built or is on its way."""
+    def admit(self, request: OpenSession, peer: str = "") -> Admission:
+        """Validate an open under ``peer``'s name ("" for none; ServiceError with the field and the
+        numbers) and find its population: one with a free group, or none when one must be built or
+        is on its way."""
         self._check_name(request.name)
-        return self.gate.admit(request, len(self.sessions))
+        mine = sum(s.peer == peer for s in self.sessions.values()) if peer else 0
+        return self.gate.admit(request, len(self.sessions), peer, mine)
 
     def _check_name(self, name: str | None) -> None:
         if name is not None and any(s.name == name for s in self.sessions.values()):
@@ -150,7 +152,7 @@ class SessionManager:
         group = pool.sessions.index(None)
         session = Session(
             uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group,
-            self._name(request),
+            self._name(request), admission.peer,
         )  # fmt: skip
         tracker = pool.tracker
         tracker.set_method(group, request.method)
@@ -168,7 +170,7 @@ class SessionManager:
         # Registered only now: an open that failed on the way leaves nothing behind.
         pool.sessions[group] = session
         self.sessions[session.id] = session
-        self.gate.opened()
+        self.gate.opened(admission.peer)
         return SessionInfo(
             session=session.id,
             token=session.token,
