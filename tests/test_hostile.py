@@ -376,6 +376,23 @@ def test_one_peer_spends_its_own_caps_and_leaves_the_others_theirs(traj):
     assert manager.open(_request(traj)).session  # an open under no name counts against the service's caps
 
 
+def test_a_peer_that_opens_with_new_settings_each_time_is_refused_past_its_builds(traj):
+    """Every open with settings no population has builds one, and builds take turns with the
+    running sessions' steps: past its per-minute builds a peer is refused with the numbers, while
+    it may still open where a population has room, and another robot still builds."""
+    manager = _manager(max_builds_per_minute_per_peer=2)
+    opened = [manager.open(_request(traj, overrides={"seed": s}), peer="churn") for s in (1, 2)]
+    with pytest.raises(ServiceError) as exc:
+        manager.open(_request(traj, overrides={"seed": 3}), peer="churn")
+    assert exc.value.code == ErrorCode.CAPACITY
+    assert "builds: 2 populations built for peer 'churn' in the last 60 s, its limit is 2" in exc.value.message
+    assert len(manager.pools) == 2  # the refused open built nothing
+    assert manager.open(_request(traj, overrides={"seed": 1}), peer="churn").session  # a population with room
+    assert manager.open(_request(traj, overrides={"seed": 3}), peer="robot").session
+    for info in opened:
+        manager.close(info.session, info.token)
+
+
 def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
     svc = ServiceProcess(free_port(), groups=2, timeout_s=1.0, idle_timeout_s="3")  # one population
     keys = Keys("default")

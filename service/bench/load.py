@@ -2,7 +2,9 @@
 its own client to a service embedded on loopback (real Zenoh sessions), and what each got back:
 estimates per second, latency (arrival at the service to estimate) p50 and p99, and the frames
 the service counted late, stale (dropped under overload) or skipped. A long run is a soak: the
-process's resident memory a tenth of the way in and at the end says whether anything grows."""
+process's resident memory a tenth of the way in and at the end says whether anything grows.
+With churn, another peer opens and closes sessions all the while, each with settings no
+population has, so that every open it gets through builds a population beside the robots'."""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client import TrackerClient
+from client import TrackerClient, TrackerError
 from protocol import Trajectory
 from service.paths import DATA_DIR
 from service.server import ServiceConfig, TrackerNode
@@ -41,6 +43,10 @@ class LoadResult:
     """The process's resident memory a tenth of the way into the run [MiB]."""
     rss_mib_end: float
     """The same at the end [MiB]."""
+    churn_builds: int = 0
+    """Opens of the churning peer that built a population meanwhile."""
+    churn_refused: int = 0
+    """Its opens the service refused (its per-peer build cap)."""
 
 
 def _rss_mib() -> float:
@@ -61,10 +67,12 @@ def bench_load(
     device: str = "auto",
     file: Path | None = None,
     connect: tuple[str, ...] = (),
+    churn: bool = False,
 ) -> list[LoadResult]:
     """Run ``sessions`` robots at ``rate`` [Hz] for ``seconds`` against one embedded service whose
     population holds them all (groups = sessions), or against the running service at ``connect``
-    (its own settings; the memory figures are then this process's, the robots', not the service's)."""
+    (its own settings; the memory figures are then this process's, the robots', not the service's);
+    with ``churn``, beside a peer that opens and closes sessions with new settings all the while."""
     if sessions < 1 or worlds < 1 or rate <= 0 or seconds <= 0:
         got = f"{sessions}, {worlds}, {rate}, {seconds}"
         raise ValueError(f"load: expected sessions, worlds, rate and seconds > 0, got {got}")
@@ -81,14 +89,16 @@ def bench_load(
         )
         service = TrackerNode(config)
     with service:
-        clients = [TrackerClient(connect=endpoints) for _ in range(sessions)]
+        clients = [TrackerClient(connect=endpoints, peer=f"robot-{i}") for i in range(sessions)]
+        churner = _Churn(TrackerClient(connect=endpoints, peer="churn"), traj, worlds) if churn else None
         try:
             for c in clients:
                 c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=worlds)
             received = [[] for _ in clients]
             for c, got in zip(clients, received, strict=True):
                 c.on_pose(lambda est, got=got: got.append(est.latency_ms))
-            sent, (rss_early, rss_end) = _stream(clients, traj, rate, seconds)
+            with churner or contextlib.nullcontext():
+                sent, (rss_early, rss_end) = _stream(clients, traj, rate, seconds)
             time.sleep(1.0)  # the last estimates in flight
             out = []
             for i, (c, got) in enumerate(zip(clients, received, strict=True)):
@@ -109,12 +119,45 @@ def bench_load(
                         gaps=status.gaps,
                         rss_mib_early=rss_early,
                         rss_mib_end=rss_end,
+                        churn_builds=churner.builds if churner else 0,
+                        churn_refused=churner.refused if churner else 0,
                     )
                 )
             return out
         finally:
-            for c in clients:
+            for c in clients + ([churner.client] if churner else []):
                 c.close()
+
+
+class _Churn:
+    """A peer that opens a session with a new ``seed`` override (settings no population has: a
+    build each) and closes it again, over and over, on a thread of its own while it is entered."""
+
+    def __init__(self, client: TrackerClient, traj: Trajectory, worlds: int):
+        self.client, self.traj, self.worlds = client, traj, worlds
+        self.builds = self.refused = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> _Churn:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        t = self.traj
+        while not self._stop.is_set():
+            try:
+                self.client.open_session(t.robot, t.object, t.truth.initial_pose, q0=t.truth.initial_q,
+                                         worlds=self.worlds, overrides={"seed": self.builds + 1000})  # fmt: skip
+                self.builds += 1
+                self.client.close_session()
+            except TrackerError:
+                self.refused += 1
+                self._stop.wait(0.5)  # as a client that backs off on a refusal
 
 
 def _stream(
@@ -162,7 +205,8 @@ def format_table(results: list[LoadResult]) -> str:
         f"resident memory: {r.rss_mib_early:.1f} MiB a tenth of the way in,"
         f" {r.rss_mib_end:.1f} at the end ({growth:+.2f} %)"
     )
-    return "\n".join([head, *rows, memory])
+    churn = [f"churn: another peer built {r.churn_builds} populations meanwhile, {r.churn_refused} opens refused"]
+    return "\n".join([head, *rows, memory, *(churn if r.churn_builds or r.churn_refused else [])])
 
 
 def as_dicts(results: list[LoadResult]) -> list[dict]:

@@ -119,6 +119,7 @@ def bench_load(
     connect: Annotated[
         str, typer.Option(help="a running service's endpoints, comma-separated (default: embed one)")
     ] = "",
+    churn: Annotated[bool, typer.Option(help="another peer opens with new settings all the while (builds)")] = False,
     device: Device = "auto",
     json_: Json = False,
 ) -> None:
@@ -128,7 +129,7 @@ def bench_load(
 
     try:
         with contextlib.redirect_stdout(sys.stderr):
-            results = bench_load(sessions, worlds, rate, seconds, device, connect=tuple(names(connect)))
+            results = bench_load(sessions, worlds, rate, seconds, device, connect=tuple(names(connect)), churn=churn)
     except ValueError as exc:
         raise fail(f"bench load: {exc}") from None
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))

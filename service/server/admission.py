@@ -78,6 +78,8 @@ class Gate:
         """When sessions were opened in the last minute [s, monotonic]."""
         self._opened_by: dict[str, deque[float]] = {}
         """The same per peer name, for the peers that opened in the last minute."""
+        self._built_by: dict[str, deque[float]] = {}
+        """When populations were built for each peer name's opens, in the last minute [s, monotonic]."""
 
     # ------------------------------------------------------------------ the frame budget
     @property
@@ -207,7 +209,22 @@ class Gate:
         """Count an open against the per-minute caps (the service's, and its peer's)."""
         self._opened.append(time.monotonic())
         if peer:
-            self._opened_by.setdefault(peer, deque()).append(time.monotonic())
+            _recent(self._opened_by, peer).append(time.monotonic())
+
+    def build_for(self, peer: str) -> None:
+        """Count a population build for an open under ``peer``'s name, or refuse it past that
+        peer's per-minute builds (an open under no name is not counted)."""
+        if not peer:
+            return
+        built = _recent(self._built_by, peer)
+        limit = self.config.max_builds_per_minute_per_peer
+        if len(built) >= limit:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"builds: {len(built)} populations built for peer '{peer}' in the last 60 s, its limit is {limit}"
+                " (max_builds_per_minute_per_peer; open with settings a population already has)",
+            )
+        built.append(time.monotonic())
 
     def _check_peer(self, peer: str, sessions: int) -> None:
         """Refuse an open under ``peer``'s name past that peer's own caps."""
@@ -220,12 +237,8 @@ class Gate:
                 f"sessions: {sessions} open under peer '{peer}', its limit is {cfg.max_sessions_per_peer}"
                 " (max_sessions_per_peer)",
             )
-        opened = self._opened_by.get(peer, deque())
-        while opened and time.monotonic() - opened[0] > 60.0:
-            opened.popleft()
-        if not opened:
-            self._opened_by.pop(peer, None)  # a peer gone quiet holds no memory
-        elif len(opened) >= cfg.max_opens_per_minute_per_peer:
+        opened = _recent(self._opened_by, peer)
+        if len(opened) >= cfg.max_opens_per_minute_per_peer:
             raise ServiceError(
                 ErrorCode.CAPACITY,
                 f"opens: {len(opened)} under peer '{peer}' in the last 60 s, its limit is"
@@ -283,3 +296,14 @@ class Gate:
             return TrackerConfig.of(optimizer=OptimizerConfig(method=request.method), **overrides)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
+
+
+def _recent(times: dict[str, deque[float]], peer: str) -> deque[float]:
+    """``peer``'s times of the last 60 s, older ones forgotten; peers gone quiet hold no memory."""
+    now = time.monotonic()
+    for name in [n for n, t in times.items() if not t or now - t[-1] > 60.0]:
+        del times[name]
+    recent = times.setdefault(peer, deque())
+    while recent and now - recent[0] > 60.0:
+        recent.popleft()
+    return recent

@@ -97,6 +97,9 @@ class ServiceConfig(BaseSettings):
     max_opens_per_minute_per_peer: int = Field(30, ge=1)
     """Sessions opened in any 60 s under one peer name: a peer opening in a loop spends its own
     allowance, not the other robots'."""
+    max_builds_per_minute_per_peer: int = Field(4, ge=1)
+    """Populations built in any 60 s for opens under one peer name: each build takes turns with the
+    running sessions' steps, so a peer opening with new settings each time is refused, not served."""
     max_populations: int = Field(16, ge=1)
     """Populations at once at most: each distinct robot, object, K and overrides builds one."""
     robots: Endpoints = ("configs/robots/allegro.toml",)

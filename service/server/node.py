@@ -390,14 +390,14 @@ class TrackerNode:
         admission = m.admit(request, peer)
         admission.notice = admission.notice or notice
         if admission.pool is None:
-            self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice, peer))
-            if admission.key not in m.building:
+            if admission.key not in m.building:  # the first open of a population builds it
+                m.gate.build_for(peer)  # or is refused, before it waits for anything
                 m.reserve(admission)
                 robot, obj, worlds = admission.key.robot, admission.key.object, admission.key.worlds
                 log.info("building a population of %d x %d worlds (%s, %s)", self.config.groups, worlds, robot, obj)
-                build = self._builder.submit(m.build, admission)
-                began = time.monotonic()
+                began, build = time.monotonic(), self._builder.submit(m.build, admission)
                 build.add_done_callback(lambda f: self._inbox.post("built", lambda _: self._adopt(admission, f, began)))
+            self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice, peer))
             return None
         info = m.attach(admission)
         # Gone until its robot's liveliness token shows up: a robot that never declares one

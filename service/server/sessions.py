@@ -93,6 +93,7 @@ class SessionManager:
         another thread: :meth:`admit`, :meth:`build`, :meth:`adopt`, :meth:`attach`)."""
         admission = self.admit(request, peer)
         if admission.pool is None:
+            self.gate.build_for(peer)
             self.reserve(admission)
             try:
                 self.adopt(self.build(admission))
