@@ -201,7 +201,8 @@ class TrackerClient:
         (``/inhand/{name}/pose``; default ``{robot}_{object}``)."""
         if self.info is not None:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
-        self.wait_ready(absent=3.0)  # no service at the address is said within seconds
+        # A service compiling on a cold cache is waited for as long as a build; an absent one is said at once.
+        self.wait_ready(self.open_timeout, absent=3.0)
         request = OpenSession(
             robot=robot,
             object=object,
