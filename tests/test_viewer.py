@@ -75,3 +75,31 @@ def test_the_live_view_draws_the_hand_and_the_hypotheses(tmp_path):
     # The hand's links and the object's hypotheses are coloured; the empty scene is white and grey.
     saturation = drawn[scene].max(-1) - drawn[scene].min(-1)
     assert (saturation > 60).mean() > 0.05, f"{(saturation > 60).mean():.2%} of the scene is coloured"
+
+
+def test_the_view_compiles_what_it_draws_at_warm_up():
+    """After the service's warm-up, drawing a session's population (another size, other worlds)
+    loads no kernel module the view had not: a browser connecting later costs the tracking loop
+    no compilation."""
+    import torch
+    import warp._src.context as warp_context  # Warp keeps its loaded modules there, per device
+
+    from service.paths import CONFIG_DIR
+    from service.server.config import ServiceConfig
+    from service.server.sessions import SessionManager
+    from service.server.viewer import LiveView
+    from sim_backend import Population, PopulationConfig, load_catalog, load_robot
+
+    robot = load_robot(CONFIG_DIR / "robots/allegro.toml")
+    manager = SessionManager(ServiceConfig(device="cpu", groups=1, rate_hz=0), {robot.name: robot}, load_catalog())
+    view = LiveView("127.0.0.1", free_port())
+    try:
+        view.warm(manager)
+        pop = Population(robot, load_catalog()["spam_can"], PopulationConfig(groups=2, worlds=3, device="cpu"))
+        loaded = lambda: {name for name, m in warp_context.user_modules.items() if m.execs}  # noqa: E731
+        before = loaded()
+        view._show(pop, 1)
+        view._draw(pop, torch.rand(3))
+        assert loaded() == before, loaded() - before
+    finally:
+        view.close()

@@ -306,8 +306,8 @@ class TrackerNode:
         m, cfg = self.manager, self.config
         log.info("service '%s' warming up on %s: compiling kernels", cfg.name, self.device)
         m.warm()
-        self._room = (m.load_ms(), m.free_worlds())
-        self._beat = time.monotonic()
+        self.outputs.warm(m)  # the live view's kernels too: not when the first browser connects
+        self._room, self._beat = (m.load_ms(), m.free_worlds()), time.monotonic()
         self.ready = True
         self._token = self.session.liveliness().declare_token(self.keys.alive)  # only now do robots see us
         log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)

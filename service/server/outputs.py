@@ -19,6 +19,9 @@ class Output:
 
     name = "output"
 
+    def warm(self, manager) -> None:
+        """The service warms up (``manager``: its SessionManager): compile what the output runs."""
+
     def open(self, info: SessionInfo, request: OpenSession) -> None:
         """A session opened."""
 
@@ -57,6 +60,9 @@ class Outputs:
                 getattr(output, hook)(*args)
             except Exception:
                 log.exception("the %s failed on %s", output.name, hook)
+
+    def warm(self, manager) -> None:
+        self._each("warm", manager)
 
     def open(self, info: SessionInfo, request: OpenSession) -> None:
         self._each("open", info, request)

@@ -59,6 +59,18 @@ class LiveView(Output):
         target = self._look_at if self._look_at is not None else np.zeros(3)
         self.viewer.set_camera(wp.vec3(*(target + _CAMERA_OFFSET)), pitch=-25.0, yaw=135.0)
 
+    def warm(self, manager) -> None:
+        """Draw a one-world population of the service's first robot and object once, so that the
+        kernels the view runs are compiled at the service's warm-up, not on its tracking loop when
+        the first browser connects."""
+        from sim_backend import Population, PopulationConfig
+
+        robot, obj = next(iter(manager.robots.values())), next(iter(manager.objects.values()))
+        pop = Population(robot, obj, PopulationConfig(groups=1, worlds=1, device=str(manager.device)))
+        self._show(pop, 0)
+        self._draw(pop, torch.ones(1, device=wp.device_to_torch(pop.model.device)))
+        self._model = self._shown = None  # a session's population is shown anew
+
     def tick(self, sessions: dict) -> None:
         """Draw the chosen session's worlds and latest estimate (``sessions``: the manager's, by id)."""
         now = time.monotonic()
@@ -82,12 +94,7 @@ class LiveView(Output):
         if clients.keys() - self._aimed:  # a new browser: after the viewer's own set-up, which places the camera
             self._aim()
             self._aimed = set(clients)
-        weights = pool.tracker.weights()[group]  # (K,)
-        opacity = _FAINTEST + (1.0 - _FAINTEST) * weights / weights.max().clamp_min(1e-12)
-        wp.to_torch(pop.model.shape_opacity)[self._object_shapes] = opacity[self._object_worlds].to(torch.float32)
-        self.viewer.begin_frame(now)
-        self.viewer.log_state(pop.state_0)
-        self.viewer.end_frame()
+        self._draw(pop, pool.tracker.weights()[group])
         # The real robot as it stands: its fingertips by forward kinematics of the joints it sent.
         tips = pool.tracker.fk.pos[group].detach().cpu().numpy()
         self.server.scene.add_point_cloud(
@@ -105,6 +112,14 @@ class LiveView(Output):
                 opacity=0.3,
                 position=np.asarray(estimate.mean_pose[:3], np.float64),
             )
+
+    def _draw(self, pop, weights: torch.Tensor) -> None:
+        """The shown group's worlds as they stand, each object faded by its ``weights`` (K,)."""
+        opacity = _FAINTEST + (1.0 - _FAINTEST) * weights / weights.max().clamp_min(1e-12)
+        wp.to_torch(pop.model.shape_opacity)[self._object_shapes] = opacity[self._object_worlds].to(torch.float32)
+        self.viewer.begin_frame(time.monotonic())
+        self.viewer.log_state(pop.state_0)
+        self.viewer.end_frame()
 
     def _show(self, pop, group: int) -> None:
         """A new population or session: its model, its group's worlds overlaid in place."""
