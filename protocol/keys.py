@@ -53,11 +53,12 @@ class Keys:
         """The service's open queryable: an open under any name, or none."""
         return f"{self.root}/rpc/open/**"
 
-    def peer_of(self, key: str) -> str:
-        """The name an open on ``key`` was made under ("" for none)."""
+    def peer_of(self, key: str) -> str | None:
+        """The name an open on ``key`` was made under ("" for none); None for a key that is not
+        one open's (a wildcard selector that the open queryable also matches)."""
         head = f"{self.root}/rpc/open"
-        if not (key == head or key.startswith(head + "/")):
-            raise ValueError(f"key {key!r} is not an open key of service '{self.service}'")
+        if "*" in key or not (key == head or key.startswith(head + "/")):
+            return None
         return key[len(head) + 1 :]
 
     @property

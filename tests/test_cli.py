@@ -52,8 +52,8 @@ def test_bad_suite_options_are_refused_before_anything_runs():
     for args, message in [
         (
             ("--suite", "huge"),
-            "--suite: expected one of ['cross-engine', 'cross-engine-shadow', 'loss', 'manipulate', 'paper',"
-            " 'paper-shadow', 'reality-gap', 'reality-gap-shadow', 'smoke'], got 'huge'",
+            "--suite: expected one of ['allegro-palm', 'cross-engine', 'cross-engine-shadow', 'loss', 'manipulate',"
+            " 'paper', 'paper-shadow', 'reality-gap', 'reality-gap-shadow', 'smoke'], got 'huge'",
         ),
         (("--methods", "PBO,XYZ"), "methods: expected some of"),
         (("--ablations", "wrist"), "ablations: unknown ['wrist']"),

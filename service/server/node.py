@@ -2,11 +2,10 @@
 owns the GPU (the :class:`SessionManager`) and publishes every estimate, and a builder thread
 that builds new populations between the loop's steps, so that an open never freezes the others.
 
-Keys (protocol/keys.py): a liveliness token ``alive``; queryables ``info``, ``rpc/open``,
+Keys (protocol/keys.py): a liveliness token ``alive``; queryables ``info``, ``rpc/open/**``,
 ``rpc/close``, ``s/*/pose`` (latest estimate) and ``s/*/status``; one subscriber on ``s/*/*`` for
-the robots' frames and observations, in the order they arrive; a liveliness subscriber on
-``s/*/robot`` that closes a session whose robot is gone past the timeout.
-"""
+the robots' frames and observations, in arrival order; a liveliness subscriber on ``s/*/robot``
+that closes a session whose robot is gone past the timeout."""
 
 from __future__ import annotations
 
@@ -188,11 +187,12 @@ class TrackerNode:
 
     @guarded
     def _on_open(self, query: zenoh.Query) -> None:
+        if (peer := self.keys.peer_of(str(query.key_expr))) is None:
+            return  # a wildcard selector that reaches rpc/open/** (a watcher's inhand/**/pose) is no open
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
         except DecodeError as exc:
             return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        peer = self.keys.peer_of(str(query.key_expr))
         self._reply(query, self._inbox.call("open", functools.partial(self._open, request, None, peer)))
 
     @guarded
