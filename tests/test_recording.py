@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+from pathlib import Path
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from service_process import ServiceProcess, free_port
 from typer.testing import CliRunner
@@ -112,20 +115,38 @@ def test_every_json_channel_carries_its_full_schema_and_a_killed_service_leaves_
     assert len(messages) >= 2 * 50, f"{len(messages)} messages of {2 * i} read back from the flushed chunks"
 
 
-def test_a_recording_that_cannot_be_written_stops_for_its_session_and_says_so(tmp_path):
-    """A record folder that cannot be made (under a file): the session is told, nothing raises."""
+@pytest.mark.parametrize("where", ["under a file", "read-only"])
+def test_a_recording_that_cannot_be_written_stops_for_its_session_and_says_so(tmp_path, where):
+    """A record folder that cannot be made (under a file), or one that exists and takes no file
+    whoever writes (sysfs refuses even root, who ignores a folder's permissions): the session is
+    told, nothing raises."""
     from service.server.recording import SessionRecorder
 
     traj = Trajectory.load(TRAJECTORY)
     info, request = _session(traj)
     said = {}
-    blocked = tmp_path / "a_file"
-    blocked.write_text("")
-    recorder = SessionRecorder(blocked / "recordings", "default", said=lambda s, m: said.setdefault(s, m))
+    if where == "under a file":
+        blocked = tmp_path / "a_file"
+        blocked.write_text("")
+        folder = blocked / "recordings"
+    else:
+        folder = Path("/sys")
+        if not folder.is_dir() or (os.access(folder, os.W_OK) and _writable(folder)):
+            pytest.skip("no folder here refuses every write")
+    recorder = SessionRecorder(folder, "default", said=lambda s, m: said.setdefault(s, m))
     recorder.open(info, request)
     recorder.frame(traj.frame(0, info.session))
     recorder.drop(info.session)
-    assert said[info.session].startswith("recording: stopped for this session: ") and "recordings" in said[info.session]
+    assert said[info.session].startswith("recording: stopped for this session: ") and str(folder) in said[info.session]
+
+
+def _writable(folder: Path) -> bool:
+    try:
+        (folder / ".inhand-probe").touch()
+    except OSError:
+        return False
+    (folder / ".inhand-probe").unlink()
+    return True
 
 
 def _stream(svc: ServiceProcess, traj: Trajectory, seconds: float, then=None) -> tuple[TrackerClient, int]:
