@@ -64,30 +64,42 @@ def distal_coupling(lay) -> tuple[list[int], list[int]] | None:
     return [m for m, _ in pairs], [d for _, d in pairs]  # type: ignore[misc]
 
 
-def _shadow_joints(lay) -> dict[str, int]:
-    """Each of the Shadow Hand's joints the motions move, by its short name, in the robot's order."""
+def start_script(
+    kin: Kinematics,
+    kinds: tuple[str, ...],
+    kind: str,
+    seconds: float,
+    needed: set[str],
+    seed: tuple[int, int],
+    motion: str = "palm motion",
+    hand: str = "the Shadow Hand",
+) -> tuple[dict[str, int], np.random.Generator, Script]:
+    """What a scripted ``motion`` of ``kind`` for ``kin``'s hand starts from, after refusing a kind
+    not in ``kinds``, a length outside 6-120 s or a robot without the ``needed`` joints of
+    ``hand``: each joint's index by its short name, the motion's random numbers (``seed``: the
+    variant and the motions' base, plus the kind's place in ``kinds``) and a script at the
+    robot's start joints."""
+    if kind not in kinds:
+        raise ValueError(f"{motion} kind: expected one of {kinds}, got {kind!r}")
+    if not (6.0 <= seconds <= 120.0):
+        raise ValueError(f"{motion} seconds: expected 6 to 120, got {seconds}")
+    lay = kin.layout
     index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}
-    needed = {"WRJ0", "WRJ1", *(f"{f}J{k}" for f in _FINGERS for k in range(3)), "THJ4", "THJ3", "THJ1", "THJ0"}
     missing = sorted(needed - set(index))
     if missing:
-        raise ValueError(f"palm motions need the Shadow Hand's joints; robot '{lay.name}' lacks {missing}")
-    return index
+        raise ValueError(f"{motion}s need {hand}'s joints; robot '{lay.name}' lacks {missing}")
+    rng = np.random.default_rng([seed[0], seed[1] + kinds.index(kind)])
+    return index, rng, Script(lay.default_q.copy(), lay.lower, lay.upper, profile=minimum_jerk)
 
 
 def make_palm_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 20.0) -> Demo:
     """Script a ``kind`` motion (see :data:`PALM_MOTION_KINDS`) of about ``seconds`` for ``obj``
     lying on the palm; ``variant`` seeds where it lies and how far each move goes."""
-    if kind not in PALM_MOTION_KINDS:
-        raise ValueError(f"palm motion kind: expected one of {PALM_MOTION_KINDS}, got {kind!r}")
-    if not (6.0 <= seconds <= 120.0):
-        raise ValueError(f"palm motion seconds: expected 6 to 120, got {seconds}")
-    lay = kin.layout
-    index = _shadow_joints(lay)
+    needed = {"WRJ0", "WRJ1", *(f"{f}J{k}" for f in _FINGERS for k in range(3)), "THJ4", "THJ3", "THJ1", "THJ0"}
+    index, rng, path = start_script(kin, PALM_MOTION_KINDS, kind, seconds, needed, (variant, 200))
     j = lambda *names: [index[n] for n in names]  # noqa: E731
-    rng = np.random.default_rng([variant, 200 + PALM_MOTION_KINDS.index(kind)])
     pose = palm_rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.15, 0.15)]))
-    start = lay.default_q.copy()
-    path = Script(start, lay.lower, lay.upper, profile=minimum_jerk)
+    start = path.q.copy()
     middle, distal = j(*(f"{f}J1" for f in _FINGERS)), j(*(f"{f}J0" for f in _FINGERS))
 
     def move(phase: str, target: np.ndarray, seconds: float) -> None:

@@ -22,8 +22,8 @@ import numpy as np
 from sim_backend.kinematics import Kinematics
 from sim_backend.objects import ObjectSpec
 
-from .demos import FRAME_RATE, Demo, Script
-from .motions import minimum_jerk
+from .demos import FRAME_RATE, Demo
+from .palm_motions import start_script
 
 __all__ = ["PUSH_MOTION_KINDS", "make_push_motion"]
 
@@ -42,16 +42,6 @@ _THUMB_IN = np.array([0.45, 0.6, 1.644, 1.4])
 """The thumb swung in over the palm's edge: its tip where the object's side would be [rad]."""
 
 
-def _joints(lay) -> dict[str, int]:
-    """Each of the Allegro Hand's joints by name, in the robot's order."""
-    index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}
-    needed = {f"{f}j{k}" for f in (*_FINGERS, "th") for k in range(4)}
-    missing = sorted(needed - set(index))
-    if missing:
-        raise ValueError(f"push motions need the Allegro Hand's joints; robot '{lay.name}' lacks {missing}")
-    return index
-
-
 def rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
     """The object just above the palm's centre, shifted by ``offset`` (x, y) [m] and turned by a
     small yaw ``offset[2]`` [rad], (7,)."""
@@ -64,17 +54,13 @@ def rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
 def make_push_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 15.0) -> Demo:
     """Script a ``kind`` motion (see :data:`PUSH_MOTION_KINDS`) of about ``seconds`` for ``obj``
     lying on the palm; ``variant`` seeds where it lies and how far each move goes."""
-    if kind not in PUSH_MOTION_KINDS:
-        raise ValueError(f"push motion kind: expected one of {PUSH_MOTION_KINDS}, got {kind!r}")
-    if not (6.0 <= seconds <= 120.0):
-        raise ValueError(f"push motion seconds: expected 6 to 120, got {seconds}")
-    lay = kin.layout
-    index = _joints(lay)
+    needed = {f"{f}j{k}" for f in (*_FINGERS, "th") for k in range(4)}
+    index, rng, path = start_script(
+        kin, PUSH_MOTION_KINDS, kind, seconds, needed, (variant, 300), "push motion", "the Allegro Hand"
+    )
     j = lambda *names: [index[n] for n in names]  # noqa: E731
-    rng = np.random.default_rng([variant, 300 + PUSH_MOTION_KINDS.index(kind)])
     pose = rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.2, 0.2)]))
-    start = lay.default_q.copy()
-    path = Script(start, lay.lower, lay.upper, profile=minimum_jerk)
+    start = path.q.copy()
     thumb = j("thj0", "thj1", "thj2", "thj3")
     flex = {f: j(f"{f}j1", f"{f}j2", f"{f}j3") for f in _FINGERS}
     # A curl of c bends the knuckle by c and the two outer joints a little more, so the medial
