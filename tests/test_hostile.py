@@ -771,10 +771,11 @@ def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_
 def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sniff_forge_nor_intercept(traj, tmp_path):
     """A second robot with a valid certificate of the same lab subscribes to every session's
     frames and observations, answers every service key in the service's place, publishes forged
-    estimates on the first robot's key, tries to close its session and to open under its name.
-    The router's access rules (make-certs.sh's router.json5) let none of it through: 0 frames
-    sniffed, 0 queries caught, 0 forged estimates delivered, the session still open, no open under
-    another's name, and the first robot keeps >= 95 % of its 10 Hz estimate rate meanwhile."""
+    estimates on the first robot's key, tries to close its session and to open under its name, and
+    holds a liveliness token on the service's key. The router's access rules (make-certs.sh's
+    router.json5) let none of it through: 0 frames sniffed, 0 queries caught, 0 forged estimates
+    delivered, the session still open, no open under another's name, the first robot keeps >= 95 %
+    of its 10 Hz estimate rate meanwhile, and learns of the service's death when it dies."""
     with _hardened(tmp_path) as (endpoint, shipped, svc):
         attacker = zenoh.open(zenoh_config(connect=[endpoint], file=shipped("robot.json5", robot="observer")))
         keys, caught, sniffed = Keys("default"), [], []
@@ -818,7 +819,13 @@ def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sni
                 assert robot.status().frames >= sent  # still open: its status answers
                 answered = len([s for s in got if 0 < s <= sent])
                 assert answered >= 0.95 * sent, (answered, sent)
-                robot.close_session()
+                # The attacker holds a token on the service's liveliness key: the router never let
+                # it through, so the service's death is the robot's news at once.
+                svc.proc.kill()
+                deadline = time.monotonic() + 5.0
+                while not robot.service_lost and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert robot.service_lost
         finally:
             for h in held:
                 h.undeclare()
