@@ -210,3 +210,20 @@ def test_a_full_disk_stops_the_recording_and_the_session_tracks_on(tmp_path):
     finally:
         client.close()
         svc.stop()
+
+
+def test_a_read_only_record_folder_leaves_the_service_tracking():
+    """The service records into a folder that takes no file whoever writes (sysfs refuses even
+    root): each session is told its recording stopped, and tracks all the same."""
+    if not Path("/sys").is_dir() or _writable(Path("/sys")):
+        pytest.skip("no folder here refuses every write")
+    traj = Trajectory.load(TRAJECTORY)
+    svc = ServiceProcess(free_port(), record="/sys")
+    client, last = _stream(svc, traj, 3.0)
+    try:
+        status = client.status()
+        assert status.last_error is not None and status.last_error.startswith("recording: stopped"), status
+        assert last > 45 and status.frames > 45, (last, status.frames)
+    finally:
+        client.close()
+        svc.stop()
