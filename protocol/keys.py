@@ -55,11 +55,13 @@ class Keys:
 
     def peer_of(self, key: str) -> str | None:
         """The name an open on ``key`` was made under ("" for none); None for a key that is not
-        one open's (a wildcard selector that the open queryable also matches)."""
+        one open's (a wildcard selector that the open queryable also matches, or a name
+        :func:`check_name` refuses, such as one of several chunks)."""
         head = f"{self.root}/rpc/open"
-        if "*" in key or not (key == head or key.startswith(head + "/")):
-            return None
-        return key[len(head) + 1 :]
+        if key == head:
+            return ""
+        peer = key[len(head) + 1 :] if key.startswith(head + "/") else ""
+        return peer if peer and _NAME.fullmatch(peer) else None
 
     @property
     def close(self) -> str:

@@ -44,14 +44,17 @@ DISTAL_COUPLING = 0.00805 / 0.00705
 """A finger's distal joint angle per middle joint angle: the ratio of the model's coupling tendon."""
 
 
-def palm_rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
-    """The object just above the palm, its longest horizontal side along the hand (world y),
-    shifted by ``offset`` (x, y) [m] and turned by a small yaw ``offset[2]`` [rad], (7,)."""
+def palm_rest_pose(
+    obj: ObjectSpec, offset: np.ndarray, centre: np.ndarray = PALM_CENTRE, drop: float = _DROP
+) -> np.ndarray:
+    """The object ``drop`` [m] above the palm's ``centre`` (its face, where the object lies [m]),
+    its longest horizontal side along the hand (world y), shifted by ``offset`` (x, y) [m] and
+    turned by a small yaw ``offset[2]`` [rad], (7,)."""
     extent = obj.mesh.bounds[1] - obj.mesh.bounds[0]
     yaw = (np.pi / 2 if extent[0] > extent[1] else 0.0) + offset[2]
     quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-    z = PALM_CENTRE[2] - obj.mesh.bounds[0, 2] + _DROP
-    return np.array([PALM_CENTRE[0] + offset[0], PALM_CENTRE[1] + offset[1], z, *quat])
+    z = centre[2] - obj.mesh.bounds[0, 2] + drop
+    return np.array([centre[0] + offset[0], centre[1] + offset[1], z, *quat])
 
 
 def distal_coupling(lay) -> tuple[list[int], list[int]] | None:

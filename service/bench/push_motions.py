@@ -23,7 +23,7 @@ from sim_backend.kinematics import Kinematics
 from sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
-from .palm_motions import start_script
+from .palm_motions import palm_rest_pose, start_script
 
 __all__ = ["PUSH_MOTION_KINDS", "make_push_motion"]
 
@@ -42,15 +42,6 @@ _THUMB_IN = np.array([0.45, 0.6, 1.644, 1.4])
 """The thumb swung in over the palm's edge: its tip where the object's side would be [rad]."""
 
 
-def rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
-    """The object just above the palm's centre, shifted by ``offset`` (x, y) [m] and turned by a
-    small yaw ``offset[2]`` [rad], (7,)."""
-    yaw = offset[2]
-    quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-    z = PALM_CENTRE[2] - obj.mesh.bounds[0, 2] + _DROP
-    return np.array([PALM_CENTRE[0] + offset[0], PALM_CENTRE[1] + offset[1], z, *quat])
-
-
 def make_push_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 15.0) -> Demo:
     """Script a ``kind`` motion (see :data:`PUSH_MOTION_KINDS`) of about ``seconds`` for ``obj``
     lying on the palm; ``variant`` seeds where it lies and how far each move goes."""
@@ -59,7 +50,8 @@ def make_push_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int =
         kin, PUSH_MOTION_KINDS, kind, seconds, needed, (variant, 300), "push motion", "the Allegro Hand"
     )
     j = lambda *names: [index[n] for n in names]  # noqa: E731
-    pose = rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.2, 0.2)]))
+    offset = np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.2, 0.2)])
+    pose = palm_rest_pose(obj, offset, PALM_CENTRE, _DROP)
     start = path.q.copy()
     thumb = j("thj0", "thj1", "thj2", "thj3")
     flex = {f: j(f"{f}j1", f"{f}j2", f"{f}j3") for f in _FINGERS}

@@ -85,9 +85,9 @@ class TrackerNode:
         """When the loop last came round [s, monotonic]."""
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
         """Builds populations off the loop thread."""
-        self._waiting: dict[PoolKey, list[tuple[OpenSession, Future | None, str | None, str]]] = {}
-        """Opens waiting for their population's build, by population key: the request with the
-        worlds granted, and why fewer than asked (when so)."""
+        self._waiting: dict[PoolKey, list[tuple[Admission, Future | None]]] = {}
+        """Opens waiting for their population's build, by population key: each admission (the
+        request with the worlds granted, why fewer than asked, the peer) and its answer."""
         self._build_s = 0.0
         """How long the last population build took [s]."""
         self._token = None
@@ -140,9 +140,7 @@ class TrackerNode:
         # A loop still busy (a population build) or dead leaves requests unanswered, and Zenoh's
         # close waits for the handlers that wait on them: answer them, so the service can go.
         self._builder.shutdown(wait=False, cancel_futures=True)
-        self._inbox.cancel(
-            (done for waits in self._waiting.values() for _, done, _, _ in waits), "the service is stopping"
-        )
+        self._inbox.cancel((done for waits in self._waiting.values() for _, done in waits), "the service is stopping")
         self.outputs.close()
         if self.session is not None:
             self.session.close()
@@ -397,7 +395,7 @@ class TrackerNode:
                 log.info("building a population of %d x %d worlds (%s, %s)", self.config.groups, worlds, robot, obj)
                 began, build = time.monotonic(), self._builder.submit(m.build, admission)
                 build.add_done_callback(lambda f: self._inbox.post("built", lambda _: self._adopt(admission, f, began)))
-            self._waiting.setdefault(admission.key, []).append((admission.request, done, admission.notice, peer))
+            self._waiting.setdefault(admission.key, []).append((admission, done))
             return None
         info = m.attach(admission)
         # Gone until its robot's liveliness token shows up: a robot that never declares one
@@ -424,16 +422,17 @@ class TrackerNode:
         except Exception as exc:
             self.manager.building.pop(admission.key, None)
             log.error("building a population for %s failed", admission.key, exc_info=exc)
-            for _, done, _, _ in waiting:
+            for _, done in waiting:
                 answer(done, Error(code=ErrorCode.INTERNAL, message=f"building its population failed: {exc!r}"))
             return
         self.manager.adopt(pool)
         self._build_s = time.monotonic() - began
         log.info("population built in %.1f s", self._build_s)
-        for request, done, notice, peer in waiting:
+        for waited, done in waiting:
             # The robot is told why its open took as long: on a fresh GPU machine, minutes.
-            notice = "; ".join(filter(None, (notice, f"its population was built for it: {self._build_s:.0f} s")))
-            opening = functools.partial(self._open, request, notice, peer)
+            built = f"its population was built for it: {self._build_s:.0f} s"
+            notice = "; ".join(filter(None, (waited.notice, built)))
+            opening = functools.partial(self._open, waited.request, notice, waited.peer)
             self._inbox.handle(Request("open", opening, done), self._refusal)
 
     def _drop(self, session: str, why: str = "its robot closed it") -> None:
