@@ -8,7 +8,7 @@ import logging
 import threading
 from collections.abc import Callable
 
-from protocol import ServiceInfo
+from inhand_tracker.protocol import ServiceInfo
 
 __all__ = ["BuildWatch"]
 

@@ -1,7 +1,7 @@
 """Container health check: ask the local service's info key over Zenoh; exit 0 when it answers
 and is ready (kernels compiled, its tracking loop running).
 
-python -m client.health [ENDPOINT]   (default: INHAND_LISTEN with 0.0.0.0 read as 127.0.0.1;
+python -m inhand_tracker.client.health [ENDPOINT]   (default: INHAND_LISTEN with 0.0.0.0 read as 127.0.0.1;
 INHAND_ZENOH_CONFIG, when set, is the Zenoh file it connects with, as the service does)
 """
 

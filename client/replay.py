@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol import Estimate, Trajectory
+from inhand_tracker.protocol import Estimate, Trajectory
 
 from .tracker_client import TrackerClient
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import SessionRecording, SessionStatus, Trajectory
+from inhand_tracker.protocol import SessionRecording, SessionStatus, Trajectory
 
 from .replay import NOISE_LEVELS, ReplayResult, noisy_start
 from .replay import replay as stream
@@ -124,8 +124,8 @@ def _latency(result: ReplayResult, status: SessionStatus, say: Callable[[str], N
 def _summary(traj: Trajectory, estimates: list, say: Callable[[str], None]) -> None:
     """ADD against the ground truth, when the object's model is at hand (the service's install)."""
     try:
-        from service.evaluation import add_error
-        from sim_backend import catalog_object
+        from inhand_tracker.service.evaluation import add_error
+        from inhand_tracker.sim_backend import catalog_object
 
         points = catalog_object(traj.object).surface_points(1000)
     except (ImportError, ValueError):

@@ -12,7 +12,7 @@ import numpy as np
 import zenoh
 from pydantic import BaseModel
 
-from protocol import (
+from inhand_tracker.protocol import (
     AUTO,
     DEFAULT_METHOD,
     CloseSession,
@@ -30,7 +30,7 @@ from protocol import (
     decode,
     encode,
 )
-from protocol.auth import sign, signed_query
+from inhand_tracker.protocol.auth import sign, signed_query
 
 from .builds import BuildWatch
 from .zenoh_session import zenoh_config, zenoh_encoding

@@ -7,7 +7,7 @@ import os
 
 import zenoh
 
-from protocol import encoding_of
+from inhand_tracker.protocol import encoding_of
 
 __all__ = ["zenoh_config", "zenoh_encoding"]
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import threading
 
-from client import TrackerClient
-from protocol import Estimate
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import Estimate
 
 
 def main() -> None:

@@ -13,8 +13,8 @@ import argparse
 
 import numpy as np
 
-from client import TrackerClient
-from protocol import Trajectory
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import Trajectory
 
 
 def main() -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
 __all__ = ["CHI2_6DOF_95", "add_error", "adds_error", "covered", "pose_error", "transform_points", "within_region"]
 

@@ -7,7 +7,7 @@ from typing import NamedTuple
 
 import warp as wp
 
-from protocol import DEFAULT_WORLDS
+from inhand_tracker.protocol import DEFAULT_WORLDS
 
 __all__ = ["PopulationConfig", "SolverSettings", "forward_only_kernels", "resolve_device"]
 

@@ -1,13 +1,13 @@
 import pytest
 
-import sim_backend  # noqa: F401  (before collection imports newton: it switches Warp's adjoints off)
+import inhand_tracker.sim_backend  # noqa: F401  (before collection imports newton: it switches Warp's adjoints off)
 
 
 @pytest.fixture(scope="session", autouse=True)
 def _quiet_warp():
     import warp as wp
 
-    from service.logs import quiet_warp
+    from inhand_tracker.service.logs import quiet_warp
 
     quiet_warp()
     wp.init()
@@ -15,7 +15,7 @@ def _quiet_warp():
 
 @pytest.fixture(scope="session")
 def hand():
-    from sim_backend import HandSpec, Kinematics
+    from inhand_tracker.sim_backend import HandSpec, Kinematics
 
     spec = HandSpec()
     return spec, Kinematics(spec)

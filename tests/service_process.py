@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from client import TrackerClient, TrackerError
+from inhand_tracker.client import TrackerClient, TrackerError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ class ServiceProcess:
         if not listen:
             env["INHAND_LISTEN"] = ""
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", *endpoints, "--device", "cpu"],
+            [sys.executable, "-m", "inhand_tracker.service.cli", "serve", *endpoints, "--device", "cpu"],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             # A write past a file-size limit (:meth:`limit_files`) fails instead of killing it.
             preexec_fn=lambda: signal.signal(signal.SIGXFSZ, signal.SIG_IGN),

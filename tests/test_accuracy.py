@@ -12,12 +12,12 @@ import sys
 import numpy as np
 import pytest
 
-from protocol import TrackState
-from service.bench import SUITES, AccuracyRun, ground_truth, run_suite
-from service.bench.report import write_report
-from service.evaluation import CHI2_6DOF_95
-from service.paths import DATA_DIR
-from service.tracker import TrackerConfig
+from inhand_tracker.protocol import TrackState
+from inhand_tracker.service.bench import SUITES, AccuracyRun, ground_truth, run_suite
+from inhand_tracker.service.bench.report import write_report
+from inhand_tracker.service.evaluation import CHI2_6DOF_95
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.tracker import TrackerConfig
 
 
 def test_the_smoke_suite_ships_its_trajectories():
@@ -29,7 +29,7 @@ def test_the_smoke_suite_ships_its_trajectories():
 @pytest.mark.slow
 def test_optimizers_beat_eye_and_eye_beats_olp(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "service.cli", "bench", "accuracy", "--suite", "smoke", "--noise", "med",
+        [sys.executable, "-m", "inhand_tracker.service.cli", "bench", "accuracy", "--suite", "smoke", "--noise", "med",
          "--device", "cpu", "--out", str(tmp_path), "--json"],
         capture_output=True, text=True, timeout=900,
     )  # fmt: skip
@@ -96,8 +96,8 @@ def test_bench_accuracy_scores_a_users_own_files(tmp_path):
     files that carry the truth, in place of a suite; one without it is refused."""
     from typer.testing import CliRunner
 
-    from protocol import Trajectory
-    from service.cli import app
+    from inhand_tracker.protocol import Trajectory
+    from inhand_tracker.service.cli import app
 
     mine = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
     args = ["bench", "accuracy", "--files", str(mine), "--methods", "OLP,PBO", "--noise", "med", "--worlds", "8"]

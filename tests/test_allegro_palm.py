@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from service.bench.mujoco_truth import record_mujoco
-from service.bench.push_motions import PUSH_MOTION_KINDS, make_push_motion
-from service.bench.scene_truth import ALLEGRO_PALM_BLOCK, load_scene
-from service.bench.suites import SUITES, robot_spec
-from service.cli import app
-from sim_backend import Kinematics, catalog_object
+from inhand_tracker.service.bench.mujoco_truth import record_mujoco
+from inhand_tracker.service.bench.push_motions import PUSH_MOTION_KINDS, make_push_motion
+from inhand_tracker.service.bench.scene_truth import ALLEGRO_PALM_BLOCK, load_scene
+from inhand_tracker.service.bench.suites import SUITES, robot_spec
+from inhand_tracker.service.cli import app
+from inhand_tracker.sim_backend import Kinematics, catalog_object
 
 GRAVITY = 9.81
 

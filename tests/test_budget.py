@@ -13,13 +13,13 @@ import pytest
 import zenoh
 from service_process import ServiceProcess, free_port
 
-from client import TrackerClient, TrackerError, zenoh_config
-from protocol import ErrorCode, OpenSession, Trajectory
-from service.paths import DATA_DIR
-from service.server.budget import FrameTimes, affordable_worlds, ladder
-from service.server.config import ServiceConfig
-from service.server.sessions import ServiceError, SessionManager
-from sim_backend import load_catalog, load_robot
+from inhand_tracker.client import TrackerClient, TrackerError, zenoh_config
+from inhand_tracker.protocol import ErrorCode, OpenSession, Trajectory
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.server.budget import FrameTimes, affordable_worlds, ladder
+from inhand_tracker.service.server.config import ServiceConfig
+from inhand_tracker.service.server.sessions import ServiceError, SessionManager
+from inhand_tracker.sim_backend import load_catalog, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"

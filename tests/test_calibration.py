@@ -13,15 +13,23 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from protocol import OpenSession
-from service.bench.demos import make_demo
-from service.bench.excitation import excitation_demo
-from service.bench.recorder import record
-from service.cli import app
-from service.paths import CONFIG_DIR
-from service.server.config import ServiceConfig
-from service.server.sessions import SessionManager
-from sim_backend import HandSpec, Kinematics, Population, PopulationConfig, catalog_object, load_catalog, load_robot
+from inhand_tracker.protocol import OpenSession
+from inhand_tracker.service.bench.demos import make_demo
+from inhand_tracker.service.bench.excitation import excitation_demo
+from inhand_tracker.service.bench.recorder import record
+from inhand_tracker.service.cli import app
+from inhand_tracker.service.paths import CONFIG_DIR
+from inhand_tracker.service.server.config import ServiceConfig
+from inhand_tracker.service.server.sessions import SessionManager
+from inhand_tracker.sim_backend import (
+    HandSpec,
+    Kinematics,
+    Population,
+    PopulationConfig,
+    catalog_object,
+    load_catalog,
+    load_robot,
+)
 
 GRIPPER = CONFIG_DIR / "robots" / "example_gripper.toml"
 TRUE_KE, TRUE_KD = (300.0, 150.0), (10.0, 20.0)
@@ -110,9 +118,9 @@ def test_the_model_check_stays_quiet_on_a_robot_that_matches_its_config(pick):
 
 
 def test_the_replay_report_names_the_joints_the_model_check_found():
-    from client.replay import ReplayResult
-    from client.report import _latency
-    from protocol import SessionStatus
+    from inhand_tracker.client.replay import ReplayResult
+    from inhand_tracker.client.report import _latency
+    from inhand_tracker.protocol import SessionStatus
 
     counters = dict(frames=90, gaps=0, duplicates=0, late=0, errors=0, latency_p50_ms=5.0, latency_p99_ms=9.0)
     status = SessionStatus(session="s", cost=1.0, spread_m=0.01, joints_off={"robot0:FFJ2": 0.035}, **counters)

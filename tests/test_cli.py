@@ -9,7 +9,7 @@ import re
 import pytest
 from typer.testing import CliRunner
 
-from service.cli import app
+from inhand_tracker.service.cli import app
 
 
 def _run(*args: str):
@@ -65,7 +65,7 @@ def test_bad_suite_options_are_refused_before_anything_runs():
 
 
 def test_settings_split_into_the_tracker_and_its_physics():
-    from service.bench import parse_settings
+    from inhand_tracker.service.bench import parse_settings
 
     config, physics = parse_settings(
         ["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"]
@@ -107,7 +107,7 @@ def test_bench_speed_times_the_tracker_against_the_physics():
 
 
 def test_version_names_the_package_and_the_protocol():
-    from protocol import PROTOCOL_VERSION
+    from inhand_tracker.protocol import PROTOCOL_VERSION
 
     out = _run("--version")
     assert out.exit_code == 0 and out.stdout.startswith("inhand-tracker ")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.server.config import DEFAULT_CONFIG, ServiceConfig, load_config, shipped_toml
+from inhand_tracker.service.server.config import DEFAULT_CONFIG, ServiceConfig, load_config, shipped_toml
 
 
 def test_the_shipped_config_is_the_defaults_and_names_every_setting():

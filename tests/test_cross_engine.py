@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from protocol import SENSING
-from service.bench.motions import MOTION_KINDS, make_motion
-from service.bench.mujoco_truth import export_scene, record_mujoco
-from service.bench.palm_motions import DISTAL_COUPLING, PALM_MOTION_KINDS, make_palm_motion
-from service.bench.suites import robot_spec
-from service.cli import app
-from sim_backend import HandSpec, Kinematics, catalog_object
+from inhand_tracker.protocol import SENSING
+from inhand_tracker.service.bench.motions import MOTION_KINDS, make_motion
+from inhand_tracker.service.bench.mujoco_truth import export_scene, record_mujoco
+from inhand_tracker.service.bench.palm_motions import DISTAL_COUPLING, PALM_MOTION_KINDS, make_palm_motion
+from inhand_tracker.service.bench.suites import robot_spec
+from inhand_tracker.service.cli import app
+from inhand_tracker.sim_backend import HandSpec, Kinematics, catalog_object
 
 
 def test_mujoco_truth_lifts_the_object_and_senses_it_as_the_tracker_would(tmp_path):
@@ -81,8 +81,8 @@ def test_mujoco_truth_on_the_shadow_hand_keeps_the_object_on_its_palm_and_feels_
 
 
 def test_the_shadow_hands_truth_in_the_trackers_own_physics_keeps_the_object_on_its_palm(tmp_path):
-    from service.bench.suites import SUITES
-    from service.bench.truth import ground_truth
+    from inhand_tracker.service.bench.suites import SUITES
+    from inhand_tracker.service.bench.truth import ground_truth
 
     suite = SUITES["paper-shadow"].short()
     tracks = ground_truth(suite, device="cpu", cache=tmp_path)
@@ -114,7 +114,7 @@ def test_cross_engine_suite_on_the_shadow_hand_in_short_form(tmp_path):
 def test_rank_correlation_is_spearmans_rho_per_group_and_term():
     from scipy.stats import spearmanr
 
-    from service.bench.ranking import rank_correlation
+    from inhand_tracker.service.bench.ranking import rank_correlation
 
     rng = np.random.default_rng(0)
     error = rng.random((3, 40))

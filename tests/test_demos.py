@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from service.bench.demos import DEMO_KINDS, make_demo
-from service.bench.recorder import record, sensitivity
-from sim_backend import Population, PopulationConfig, catalog_object
-from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
+from inhand_tracker.service.bench.demos import DEMO_KINDS, make_demo
+from inhand_tracker.service.bench.recorder import record, sensitivity
+from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_the_pinch_lifts_the_object_where_it_lay(recordings, g):
 
 
 def _limits(demo):
-    from sim_backend import HandSpec, Kinematics
+    from inhand_tracker.sim_backend import HandSpec, Kinematics
 
     lay = Kinematics(HandSpec()).layout
     return lay.lower, lay.upper

@@ -20,8 +20,8 @@ TRAJECTORY = "data/trajectories/smoke-foam_brick_pick_place_0.traj"
 def _cli(*args: str, timeout: float = 60.0, env: dict | None = None) -> tuple[subprocess.CompletedProcess, float]:
     began = time.monotonic()
     out = subprocess.run(
-        [sys.executable, "-m", "service.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
-        env=os.environ | (env or {}),
+        [sys.executable, "-m", "inhand_tracker.service.cli", *args], cwd=ROOT, capture_output=True, text=True,
+        timeout=timeout, env=os.environ | (env or {}),
     )  # fmt: skip
     return out, time.monotonic() - began
 
@@ -68,7 +68,7 @@ def test_the_readme_serve_and_replay_track_on_a_cpu_with_default_settings(tmp_pa
     port = free_port()
     env = {"INHAND_FRAME_TIME_CACHE": str(tmp_path), "INHAND_LISTEN": f"tcp/127.0.0.1:{port}"}
     service = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=os.environ | env,
+        [sys.executable, "-m", "inhand_tracker.service.cli", "serve"], cwd=ROOT, env=os.environ | env,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     try:

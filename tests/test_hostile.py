@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import textwrap
 import threading
 import time
 from pathlib import Path
@@ -25,8 +26,8 @@ import zenoh
 from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
-from client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config
-from protocol import (
+from inhand_tracker.client import ServiceLost, StaleEstimate, TrackerClient, TrackerError, zenoh_config
+from inhand_tracker.protocol import (
     CloseSession,
     Error,
     ErrorCode,
@@ -38,10 +39,10 @@ from protocol import (
     decode,
     encode,
 )
-from service.paths import DATA_DIR
-from service.server.config import ServiceConfig
-from service.server.sessions import ServiceError, SessionManager
-from sim_backend import load_catalog, load_robot
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.server.config import ServiceConfig
+from inhand_tracker.service.server.sessions import ServiceError, SessionManager
+from inhand_tracker.sim_backend import load_catalog, load_robot
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 ROOT = Path(__file__).resolve().parents[1]
@@ -418,9 +419,9 @@ def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
 
 
 def test_a_flooding_peer_does_not_starve_another_session(traj):
-    """One robot streams at 10 Hz, alone and then beside a peer that floods its own session as
-    fast as it can publish: it keeps at least 80 % of its estimate rate, and the flood's backlog
-    stays bounded (counted stale)."""
+    """One robot streams at 10 Hz, alone and then beside a peer (its own process, as a robot is)
+    that floods its own session as fast as it can publish: it keeps at least 80 % of its estimate
+    rate, and the flood's backlog stays bounded (counted stale)."""
     svc = ServiceProcess(free_port(), groups=2)
     seconds, rate = 4.0, 10.0
 
@@ -436,32 +437,45 @@ def test_a_flooding_peer_does_not_starve_another_session(traj):
         time.sleep(0.5)
         return len(got)
 
+    flooding = textwrap.dedent(f"""
+        import json, sys, time
+        from inhand_tracker.client import TrackerClient
+        from inhand_tracker.protocol import Trajectory
+        traj = Trajectory.load({str(TRAJECTORY)!r})
+        with TrackerClient(connect=[{svc.endpoint!r}]) as flood:
+            info = flood.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q,
+                                      worlds=4)
+            print("open", flush=True)
+            sys.stdin.readline()
+            n = 0
+            until = time.monotonic() + {seconds}
+            while time.monotonic() < until:
+                flood.send(traj.frame(n % traj.frames, info.session, seq=n))
+                n += 1
+            status = flood.status()
+            print(json.dumps({{"stale": status.stale, "frames": status.frames}}), flush=True)
+    """)
+    flood = None
     try:
-        with TrackerClient(connect=[svc.endpoint]) as robot, TrackerClient(connect=[svc.endpoint]) as flood:
+        with TrackerClient(connect=[svc.endpoint]) as robot:
             svc.wait_ready(robot)
-            for c in (robot, flood):
-                c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+            robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=4)
+            flood = subprocess.Popen(
+                [sys.executable, "-c", flooding], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT
+            )
+            assert flood.stdout.readline().strip() == "open"
             alone = stream(robot, 0)
-            stop = threading.Event()
-
-            def flooding() -> None:
-                n = 0
-                while not stop.is_set():
-                    flood.send(traj.frame(n % traj.frames, flood.info.session, seq=n))
-                    n += 1
-
-            worker = threading.Thread(target=flooding)
-            worker.start()
-            try:
-                beside = stream(robot, 10_000)
-            finally:
-                stop.set()
-                worker.join()
+            flood.stdin.write("go\n")
+            flood.stdin.flush()
+            beside = stream(robot, 10_000)
+            status = json.loads(flood.stdout.readline())
             assert alone >= 0.8 * rate * seconds, alone
             assert beside >= 0.8 * alone, (alone, beside)
-            status = flood.status()
-            assert status.stale > 0 and status.frames < 10 * rate * seconds, status
+            assert status["stale"] > 0 and status["frames"] < 10 * rate * seconds, status
     finally:
+        if flood is not None:
+            flood.kill()
+            flood.wait()
         svc.stop()
 
 
@@ -595,7 +609,7 @@ def test_a_peer_that_reads_every_frame_and_catches_every_query_learns_no_secret(
 def test_bench_load_reports_every_session_and_the_memory(service, where):
     from typer.testing import CliRunner
 
-    from service.cli import app
+    from inhand_tracker.service.cli import app
 
     target = ["--device", "cpu"] if where == "embedded" else ["--connect", service.endpoint]
     result = CliRunner().invoke(
@@ -758,7 +772,7 @@ def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_
             robot.send(traj.frame(0, info.session))
             assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
             env = os.environ | {"INHAND_ZENOH_CONFIG": str(tmp_path / "robot-service.json5")}
-            health = subprocess.run([sys.executable, "-m", "client.health", endpoint], env=env, cwd=ROOT,
+            health = subprocess.run([sys.executable, "-m", "inhand_tracker.client.health", endpoint], env=env, cwd=ROOT,
                                     capture_output=True, text=True, timeout=60)  # fmt: skip
             assert health.returncode == 0 and "healthy" in health.stdout, health.stderr
         stranger = tmp_path / "stranger.json5"

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from client import TrackerClient
-from protocol import Trajectory
-from service.paths import DATA_DIR
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.paths import DATA_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 TAG = "localhost/inhand-tracker:test"

@@ -8,6 +8,7 @@ import shutil
 import site
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -27,6 +28,17 @@ def wheel(tmp_path_factory) -> Path:
     )  # fmt: skip
     (path,) = tmp.glob("inhand_tracker-*.whl")
     return path
+
+
+@pytest.mark.slow
+def test_the_wheel_installs_one_top_level_package_with_every_subpackage(wheel):
+    """``inhand_tracker`` alone at the top of site-packages: nothing to collide with a workspace's
+    own ``client`` or ``service``; and every source folder with a module travels inside it."""
+    names = zipfile.ZipFile(wheel).namelist()
+    assert {n.split("/")[0] for n in names if ".dist-info/" not in n} == {"inhand_tracker"}
+    folders = {p.parent for d in ("client", "protocol", "service", "sim_backend") for p in (ROOT / d).rglob("*.py")}
+    missing = [f for f in folders if f"inhand_tracker/{f.relative_to(ROOT)}/__init__.py" not in names]
+    assert not missing, missing
 
 
 def _venv(path: Path) -> Path:
@@ -63,7 +75,7 @@ def test_the_service_install_runs_the_demo_from_another_directory(wheel, tmp_pat
     (purelib / "deps.pth").write_text(site.getsitepackages()[0] + "\n")
     out = _run(bin_, "pip", "install", "-q", f"{wheel}[service]", cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]
-    where = _run(bin_, "python", "-c", "import service.paths as p; print(p.PROJECT_ROOT)", cwd=tmp_path)
+    where = _run(bin_, "python", "-c", "import inhand_tracker.service.paths as p; print(p.PROJECT_ROOT)", cwd=tmp_path)
     assert str(purelib) in where.stdout, where  # the installed copy, not this checkout
     out = _run(bin_, "inhand-tracker", "demo", "--device", "cpu", "--worlds", "4", cwd=tmp_path, timeout=1800)
     assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-3000:])

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from service.bench.mujoco_truth import record_mujoco
-from service.bench.palm_motions import PALM_MOTION_KINDS, make_palm_motion
-from service.bench.recorder import record
-from service.bench.scene_truth import MANIPULATE_BLOCK, SceneFile, load_scene
-from service.bench.suites import robot_spec
-from service.cli import app
-from sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
-from sim_backend.robot_specs import FileRobotSpec
+from inhand_tracker.service.bench.mujoco_truth import record_mujoco
+from inhand_tracker.service.bench.palm_motions import PALM_MOTION_KINDS, make_palm_motion
+from inhand_tracker.service.bench.recorder import record
+from inhand_tracker.service.bench.scene_truth import MANIPULATE_BLOCK, SceneFile, load_scene
+from inhand_tracker.service.bench.suites import robot_spec
+from inhand_tracker.service.cli import app
+from inhand_tracker.sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
+from inhand_tracker.sim_backend.robot_specs import FileRobotSpec
 
 GRAVITY = 9.81
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from sim_backend import CATALOG, HandSpec, Population, PopulationConfig, load_catalog, load_mesh_object
+from inhand_tracker.sim_backend import CATALOG, HandSpec, Population, PopulationConfig, load_catalog, load_mesh_object
 
 
 def test_catalog_has_the_papers_three_objects_and_the_block_with_their_physics():
@@ -73,7 +73,7 @@ def test_a_mesh_object_is_refused_when_its_volume_or_mass_cannot_be_right(tmp_pa
 def test_a_mesh_object_in_the_default_objects_file_loads_at_import(tmp_path, monkeypatch):
     """The catalog is read when the module is imported: a mesh entry in the default file must load
     then too (the module is run as it is, with its default file pointed at one with a mesh)."""
-    import sim_backend.objects as objects
+    import inhand_tracker.sim_backend.objects as objects
 
     trimesh.creation.box(extents=(0.04, 0.04, 0.06)).export(tmp_path / "block.stl")
     cfg = tmp_path / "objects.toml"

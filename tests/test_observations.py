@@ -13,12 +13,12 @@ import zenoh
 from pydantic import ValidationError
 from service_process import ServiceProcess, free_port
 
-from client import TrackerClient
-from protocol import Keys, OpenSession, PoseObservation, Trajectory, encode
-from service.paths import DATA_DIR
-from service.server.config import ServiceConfig
-from service.server.sessions import SessionManager
-from sim_backend import load_catalog, load_robot
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import Keys, OpenSession, PoseObservation, Trajectory, encode
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.server.config import ServiceConfig
+from inhand_tracker.service.server.sessions import SessionManager
+from inhand_tracker.sim_backend import load_catalog, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
@@ -166,8 +166,8 @@ def test_observations_over_zenoh_are_used_and_a_malformed_one_is_counted(traj):
 
 
 def test_the_accuracy_benchmark_scores_with_camera_observations_adds_and_coverage():
-    from service.bench import AccuracyRun, run_suite
-    from service.bench.suites import SUITES
+    from inhand_tracker.service.bench import AccuracyRun, run_suite
+    from inhand_tracker.service.bench.suites import SUITES
 
     run = lambda schedule: run_suite(AccuracyRun(  # noqa: E731
         SUITES["smoke"], methods=("PBO",), noises=("high",), device="cpu", cache=None, quiet=True,
@@ -190,7 +190,7 @@ def test_the_accuracy_benchmark_scores_with_camera_observations_adds_and_coverag
 
 
 def test_adds_forgives_what_a_symmetry_hides_and_coverage_reads_the_covariance():
-    from service.evaluation import add_error, adds_error, covered
+    from inhand_tracker.service.evaluation import add_error, adds_error, covered
 
     circle = np.stack([np.cos(a := np.linspace(0, 2 * np.pi, 360, endpoint=False)), np.sin(a), 0 * a], -1) * 0.03
     truth = np.array([0.1, 0.0, 0.05, 0, 0, 0, 1.0])
@@ -206,7 +206,7 @@ def test_adds_forgives_what_a_symmetry_hides_and_coverage_reads_the_covariance()
 def test_a_dropped_object_is_flagged_and_a_camera_brings_the_estimate_back():
     """The loss suite (short): the object slips out of the hand mid-carry, which neither the robot's
     commands nor the tracker's physics foresee."""
-    from service.bench import SUITES, AccuracyRun, run_suite
+    from inhand_tracker.service.bench import SUITES, AccuracyRun, run_suite
 
     run = lambda schedule: run_suite(AccuracyRun(  # noqa: E731
         SUITES["loss"].short(), methods=("REPS",), noises=("med",), device="cpu", cache=None, quiet=True,

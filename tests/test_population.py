@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from sim_backend import (
+from inhand_tracker.sim_backend import (
     HEALTH_AWAY,
     HEALTH_LOST,
     HEALTH_NAN,
@@ -24,7 +24,7 @@ from sim_backend import (
     load_robot,
     plan_pinch,
 )
-from sim_backend.rotations import quat_rotate
+from inhand_tracker.sim_backend.rotations import quat_rotate
 
 FRAMES_3S = 90
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -62,7 +62,7 @@ def test_mass_writes_the_constants_set_const_would(name):
     import newton
     import warp as wp
 
-    from sim_backend import HandSpec
+    from inhand_tracker.sim_backend import HandSpec
 
     obj = catalog_object(name)
     pop = Population(HandSpec(), obj, PopulationConfig(groups=2, worlds=2, device="cpu", use_graph=False))
@@ -366,7 +366,7 @@ def test_the_wrist_slides_along_world_x_y_z_then_turns_yaw_pitch_and_roll():
     import newton
     from scipy.spatial.transform import Rotation
 
-    from sim_backend import HandSpec, add_robot
+    from inhand_tracker.sim_backend import HandSpec, add_robot
 
     builder = newton.ModelBuilder()
     newton.solvers.SolverMuJoCo.register_custom_attributes(builder)
@@ -396,7 +396,7 @@ def test_shadow_hand_from_its_pypi_package_loads_every_shape_and_feels_what_lies
     touch it."""
     import newton
 
-    from sim_backend import add_robot
+    from inhand_tracker.sim_backend import add_robot
 
     spec = load_robot(CONFIGS / "robots" / "shadow_hand.toml")
     builder = newton.ModelBuilder()
@@ -424,7 +424,7 @@ def test_shadow_hand_from_its_pypi_package_loads_every_shape_and_feels_what_lies
 def test_python_package_paths_and_per_joint_gains_are_checked(tmp_path):
     import newton
 
-    from sim_backend import add_robot
+    from inhand_tracker.sim_backend import add_robot
 
     spec = load_robot(CONFIGS / "robots" / "shadow_hand.toml")
     xml = tmp_path / "hand.xml"
@@ -464,7 +464,7 @@ def _gripper_spec(path: Path, **kw) -> FileRobotSpec:
 def test_package_uris_in_a_urdf_resolve_or_are_refused_with_the_uri(tmp_path):
     import newton
 
-    from sim_backend import add_robot
+    from inhand_tracker.sim_backend import add_robot
 
     def shapes_per_link(spec: FileRobotSpec) -> list[int]:
         builder = newton.ModelBuilder()

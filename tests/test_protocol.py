@@ -11,7 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from protocol import (
+from inhand_tracker.protocol import (
     MAX_PAYLOAD_BYTES,
     PROTOCOL_VERSION,
     DecodeError,
@@ -94,14 +94,14 @@ def test_keys_live_under_the_versioned_prefix_and_refuse_bad_names():
 
 
 def test_protocol_imports_stay_light():
-    code = "import sys, protocol; bad = {'torch', 'warp', 'newton', 'trimesh'} & set(sys.modules); print(sorted(bad))"
+    code = "import sys, inhand_tracker.protocol; bad = {'torch', 'warp', 'newton', 'trimesh'} & set(sys.modules); print(sorted(bad))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_the_committed_wire_spec_is_current(tmp_path):
     """docs/protocol is what `inhand-tracker spec` writes from the messages today."""
-    from protocol.spec import write_spec
+    from inhand_tracker.protocol.spec import write_spec
 
     docs = Path(__file__).resolve().parents[1] / "docs" / "protocol"
     for path in write_spec(tmp_path):
@@ -115,8 +115,8 @@ def test_golden_payloads_decode_to_their_values_and_encode_to_their_bytes():
     """What an implementer in another language checks theirs against."""
     import json
 
-    import protocol
-    from protocol.spec import MESSAGES, plain
+    from inhand_tracker import protocol
+    from inhand_tracker.protocol.spec import MESSAGES, plain
 
     golden = Path(__file__).resolve().parents[1] / "docs" / "protocol" / "golden"
     assert sorted(p.stem for p in golden.glob("*.msgpack")) == sorted(m.__name__ for m in MESSAGES)

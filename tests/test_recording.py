@@ -15,10 +15,10 @@ from mcap.reader import make_reader
 from service_process import ServiceProcess, free_port
 from typer.testing import CliRunner
 
-from client import TrackerClient
-from protocol import CHANNELS, SessionRecording, Trajectory
-from service.cli import app
-from service.paths import DATA_DIR
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import CHANNELS, SessionRecording, Trajectory
+from inhand_tracker.service.cli import app
+from inhand_tracker.service.paths import DATA_DIR
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 
@@ -72,7 +72,7 @@ def test_the_demo_s_recording_opens_in_mcap_and_replays_to_the_same_estimates(tm
 
 
 def _session(traj: Trajectory, session: str = "0a1b2c3d4e5f"):
-    from protocol import OpenSession, SessionInfo
+    from inhand_tracker.protocol import OpenSession, SessionInfo
 
     request = OpenSession(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose, worlds=8)
     info = SessionInfo(session=session, token="t", robot=traj.robot, object=traj.object,
@@ -90,7 +90,7 @@ def test_every_json_channel_carries_its_full_schema_and_a_killed_service_leaves_
     from mcap.records import Message, Schema
     from mcap.stream_reader import StreamReader
 
-    from service.server.recording import SessionRecorder
+    from inhand_tracker.service.server.recording import SessionRecorder
 
     traj = Trajectory.load(TRAJECTORY)
     info, request = _session(traj)
@@ -120,7 +120,7 @@ def test_a_recording_that_cannot_be_written_stops_for_its_session_and_says_so(tm
     """A record folder that cannot be made (under a file), or one that exists and takes no file
     whoever writes (sysfs refuses even root, who ignores a folder's permissions): the session is
     told, nothing raises."""
-    from service.server.recording import SessionRecorder
+    from inhand_tracker.service.server.recording import SessionRecorder
 
     traj = Trajectory.load(TRAJECTORY)
     info, request = _session(traj)

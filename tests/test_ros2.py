@@ -14,9 +14,9 @@ import pytest
 import zenoh
 from service_process import ServiceProcess, free_port
 
-from client import TrackerClient
-from protocol import Trajectory
-from service.paths import DATA_DIR
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.paths import DATA_DIR
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 MSGS = Path(__file__).parent / "data" / "ros2_msgs"
@@ -118,8 +118,8 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
     session of our own, decoded by rosbags' ROS 2 type store."""
     from rosbags.typesys import Stores, get_typestore
 
-    from protocol import Estimate, SessionInfo
-    from service.server.ros2 import RosTopics
+    from inhand_tracker.protocol import Estimate, SessionInfo
+    from inhand_tracker.service.server.ros2 import RosTopics
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     conf = zenoh.Config()

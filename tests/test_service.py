@@ -16,9 +16,19 @@ import numpy as np
 import pytest
 from service_process import ServiceProcess, free_port
 
-from client import TrackerClient, TrackerError
-from protocol import PROTOCOL_VERSION, CloseSession, Error, ErrorCode, Keys, OpenSession, Trajectory, decode, encode
-from service.paths import DATA_DIR
+from inhand_tracker.client import TrackerClient, TrackerError
+from inhand_tracker.protocol import (
+    PROTOCOL_VERSION,
+    CloseSession,
+    Error,
+    ErrorCode,
+    Keys,
+    OpenSession,
+    Trajectory,
+    decode,
+    encode,
+)
+from inhand_tracker.service.paths import DATA_DIR
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,15 +49,15 @@ def _open(client: TrackerClient, traj: Trajectory, **kw):
 
 
 def test_client_imports_no_torch_warp_or_newton():
-    code = "import sys, client; bad = {'torch', 'warp', 'newton'} & set(sys.modules); assert not bad, bad"
+    code = "import sys, inhand_tracker.client; bad = {'torch', 'warp', 'newton'} & set(sys.modules); assert not bad, bad"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
 def test_tracks_with_the_same_estimates_as_the_in_process_manager(service):
-    from protocol import OpenSession as Open
-    from service.server.config import ServiceConfig
-    from service.server.sessions import SessionManager
-    from sim_backend import load_catalog, load_robot
+    from inhand_tracker.protocol import OpenSession as Open
+    from inhand_tracker.service.server.config import ServiceConfig
+    from inhand_tracker.service.server.sessions import SessionManager
+    from inhand_tracker.sim_backend import load_catalog, load_robot
 
     traj, frames = Trajectory.load(TRAJECTORY), 40
     with TrackerClient(connect=[service.endpoint]) as client:
@@ -142,8 +152,8 @@ def test_a_killed_robot_s_session_is_closed_and_a_restarted_service_reopened():
     svc = ServiceProcess(free_port(), groups=2, timeout_s=1.0)
     robot = textwrap.dedent(f"""
         import numpy as np, time
-        from client import TrackerClient
-        from protocol import Trajectory
+        from inhand_tracker.client import TrackerClient
+        from inhand_tracker.protocol import Trajectory
         traj = Trajectory.load({str(TRAJECTORY)!r})
         c = TrackerClient(connect=[{svc.endpoint!r}])
         info = c.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q)
@@ -244,7 +254,7 @@ def test_examples_run_as_processes(service):
     assert watcher.stdout.readline().startswith("latest: ")
     assert watcher.stdout.readline().strip() == "watching"
     cli = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "watch", "--connect", service.endpoint, "--count", "3"],
+        [sys.executable, "-m", "inhand_tracker.service.cli", "watch", "--connect", service.endpoint, "--count", "3"],
         cwd=ROOT, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert cli.stdout.readline().strip() == "watching service 'default'"
@@ -265,9 +275,9 @@ def test_examples_run_as_processes(service):
 def test_touch_presence_is_per_session_in_a_shared_population():
     """A robot without touch sensing, sharing a population with one that has it, is scored by
     joints and sensor poses alone: its contact terms stay zero while the other's count."""
-    from protocol import OpenSession as Open
-    from service.server import ServiceConfig, SessionManager
-    from sim_backend import load_catalog, load_robot
+    from inhand_tracker.protocol import OpenSession as Open
+    from inhand_tracker.service.server import ServiceConfig, SessionManager
+    from inhand_tracker.sim_backend import load_catalog, load_robot
 
     traj = Trajectory.load(TRAJECTORY)
     robot = load_robot(ROOT / "configs/robots/allegro.toml")
@@ -297,7 +307,7 @@ def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
     say why in their status, and the loop goes on serving the others."""
     import logging
 
-    from service.server import ServiceConfig, TrackerNode
+    from inhand_tracker.service.server import ServiceConfig, TrackerNode
 
     traj = Trajectory.load(TRAJECTORY)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -338,7 +348,7 @@ def test_a_failing_step_fails_its_sessions_and_the_service_goes_on(caplog):
 def test_an_object_from_a_mesh_file_is_tracked_through_the_service_by_a_setting(tmp_path):
     import trimesh
 
-    from service.server import ServiceConfig, TrackerNode
+    from inhand_tracker.service.server import ServiceConfig, TrackerNode
 
     trimesh.creation.box(extents=(40.0, 40.0, 60.0)).export(tmp_path / "block.stl")  # millimetres
     objects = tmp_path / "objects.toml"
@@ -361,8 +371,8 @@ def test_an_object_from_a_mesh_file_is_tracked_through_the_service_by_a_setting(
 def test_status_says_when_a_session_s_worlds_explore_their_contacts():
     """A session whose lowest cost stays above its contact gate says so in its status; one whose
     gate is closed does not."""
-    from service.server import ServiceConfig, SessionManager
-    from sim_backend import load_catalog, load_robot
+    from inhand_tracker.service.server import ServiceConfig, SessionManager
+    from inhand_tracker.sim_backend import load_catalog, load_robot
 
     traj = Trajectory.load(TRAJECTORY)
     robot = load_robot(ROOT / "configs/robots/allegro.toml")

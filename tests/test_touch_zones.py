@@ -7,17 +7,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import OpenSession, TrackState
-from service.bench.demos import make_demo
-from service.bench.recorder import record
-from service.evaluation import add_error
-from service.server.config import ServiceConfig
-from service.server.sessions import ServiceError, SessionManager
-from service.tracker import TrackerConfig
-from service.tracker.layout import GroupEstimates
-from service.tracker.recovery import Recovery
-from sim_backend import HandSpec, Kinematics, Population, PopulationConfig, catalog_object, load_catalog, load_robot
-from sim_backend.robots import TouchZone
+from inhand_tracker.protocol import OpenSession, TrackState
+from inhand_tracker.service.bench.demos import make_demo
+from inhand_tracker.service.bench.recorder import record
+from inhand_tracker.service.evaluation import add_error
+from inhand_tracker.service.server.config import ServiceConfig
+from inhand_tracker.service.server.sessions import ServiceError, SessionManager
+from inhand_tracker.service.tracker import TrackerConfig
+from inhand_tracker.service.tracker.layout import GroupEstimates
+from inhand_tracker.service.tracker.recovery import Recovery
+from inhand_tracker.sim_backend import (
+    HandSpec,
+    Kinematics,
+    Population,
+    PopulationConfig,
+    catalog_object,
+    load_catalog,
+    load_robot,
+)
+from inhand_tracker.sim_backend.robots import TouchZone
 
 OBJECT = "foam_brick"
 _PADS = tuple(TouchZone(f"{f}_pad", f"{f}_link3", (0, 0, 0.0267), (0.013, 0.013, 0.013)) for f in ("index", "middle"))

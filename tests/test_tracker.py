@@ -8,16 +8,16 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from protocol import TrackState as Status
-from service.bench.demos import make_demo
-from service.bench.recorder import record
-from service.evaluation import add_error
-from service.tracker import Frame, Tracker, TrackerConfig
-from service.tracker.cost import CostConfig
-from service.tracker.optimizers import OptimizerConfig
-from service.tracker.sampling import sample_poses
-from service.tracker.tracker import _lowest_point
-from sim_backend import Population, PopulationConfig, catalog_object
+from inhand_tracker.protocol import TrackState as Status
+from inhand_tracker.service.bench.demos import make_demo
+from inhand_tracker.service.bench.recorder import record
+from inhand_tracker.service.evaluation import add_error
+from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
+from inhand_tracker.service.tracker.cost import CostConfig
+from inhand_tracker.service.tracker.optimizers import OptimizerConfig
+from inhand_tracker.service.tracker.sampling import sample_poses
+from inhand_tracker.service.tracker.tracker import _lowest_point
+from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
 
 OBJECT = "foam_brick"
 
@@ -173,7 +173,7 @@ def test_a_contact_overflow_is_reported_with_the_numbers(hand, recording, caplog
     config = PopulationConfig(groups=2, worlds=2, device="cpu", contacts_per_world=2)
     tr = Tracker(Population(spec, catalog_object(OBJECT), config), TrackerConfig())
     tr.start(recording.initial_pose, recording.initial_q)
-    with caplog.at_level("WARNING", logger="service.tracker.tracker"):
+    with caplog.at_level("WARNING", logger="inhand_tracker.service.tracker.tracker"):
         flagged = [tr.step(_frame(recording, f)).overflow for f in range(recording.frames)]
     assert np.asarray(flagged).all(), "a box on the table, then in the hand, makes more than 2 contacts a world"
     warnings = [r.getMessage() for r in caplog.records if "contacts" in r.getMessage()]
@@ -399,8 +399,8 @@ def test_hypotheses_drawn_around_an_object_lying_on_a_palm_stay_on_the_hand():
     """A start pose of a can lying on the Shadow Hand's palm: about half the worlds drawn around it
     begin a few millimetres inside the palm. Separated before the first frame, none is thrown off
     the hand (without it, 5 of these 24 ended over 3 cm away within half a second, one 26 cm)."""
-    from service.bench.palm_motions import palm_rest_pose
-    from service.bench.suites import robot_spec
+    from inhand_tracker.service.bench.palm_motions import palm_rest_pose
+    from inhand_tracker.service.bench.suites import robot_spec
 
     obj = catalog_object("spam_can")
     pop = Population(robot_spec("shadow_hand"), obj, PopulationConfig(worlds=24, device="cpu"))

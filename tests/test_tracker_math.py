@@ -8,11 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
-from service.tracker.optimizers import OptimizerConfig, estimate_pmf, reps_eta, reps_pmf, update, wrs_pmf
-from service.tracker.sampling import roughening_sigma, sample_poses, shrink_toward_mean, silverman_bandwidth
-from sim_backend import Observation
-from sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
+from inhand_tracker.service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
+from inhand_tracker.service.tracker.optimizers import OptimizerConfig, estimate_pmf, reps_eta, reps_pmf, update, wrs_pmf
+from inhand_tracker.service.tracker.sampling import (
+    roughening_sigma,
+    sample_poses,
+    shrink_toward_mean,
+    silverman_bandwidth,
+)
+from inhand_tracker.sim_backend import Observation
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
 
 
 def _sim_obs(g: int, k: int, d: int = 2, l: int = 2, zones: int = 2) -> Observation:
@@ -268,7 +273,7 @@ def test_shrinking_toward_the_mean_before_roughening_keeps_the_spread():
 
 
 def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():
-    from service.tracker.estimate import pose_modes
+    from inhand_tracker.service.tracker.estimate import pose_modes
 
     upright = torch.tensor([0.1, 0.0, 0.05, 0.0, 0.0, 0.0, 1.0])
     turned = torch.tensor([0.1, 0.0, 0.05, 0.0, 0.0, 1.0, 0.0])  # half a turn about z: contact cannot tell
@@ -284,7 +289,7 @@ def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():
 
 
 def test_point_spread_matches_sampled_poses_and_counts_a_turn_by_how_far_it_moves_the_object():
-    from service.tracker.recovery import point_spread
+    from inhand_tracker.service.tracker.recovery import point_spread
 
     gen = torch.Generator().manual_seed(0)
     points = torch.randn(500, 3, generator=gen) * torch.tensor([0.05, 0.02, 0.01])  # a flat, long object
@@ -303,10 +308,10 @@ def test_point_spread_matches_sampled_poses_and_counts_a_turn_by_how_far_it_move
 
 
 def test_worlds_that_agree_on_the_position_but_not_on_the_turn_are_uncertain():
-    from protocol import TrackState
-    from service.tracker import TrackerConfig
-    from service.tracker.layout import GroupEstimates
-    from service.tracker.recovery import Recovery
+    from inhand_tracker.protocol import TrackState
+    from inhand_tracker.service.tracker import TrackerConfig
+    from inhand_tracker.service.tracker.layout import GroupEstimates
+    from inhand_tracker.service.tracker.recovery import Recovery
 
     pose = np.tile(np.array([0.1, 0.0, 0.05, 0, 0, 0, 1], np.float32), (3, 1))
     covariance = np.zeros((3, 6, 6))
@@ -324,10 +329,10 @@ def test_worlds_that_agree_on_the_position_but_not_on_the_turn_are_uncertain():
 
 
 def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
-    from protocol import TrackState
-    from service.tracker import TrackerConfig
-    from service.tracker.layout import GroupEstimates
-    from service.tracker.recovery import Recovery
+    from inhand_tracker.protocol import TrackState
+    from inhand_tracker.service.tracker import TrackerConfig
+    from inhand_tracker.service.tracker.layout import GroupEstimates
+    from inhand_tracker.service.tracker.recovery import Recovery
 
     # The best world's window cost per frame: (0) an object set down faster than the worlds move
     # it (recorded on the paper suite at high noise: 28 mm off for 0.1 s, the spread still small);

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from protocol import TRAJECTORY_VERSION, GroundTruth, RobotFrame, Trajectory
-from service.bench.plots import bar_chart, line_chart, xy_chart
-from service.paths import DATA_DIR
-from service.tracker.optimizers import OptimizerConfig, update
+from inhand_tracker.protocol import TRAJECTORY_VERSION, GroundTruth, RobotFrame, Trajectory
+from inhand_tracker.service.bench.plots import bar_chart, line_chart, xy_chart
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.tracker.optimizers import OptimizerConfig, update
 
 
 def _trajectory(frames: int = 5, force: bool = True) -> Trajectory:
@@ -90,7 +90,7 @@ def test_charts_are_png_files(tmp_path):
 
 
 def test_the_benchmarks_page_is_generated_from_the_committed_results(tmp_path):
-    from service.bench.publish import render
+    from inhand_tracker.service.bench.publish import render
 
     root = Path(__file__).resolve().parents[1]
     results = tmp_path / "results"

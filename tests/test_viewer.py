@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from service_process import ServiceProcess, free_port
 
-from client import TrackerClient
-from protocol import Trajectory
-from service.paths import DATA_DIR
+from inhand_tracker.client import TrackerClient
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.paths import DATA_DIR
 
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 CHROMIUM = shutil.which("chromium") or shutil.which("google-chrome")
@@ -84,11 +84,11 @@ def test_the_view_compiles_what_it_draws_at_warm_up():
     import torch
     import warp._src.context as warp_context  # Warp keeps its loaded modules there, per device
 
-    from service.paths import CONFIG_DIR
-    from service.server.config import ServiceConfig
-    from service.server.sessions import SessionManager
-    from service.server.viewer import LiveView
-    from sim_backend import Population, PopulationConfig, load_catalog, load_robot
+    from inhand_tracker.service.paths import CONFIG_DIR
+    from inhand_tracker.service.server.config import ServiceConfig
+    from inhand_tracker.service.server.sessions import SessionManager
+    from inhand_tracker.service.server.viewer import LiveView
+    from inhand_tracker.sim_backend import Population, PopulationConfig, load_catalog, load_robot
 
     robot = load_robot(CONFIG_DIR / "robots/allegro.toml")
     manager = SessionManager(ServiceConfig(device="cpu", groups=1, rate_hz=0), {robot.name: robot}, load_catalog())

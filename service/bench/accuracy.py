@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import DEFAULT_WORLDS, Trajectory
-from service.paths import CACHE_DIR
-from service.tracker import METHODS, OptimizerConfig, TrackerConfig, setting_types
-from service.tracker.config import TRACKER_GROUPS
-from sim_backend import PopulationConfig
+from inhand_tracker.protocol import DEFAULT_WORLDS, Trajectory
+from inhand_tracker.service.paths import CACHE_DIR
+from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig, setting_types
+from inhand_tracker.service.tracker.config import TRACKER_GROUPS
+from inhand_tracker.sim_backend import PopulationConfig
 
 from .progress import progress_bar
 from .suites import K_ABLATION, NOISE_LEVELS, Suite
@@ -106,7 +106,7 @@ class AccuracyRun:
 def load_files(paths: Sequence[Path]) -> tuple[Trajectory, ...]:
     """The trajectories of a user's ``.traj`` files; a ValueError names a file that cannot be read,
     carries no ground truth (a session recording never does), or is of another robot."""
-    from protocol.recording import load_trajectory
+    from inhand_tracker.protocol.recording import load_trajectory
 
     out: list[Trajectory] = []
     for path in paths:

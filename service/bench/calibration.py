@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import Trajectory
-from sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
 
 from .excitation import excitation_demo
 from .mujoco_truth import export_scene, record_mujoco

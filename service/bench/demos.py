@@ -22,9 +22,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
-from sim_backend.kinematics import Kinematics
-from sim_backend.objects import ObjectSpec
+from inhand_tracker.sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
+from inhand_tracker.sim_backend.kinematics import Kinematics
+from inhand_tracker.sim_backend.objects import ObjectSpec
 
 __all__ = ["DEMO_KINDS", "FRAME_RATE", "Demo", "Script", "make_demo"]
 

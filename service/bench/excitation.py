@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.calibration.servos import out_of_reach
-from sim_backend.kinematics import Kinematics
-from sim_backend.objects import ObjectSpec
+from inhand_tracker.service.calibration.servos import out_of_reach
+from inhand_tracker.sim_backend.kinematics import Kinematics
+from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
 from .motions import minimum_jerk

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from client import TrackerClient, TrackerError
-from protocol import Trajectory
-from service.paths import DATA_DIR
-from service.server import ServiceConfig, TrackerNode
+from inhand_tracker.client import TrackerClient, TrackerError
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.server import ServiceConfig, TrackerNode
 
 __all__ = ["LoadResult", "as_dicts", "bench_load", "format_table"]
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
-from sim_backend.kinematics import Kinematics
-from sim_backend.objects import ObjectSpec
+from inhand_tracker.sim_backend.grasp import SQUEEZE_JOINTS, plan_pinch
+from inhand_tracker.sim_backend.kinematics import Kinematics
+from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo, Script
 

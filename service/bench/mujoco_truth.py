@@ -21,10 +21,10 @@ import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
 
-from protocol import SENSING
-from sim_backend import PopulationConfig, RobotSpec, observe
-from sim_backend.build import build_model
-from sim_backend.objects import ObjectSpec
+from inhand_tracker.protocol import SENSING
+from inhand_tracker.sim_backend import PopulationConfig, RobotSpec, observe
+from inhand_tracker.sim_backend.build import build_model
+from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
 from .recorder import Recording

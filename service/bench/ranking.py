@@ -14,12 +14,12 @@ import numpy as np
 import torch
 from scipy.stats import rankdata
 
-from protocol import Trajectory
-from service.evaluation import add_error
-from service.tracker import Frame, Tracker, TrackerConfig
-from service.tracker.cost import TERM_NAMES
-from service.tracker.sampling import sample_poses
-from sim_backend import HandSpec, Population, PopulationConfig, catalog_object
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.evaluation import add_error
+from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
+from inhand_tracker.service.tracker.cost import TERM_NAMES
+from inhand_tracker.service.tracker.sampling import sample_poses
+from inhand_tracker.sim_backend import HandSpec, Population, PopulationConfig, catalog_object
 
 from .recorder import Recording
 from .suites import NOISE_LEVELS

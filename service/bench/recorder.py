@@ -10,8 +10,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from protocol import SENSING, GroundTruth, SensingAttributes, Trajectory
-from sim_backend import Population
+from inhand_tracker.protocol import SENSING, GroundTruth, SensingAttributes, Trajectory
+from inhand_tracker.sim_backend import Population
 
 from .demos import FRAME_RATE, Demo
 

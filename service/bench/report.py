@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.tracker import METHODS
+from inhand_tracker.service.tracker import METHODS
 
 from .plots import bar_chart, line_chart
 from .suites import NOISE_LEVELS

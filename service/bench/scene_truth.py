@@ -17,9 +17,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from service.paths import CONFIG_DIR
-from sim_backend.robot_files import python_package_path
-from sim_backend.robot_specs import RobotLayout
+from inhand_tracker.service.paths import CONFIG_DIR
+from inhand_tracker.sim_backend.robot_files import python_package_path
+from inhand_tracker.sim_backend.robot_specs import RobotLayout
 
 from .mujoco_truth import MujocoScene
 

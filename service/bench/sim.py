@@ -11,11 +11,11 @@ import numpy as np
 import torch
 import warp as wp
 
-from sim_backend import Population, PopulationConfig, resolve_device
-from sim_backend.grasp import plan_pinch
-from sim_backend.kinematics import Kinematics
-from sim_backend.objects import catalog_object
-from sim_backend.robots import HandSpec
+from inhand_tracker.sim_backend import Population, PopulationConfig, resolve_device
+from inhand_tracker.sim_backend.grasp import plan_pinch
+from inhand_tracker.sim_backend.kinematics import Kinematics
+from inhand_tracker.sim_backend.objects import catalog_object
+from inhand_tracker.sim_backend.robots import HandSpec
 
 __all__ = ["SimBenchResult", "bench_sim", "release_memory", "used_bytes"]
 

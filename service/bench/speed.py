@@ -12,10 +12,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import warp as wp
 
-from protocol import Trajectory
-from service.paths import DATA_DIR
-from service.tracker import Frame, Tracker, TrackerConfig
-from sim_backend import HandSpec, Population, PopulationConfig, catalog_object, resolve_device
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
+from inhand_tracker.sim_backend import HandSpec, Population, PopulationConfig, catalog_object, resolve_device
 
 from .publish import SPEED_COLUMNS, speed_rows
 from .sim import release_memory, used_bytes

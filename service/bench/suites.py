@@ -7,9 +7,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from client.replay import NOISE_LEVELS
-from service.paths import CONFIG_DIR
-from sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
+from inhand_tracker.client.replay import NOISE_LEVELS
+from inhand_tracker.service.paths import CONFIG_DIR
+from inhand_tracker.sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
 
 from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS

@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from protocol import DEFAULT_WORLDS, TrackState, Trajectory
-from service.evaluation import add_error, adds_error, pose_error, within_region
-from service.tracker import Frame, Tracker
-from service.tracker.cost import TERMS
-from service.tracker.sampling import sample_poses
-from sim_backend import Population, PopulationConfig, catalog_object
+from inhand_tracker.protocol import DEFAULT_WORLDS, TrackState, Trajectory
+from inhand_tracker.service.evaluation import add_error, adds_error, pose_error, within_region
+from inhand_tracker.service.tracker import Frame, Tracker
+from inhand_tracker.service.tracker.cost import TERMS
+from inhand_tracker.service.tracker.sampling import sample_poses
+from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
 
 from .recorder import Recording
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, robot_spec

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import Trajectory
-from service.evaluation import add_error
-from service.paths import CACHE_DIR, DATA_DIR
-from service.tracker import TrackerConfig
-from sim_backend import (
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.service.evaluation import add_error
+from inhand_tracker.service.paths import CACHE_DIR, DATA_DIR
+from inhand_tracker.service.tracker import TrackerConfig
+from inhand_tracker.sim_backend import (
     Kinematics,
     Population,
     PopulationConfig,
@@ -24,8 +24,8 @@ from sim_backend import (
     catalog_object,
     resolve_device,
 )
-from sim_backend.objects import ObjectSpec
-from sim_backend.robots import RobotSpec
+from inhand_tracker.sim_backend.objects import ObjectSpec
+from inhand_tracker.sim_backend.robots import RobotSpec
 
 from .demos import Demo, make_demo
 from .motions import make_motion

@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from cmaes import SepCMA
 
-from protocol import Trajectory
-from sim_backend import Population, PopulationConfig
-from sim_backend.objects import ObjectSpec
-from sim_backend.robots import RobotSpec
+from inhand_tracker.protocol import Trajectory
+from inhand_tracker.sim_backend import Population, PopulationConfig
+from inhand_tracker.sim_backend.objects import ObjectSpec
+from inhand_tracker.sim_backend.robots import RobotSpec
 
 __all__ = ["SERVO_SETTINGS", "ServoFit", "fit_servos", "out_of_reach"]
 

@@ -25,7 +25,7 @@ def _main(
         bool, typer.Option("--version", callback=version_callback, is_eager=True, help="print the version and exit")
     ] = False,
 ) -> None:
-    from service.logs import setup_logging
+    from inhand_tracker.service.logs import setup_logging
 
     setup_logging()
 

@@ -1,4 +1,4 @@
-"""`python -m service.cli`: the command line."""
+"""`python -m inhand_tracker.service.cli`: the command line."""
 
 import sys
 

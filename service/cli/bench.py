@@ -29,9 +29,9 @@ def bench_sim(
 ) -> None:
     """The physics population alone: ms per 30 Hz frame and memory per world."""
     gpu_stack()
-    from service.bench.sim import as_dicts, bench_sim
-    from service.bench.sim import format_table as table
-    from sim_backend import PopulationConfig
+    from inhand_tracker.service.bench.sim import as_dicts, bench_sim
+    from inhand_tracker.service.bench.sim import format_table as table
+    from inhand_tracker.sim_backend import PopulationConfig
 
     results = []
     for name in solver.split(","):
@@ -60,11 +60,11 @@ def bench_speed(
 ) -> None:
     """The whole tracker frame (frame in, estimate out) against the physics alone."""
     gpu_stack()
-    from service.bench import parse_settings
-    from service.bench.speed import as_dicts, bench_speed, format_table
-    from service.server.budget import device_name
-    from service.tracker import TrackerConfig
-    from sim_backend import PopulationConfig, resolve_device
+    from inhand_tracker.service.bench import parse_settings
+    from inhand_tracker.service.bench.speed import as_dicts, bench_speed, format_table
+    from inhand_tracker.service.server.budget import device_name
+    from inhand_tracker.service.tracker import TrackerConfig
+    from inhand_tracker.sim_backend import PopulationConfig, resolve_device
 
     try:
         solver_caps = [(None, None) if c == "default" else tuple(int(v) for v in c.split("x")) for c in names(caps)]
@@ -125,7 +125,7 @@ def bench_load(
 ) -> None:
     """The service under load: N robots at a fixed rate; estimates per second, latency, late frames."""
     gpu_stack()
-    from service.bench.load import as_dicts, bench_load, format_table
+    from inhand_tracker.service.bench.load import as_dicts, bench_load, format_table
 
     try:
         with contextlib.redirect_stdout(sys.stderr):
@@ -178,9 +178,9 @@ def bench_accuracy(
 ) -> None:
     """Tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A."""
     gpu_stack()
-    from service.bench import K_ABLATION, AccuracyRun, parse_settings, run_suite, write_report
-    from service.bench.accuracy import ABLATIONS
-    from service.paths import CACHE_DIR
+    from inhand_tracker.service.bench import K_ABLATION, AccuracyRun, parse_settings, run_suite, write_report
+    from inhand_tracker.service.bench.accuracy import ABLATIONS
+    from inhand_tracker.service.paths import CACHE_DIR
 
     try:
         config, population = parse_settings(set_ or [])
@@ -234,11 +234,11 @@ def bench_calibration(
     recorded by the suite's truth), and the tracker's servos fitted to it: an overlay of the robot's
     config for `bench accuracy --robot-overlay`, and a report."""
     gpu_stack()
-    from service.bench.calibration import calibration_recording
-    from service.bench.suites import robot_spec
-    from service.calibration import calibration_report, fit_servos, write_overlay
-    from service.paths import CONFIG_DIR
-    from sim_backend import catalog_object
+    from inhand_tracker.service.bench.calibration import calibration_recording
+    from inhand_tracker.service.bench.suites import robot_spec
+    from inhand_tracker.service.calibration import calibration_report, fit_servos, write_overlay
+    from inhand_tracker.service.paths import CONFIG_DIR
+    from inhand_tracker.sim_backend import catalog_object
 
     chosen = suite_named(suite, False)
     out = out or Path(f"bench-results/calibration-{suite}")
@@ -268,7 +268,7 @@ def _vision_sigma(text: str) -> tuple[float, float]:
 def _what_to_track(suite: str, short: bool, files: str | None, overlay: Path | None) -> tuple:
     """The suite (or the user's files' trajectories and the suite they make) and the tracker's
     servos (an overlay's), or exit 2 naming what is wrong."""
-    from service.bench.accuracy import files_suite, load_files
+    from inhand_tracker.service.bench.accuracy import files_suite, load_files
 
     try:
         mine = load_files([Path(p) for p in names(files) or ()])
@@ -280,7 +280,7 @@ def _what_to_track(suite: str, short: bool, files: str | None, overlay: Path | N
 
 def _overlay_servos(path: Path, robot: str) -> tuple:
     """The servos of a calibration overlay of ``robot``'s config, or exit 2 naming what is wrong."""
-    from sim_backend import load_robot
+    from inhand_tracker.sim_backend import load_robot
 
     try:
         spec = load_robot(path)
@@ -306,9 +306,9 @@ def bench_cost_ranking(
 ) -> None:
     """How well each cost term ranks the worlds by their true pose error (Spearman's rho)."""
     gpu_stack()
-    from service.bench import ground_truth
-    from service.bench.ranking import cost_ranking, format_table
-    from service.paths import CACHE_DIR
+    from inhand_tracker.service.bench import ground_truth
+    from inhand_tracker.service.bench.ranking import cost_ranking, format_table
+    from inhand_tracker.service.paths import CACHE_DIR
 
     chosen = suite_named(suite, short)
     with contextlib.redirect_stdout(sys.stderr):
@@ -331,6 +331,6 @@ def bench_publish(
     out: Annotated[Path, typer.Option(help="the page to write")] = Path("docs/benchmarks.md"),
 ) -> None:
     """docs/benchmarks.md and its charts from the results in docs/results/."""
-    from service.bench.publish import render
+    from inhand_tracker.service.bench.publish import render
 
     typer.echo(render(results, out))

@@ -37,9 +37,9 @@ def calibrate(
     if missing := [str(r) for r in recordings if not r.is_file()]:
         raise fail(f"calibrate: no such recording {missing[0]}")
     gpu_stack()
-    from protocol.recording import load_trajectory
-    from service.calibration import calibration_report, fit_servos, write_overlay
-    from sim_backend import catalog_object, load_robot
+    from inhand_tracker.protocol.recording import load_trajectory
+    from inhand_tracker.service.calibration import calibration_report, fit_servos, write_overlay
+    from inhand_tracker.sim_backend import catalog_object, load_robot
 
     try:
         spec = load_robot(robot)

@@ -77,8 +77,8 @@ def gpu_stack() -> None:
             " https://download.pytorch.org/whl/cpu; or your CUDA build), then"
             " pip install 'inhand-tracker[service]'. The robot side (replay, the client) needs neither."
         )
-    import sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)
-    from service.logs import quiet_warp, watch_kernel_compiles
+    import inhand_tracker.sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)
+    from inhand_tracker.service.logs import quiet_warp, watch_kernel_compiles
 
     quiet_warp()
     watch_kernel_compiles()
@@ -88,7 +88,7 @@ def command_line(ctx: typer.Context) -> str:
     """The running command as a user would type it, for a result file: its options that differ
     from their defaults, read from the parsed command (sys.argv is not the command's when it is
     invoked from Python)."""
-    root = ctx.find_root().command_path  # "inhand-tracker", or "python -m service.cli"
+    root = ctx.find_root().command_path  # "inhand-tracker", or "python -m inhand_tracker.service.cli"
     words = ["inhand-tracker", *ctx.command_path[len(root) :].split()]
     for param in ctx.command.params:
         value = ctx.params.get(param.name)
@@ -117,7 +117,7 @@ def version_callback(show: bool) -> None:
     if show:
         from importlib.metadata import PackageNotFoundError, version
 
-        from protocol import PROTOCOL_VERSION
+        from inhand_tracker.protocol import PROTOCOL_VERSION
 
         try:
             typer.echo(f"inhand-tracker {version('inhand-tracker')} (protocol v{PROTOCOL_VERSION})")
@@ -132,7 +132,7 @@ def check_device(device: str, command: str) -> None:
     if device not in ("auto", "cpu") and not re.fullmatch(r"cuda(:\d+)?", device):
         raise fail(f"{command}: --device: expected auto, cpu, cuda or cuda:N, got '{device}'")
     if device.startswith("cuda"):
-        from service.logs import quiet_warp
+        from inhand_tracker.service.logs import quiet_warp
 
         quiet_warp()
         import warp as wp
@@ -189,7 +189,7 @@ def started(node, command: str):
 
 def suite_named(name: str, short: bool):
     """The benchmark suite called ``name`` (in short form), or exit 2 naming the suites there are."""
-    from service.bench import SUITES
+    from inhand_tracker.service.bench import SUITES
 
     if name not in SUITES:
         raise fail(f"--suite: expected one of {sorted(SUITES)}, got '{name}'")

@@ -36,7 +36,7 @@ def serve(
     given = listen if listen is not None else os.environ.get("INHAND_LISTEN", "tcp/127.0.0.1:7447")
     check_listen(names(given), "serve")
     gpu_stack()
-    from service.server import TrackerNode, load_config
+    from inhand_tracker.service.server import TrackerNode, load_config
 
     try:
         settings = load_config(
@@ -64,7 +64,7 @@ def serve(
 @app.command()
 def settings() -> None:
     """Print the service's settings file with every setting at its default (configs/service.toml)."""
-    from service.server.config import shipped_toml
+    from inhand_tracker.service.server.config import shipped_toml
 
     typer.echo(shipped_toml(), nl=False)
 
@@ -83,8 +83,8 @@ def replay(
     noise: Annotated[str, typer.Option(help="initial pose noise from the truth: low, med, high")] = "med",
 ) -> None:
     """Robot side: stream a trajectory file to a service and print the estimates."""
-    from client import TrackerClient
-    from client.report import replay_file
+    from inhand_tracker.client import TrackerClient
+    from inhand_tracker.client.report import replay_file
 
     with TrackerClient(connect=names(connect), service=name) as client:
         try:
@@ -103,7 +103,7 @@ def watch(
     """Robot side: print every session's estimates as the service publishes them."""
     import threading
 
-    from client import TrackerClient
+    from inhand_tracker.client import TrackerClient
 
     seen, done = [0], threading.Event()
 
@@ -134,7 +134,7 @@ def spec(
 ) -> None:
     """The wire spec for other languages: every message's JSON Schema and field table, and golden
     payloads (msgpack beside the values they carry)."""
-    from protocol.spec import write_spec
+    from inhand_tracker.protocol.spec import write_spec
 
     written = write_spec(out)
     typer.echo(f"wrote {len(written)} files under {out}")
@@ -151,8 +151,8 @@ def demo(
     """The service embedded on loopback, a bundled trajectory replayed through a client."""
     import socket
 
-    from protocol import METHODS
-    from service.paths import DATA_DIR
+    from inhand_tracker.protocol import METHODS
+    from inhand_tracker.service.paths import DATA_DIR
 
     # Everything a user can get wrong is checked before the GPU stack loads and the service starts.
     if method is not None and method not in METHODS:
@@ -162,9 +162,9 @@ def demo(
         raise fail(f"demo: --file: no such file '{file}'")
     check_device(device, "demo")
     gpu_stack()
-    from client import TrackerClient
-    from client.report import replay_file
-    from service.server import ServiceConfig, TrackerNode
+    from inhand_tracker.client import TrackerClient
+    from inhand_tracker.client.report import replay_file
+    from inhand_tracker.service.server import ServiceConfig, TrackerNode
 
     with socket.socket() as sock:  # a free loopback port
         sock.bind(("127.0.0.1", 0))

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol import AUTO, DEFAULT_WORLDS, Error, ErrorCode, OpenSession, check_version
-from service.tracker import METHODS, OptimizerConfig, TrackerConfig, setting_types
-from sim_backend import ObjectSpec, RobotSpec
-from sim_backend.kinematics import Kinematics
+from inhand_tracker.protocol import AUTO, DEFAULT_WORLDS, Error, ErrorCode, OpenSession, check_version
+from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig, setting_types
+from inhand_tracker.sim_backend import ObjectSpec, RobotSpec
+from inhand_tracker.sim_backend.kinematics import Kinematics
 
 from .budget import FrameTimes, affordable_worlds, ladder
 from .config import ServiceConfig

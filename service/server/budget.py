@@ -133,7 +133,7 @@ def calibrate(tracker, traj, q0: np.ndarray, rest: np.ndarray, frames: int = 120
     """The p99 of a tracker's steps [ms] over ``frames`` of the trajectory ``traj`` replayed in every
     group (the first third untimed: the hand reaches the object), or, with ``traj`` None, holding
     the joints ``q0`` (D,) with the object at ``rest`` (7,)."""
-    from service.tracker import Frame  # torch: only where a service calibrates
+    from inhand_tracker.service.tracker import Frame  # torch: only where a service calibrates
 
     g = tracker.G
     tile = lambda a: np.repeat(np.asarray(a, np.float32)[None], g, axis=0)  # noqa: E731

@@ -19,8 +19,8 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from service.paths import CONFIG_DIR
-from sim_backend import PopulationConfig
+from inhand_tracker.service.paths import CONFIG_DIR
+from inhand_tracker.sim_backend import PopulationConfig
 
 __all__ = ["DEFAULT_CONFIG", "PhysicsSettings", "ServiceConfig", "load_config", "shipped_toml"]
 

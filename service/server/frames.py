@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol import SENSING, RobotFrame
-from sim_backend import RobotLayout
+from inhand_tracker.protocol import SENSING, RobotFrame
+from inhand_tracker.sim_backend import RobotLayout
 
 if TYPE_CHECKING:
     from .session import Session

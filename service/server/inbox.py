@@ -14,8 +14,8 @@ from typing import Any
 
 import zenoh
 
-from client import zenoh_encoding
-from protocol import Error, ErrorCode, encode
+from inhand_tracker.client import zenoh_encoding
+from inhand_tracker.protocol import Error, ErrorCode, encode
 
 from .admission import ServiceError
 

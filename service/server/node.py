@@ -17,8 +17,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
 
-from client import zenoh_config, zenoh_encoding
-from protocol import (
+from inhand_tracker.client import zenoh_config, zenoh_encoding
+from inhand_tracker.protocol import (
     CloseSession,
     DecodeError,
     Error,
@@ -33,9 +33,9 @@ from protocol import (
     decode,
     encode,
 )
-from service.paths import resolve
-from service.tracker import METHODS
-from sim_backend import load_catalog, load_robot, resolve_device
+from inhand_tracker.service.paths import resolve
+from inhand_tracker.service.tracker import METHODS
+from inhand_tracker.sim_backend import load_catalog, load_robot, resolve_device
 
 from .admission import Admission, ServiceError
 from .config import ServiceConfig

@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 
-from protocol import Estimate, OpenSession, PoseObservation, RobotFrame, SessionInfo
+from inhand_tracker.protocol import Estimate, OpenSession, PoseObservation, RobotFrame, SessionInfo
 
 __all__ = ["Output", "Outputs"]
 

@@ -12,11 +12,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol import DEFAULT_WORLDS, PRESENCE, SENSING, OpenSession, Trajectory
-from service.paths import DATA_DIR
-from service.tracker import Tracker, TrackerConfig
-from sim_backend import ObjectSpec, Population, RobotSpec
-from sim_backend.kinematics import Kinematics
+from inhand_tracker.protocol import DEFAULT_WORLDS, PRESENCE, SENSING, OpenSession, Trajectory
+from inhand_tracker.service.paths import DATA_DIR
+from inhand_tracker.service.tracker import Tracker, TrackerConfig
+from inhand_tracker.sim_backend import ObjectSpec, Population, RobotSpec
+from inhand_tracker.sim_backend.kinematics import Kinematics
 
 from .budget import calibrate
 from .config import PhysicsSettings

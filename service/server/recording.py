@@ -15,8 +15,16 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from protocol import CHANNELS, PROTOCOL_VERSION, Estimate, OpenSession, PoseObservation, RobotFrame, SessionInfo
-from protocol.recording import SESSION_FIELDS, SESSION_METADATA
+from inhand_tracker.protocol import (
+    CHANNELS,
+    PROTOCOL_VERSION,
+    Estimate,
+    OpenSession,
+    PoseObservation,
+    RobotFrame,
+    SessionInfo,
+)
+from inhand_tracker.protocol.recording import SESSION_FIELDS, SESSION_METADATA
 
 from .outputs import Output
 from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, tf_message, to_ros_time

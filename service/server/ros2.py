@@ -32,7 +32,7 @@ import numpy as np
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from protocol import Estimate, OpenSession, SessionInfo
+from inhand_tracker.protocol import Estimate, OpenSession, SessionInfo
 
 from .outputs import Output
 

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol import Estimate, RobotFrame, SessionStatus, TrackState
-from service.tracker import GroupEstimates
+from inhand_tracker.protocol import Estimate, RobotFrame, SessionStatus, TrackState
+from inhand_tracker.service.tracker import GroupEstimates
 
 if TYPE_CHECKING:
     from .pools import Pool

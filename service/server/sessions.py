@@ -18,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from protocol import (
+from inhand_tracker.protocol import (
     CloseSession,
     ErrorCode,
     Estimate,
@@ -29,9 +29,9 @@ from protocol import (
     SessionStatus,
     sensing_field,
 )
-from protocol.auth import verify, verify_query
-from service.tracker import Frame
-from sim_backend import ObjectSpec, RobotSpec, resolve_device
+from inhand_tracker.protocol.auth import verify, verify_query
+from inhand_tracker.service.tracker import Frame
+from inhand_tracker.sim_backend import ObjectSpec, RobotSpec, resolve_device
 
 from .admission import Admission, Gate, ServiceError
 from .budget import FrameTimes, device_name

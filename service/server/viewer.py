@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from protocol import Estimate
+from inhand_tracker.protocol import Estimate
 
 from .outputs import Output
 
@@ -63,7 +63,7 @@ class LiveView(Output):
         """Draw a one-world population of the service's first robot and object once, so that the
         kernels the view runs are compiled at the service's warm-up, not on its tracking loop when
         the first browser connects."""
-        from sim_backend import Population, PopulationConfig
+        from inhand_tracker.sim_backend import Population, PopulationConfig
 
         robot, obj = next(iter(manager.robots.values())), next(iter(manager.objects.values()))
         pop = Population(robot, obj, PopulationConfig(groups=1, worlds=1, device=str(manager.device)))

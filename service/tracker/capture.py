@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 import warp as wp
 
-from sim_backend import no_collection
+from inhand_tracker.sim_backend import no_collection
 
 __all__ = ["CapturedOps"]
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from sim_backend import Population
+from inhand_tracker.sim_backend import Population
 
 from .config import ContactExploration
 from .sampling import clipped_normal

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from sim_backend import Observation
-from sim_backend.rotations import quat_conjugate, quat_multiply
+from inhand_tracker.sim_backend import Observation
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_multiply
 
 __all__ = ["TERMS", "TERM_NAMES", "WEIGHTS", "Cost", "CostConfig", "RealObservation", "cost_terms"]
 

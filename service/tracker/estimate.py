@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 from .config import EstimateConfig
 from .optimizers import estimate_pmf

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from protocol import PRESENCE, SENSING, SensingAttributes
+from inhand_tracker.protocol import PRESENCE, SENSING, SensingAttributes
 
 __all__ = ["ESTIMATE", "Columns", "Frame", "GroupEstimates", "InputLayout"]
 

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 from .optimizers import HELD_COST
 from .sampling import sample_poses

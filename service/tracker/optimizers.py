@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-from protocol import METHODS as PROTOCOL_METHODS
+from inhand_tracker.protocol import METHODS as PROTOCOL_METHODS
 
 __all__ = [
     "HELD_COST",

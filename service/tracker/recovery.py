@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol import TrackState
+from inhand_tracker.protocol import TrackState
 
 from .config import TrackerConfig
 from .layout import GroupEstimates

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
 
 __all__ = [
     "clipped_normal",

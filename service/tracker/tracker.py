@@ -23,8 +23,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from sim_backend import HEALTH_AWAY, HEALTH_NAN, HEALTH_OK, Population, SensorFK
-from sim_backend.rotations import quat_rotate
+from inhand_tracker.sim_backend import HEALTH_AWAY, HEALTH_NAN, HEALTH_OK, Population, SensorFK
+from inhand_tracker.sim_backend.rotations import quat_rotate
 
 from .capture import CapturedOps
 from .config import TrackerConfig
