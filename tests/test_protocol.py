@@ -94,7 +94,10 @@ def test_keys_live_under_the_versioned_prefix_and_refuse_bad_names():
 
 
 def test_protocol_imports_stay_light():
-    code = "import sys, inhand_tracker.protocol; bad = {'torch', 'warp', 'newton', 'trimesh'} & set(sys.modules); print(sorted(bad))"
+    code = (
+        "import sys, inhand_tracker.protocol;"
+        " bad = {'torch', 'warp', 'newton', 'trimesh'} & set(sys.modules); print(sorted(bad))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
 

@@ -49,7 +49,9 @@ def _open(client: TrackerClient, traj: Trajectory, **kw):
 
 
 def test_client_imports_no_torch_warp_or_newton():
-    code = "import sys, inhand_tracker.client; bad = {'torch', 'warp', 'newton'} & set(sys.modules); assert not bad, bad"
+    code = (
+        "import sys, inhand_tracker.client; bad = {'torch', 'warp', 'newton'} & set(sys.modules); assert not bad, bad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 

@@ -9,7 +9,16 @@ import pytest
 import torch
 
 from inhand_tracker.service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
-from inhand_tracker.service.tracker.optimizers import OptimizerConfig, estimate_pmf, reps_eta, reps_pmf, update, wrs_pmf
+from inhand_tracker.service.tracker.optimizers import (
+    HELD_COST,
+    OptimizerConfig,
+    estimate_pmf,
+    reps_eta,
+    reps_pmf,
+    separation,
+    update,
+    wrs_pmf,
+)
 from inhand_tracker.service.tracker.sampling import (
     roughening_sigma,
     sample_poses,
@@ -176,6 +185,30 @@ def test_groups_whose_costs_do_not_differ_are_left_alone():
     upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.5, min_spread=0.5), torch.Generator())
     assert upd.index[0].tolist() == [0, 1, 2, 3] and not upd.explore[0].any()
     assert upd.index[1, :2].tolist() == [0, 1] and upd.explore[1, 1:].all()
+
+
+def test_separation_is_about_one_on_noise_and_large_where_a_world_stays_better():
+    """The F ratio of :func:`separation`: worlds whose frame costs are the same noise score about 1;
+    one world a steady 1 sigma better over 15 frames lifts it far above; lost worlds do not count;
+    and a group below ``min_separation`` is left alone by the update."""
+    gen = torch.Generator().manual_seed(0)
+    g, k, n = 200, 40, 15
+    frames = torch.randn(n, g, k, generator=gen) + 5.0
+    frames[:, 100:, 0] -= 3.0  # the second half: world 0 explains the robot better
+    frames[:, :, 1] = 1e9  # a lost world
+    centre = torch.where(frames < HELD_COST, frames, 0.0).sum(-1, keepdim=True) / (k - 1)
+    scatter = torch.where(frames < HELD_COST, frames - centre, 0.0).square().mean(0)
+    f = separation(frames.mean(0), scatter, torch.tensor(float(n)))
+    assert 0.8 < f[:100].mean().item() < 1.25, f[:100].mean()
+    assert f[100:].min().item() > 2.5, f[100:].min()
+    cost = frames.mean(0)
+    upd = update(
+        cost, OptimizerConfig(method="PBO", min_spread=0.0, min_separation=2.5), torch.Generator(), separated=f
+    )
+    moved = (upd.index != torch.arange(k)).any(-1)
+    assert (moved[100:] | upd.explore[100:].any(-1)).all() and not upd.explore[:100][f[:100] <= 2.5].any()
+    with pytest.raises(ValueError, match="min_separation: expected >= 0, got -1"):
+        OptimizerConfig(min_separation=-1.0)
 
 
 def test_eye_and_olp_never_move_worlds():

@@ -24,6 +24,7 @@ __all__ = [
     "method_rows",
     "reps_eta",
     "reps_pmf",
+    "separation",
     "systematic_resample",
     "update",
     "wrs_pmf",
@@ -55,6 +56,11 @@ class OptimizerConfig:
     """Skip the update of a group whose window costs differ by less than this (the default cost
     weighs each term's typical magnitude as 1): before the hand touches the object every world scores
     alike up to noise, and resampling on noise only throws away the spread of initial poses."""
+    min_separation: float = 0.0
+    """Skip the update of a group whose worlds' window costs differ by less than this many times
+    what their own frame-to-frame scatter explains (:func:`separation`, an F ratio; 0 never skips).
+    The cost is scale-free to the optimizers, so without it a group resamples on whatever differs,
+    signal or not."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -63,6 +69,8 @@ class OptimizerConfig:
             raise ValueError(f"optimizer pbo_keep: expected 0 < fraction <= 1, got {self.pbo_keep}")
         if self.pbo_rank_power < 0:
             raise ValueError(f"optimizer pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
+        if self.min_separation < 0:
+            raise ValueError(f"optimizer min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
             raise ValueError(
                 f"optimizer reps_epsilon and wrs_lambda must be positive, got {self.reps_epsilon}, {self.wrs_lambda}"
@@ -125,6 +133,25 @@ def reps_pmf(cost: torch.Tensor, epsilon: float) -> torch.Tensor:
     return torch.softmax(reward / reps_eta(cost, epsilon)[:, None], dim=-1)
 
 
+def separation(mean: torch.Tensor, scatter: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+    """How far a window's costs separate the worlds, per group, (G,): the variance of the worlds'
+    window means ``mean`` (G, K) over the mean squared standard error of each, from ``scatter``
+    (G, K), each world's mean squared deviation from its group's per-frame mean cost over the
+    window's ``frames`` (a 0-d tensor). A one-way analysis of variance's F ratio, frames as the
+    replicates: about 1 where worlds differ only by noise (more where the noise is correlated from
+    frame to frame), large where some world explains the robot better and stays so. Lost worlds
+    (cost from :data:`HELD_COST` up) are left out; a group with fewer than two held worlds gives 0."""
+    held = mean < HELD_COST
+    n = held.sum(-1).clamp_min(1)
+    centre = torch.where(held, mean, 0.0).sum(-1, keepdim=True) / n[:, None]
+    offset = torch.where(held, mean - centre, 0.0)
+    between = offset.square().sum(-1) / (n - 1).clamp_min(1)
+    # The deviations' own mean is the world's offset from the group: what is left is its scatter.
+    within = torch.where(held, (scatter - offset.square()).clamp_min(0.0), 0.0).sum(-1) / n
+    f = between / (within / frames.clamp_min(1)).clamp_min(1e-12)
+    return torch.where(held.sum(-1) >= 2, f, 0.0)
+
+
 def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """K draws per group from ``pmf`` (G, K) by systematic resampling: one uniform offset and K
     evenly spaced points, so each world is copied floor or ceil of K p_i times. Unlike independent
@@ -152,20 +179,27 @@ def update(
     gen: torch.Generator,
     methods: tuple[str, ...] | None = None,
     rows: dict[str, torch.Tensor] | None = None,
+    separated: torch.Tensor | None = None,
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
+
+    ``separated`` (G,) is each group's :func:`separation`; a group below ``config.min_separation``
+    keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``.
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
     ``rows`` maps each method present to its groups, a (G,) bool tensor on the device; a caller
     that captures the update passes it, since building it from ``methods`` copies from the host."""
+    informative = cost.amax(-1) - cost.amin(-1) > config.min_spread
+    if separated is not None and config.min_separation > 0:
+        informative = informative & (separated > config.min_separation)
     if methods is None or len(set(methods)) == 1:
-        return _update(cost, config.method if methods is None else methods[0], config, gen)
+        return _update(cost, config.method if methods is None else methods[0], config, gen, informative)
     if rows is None:
         rows = method_rows(methods, cost.device)
     index = explore = None
     for method in sorted(set(methods)):
-        part = _update(cost, method, config, gen)
+        part = _update(cost, method, config, gen, informative)
         mine = rows[method][:, None]
         index = part.index if index is None else torch.where(mine, part.index, index)
         explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
@@ -177,7 +211,10 @@ def method_rows(methods: tuple[str, ...], device: torch.device) -> dict[str, tor
     return {m: torch.tensor([x == m for x in methods], device=device) for m in METHODS}
 
 
-def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch.Generator) -> Update:
+def _update(
+    cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch.Generator, informative: torch.Tensor
+) -> Update:
+    """One method's update of every group; groups not ``informative`` (G,) keep their worlds."""
     g, k = cost.shape
     dev = cost.device
     identity = torch.arange(k, device=dev).expand(g, k)
@@ -207,6 +244,5 @@ def _update(cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch
     explore = torch.ones(g, k, dtype=torch.bool, device=dev)
     if config.keep_best:
         explore[:, 0] = False
-    spread = cost.amax(-1) - cost.amin(-1)
-    informative = (spread > config.min_spread)[:, None]
+    informative = informative[:, None]
     return Update(index=torch.where(informative, index, identity), explore=explore & informative)

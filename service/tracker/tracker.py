@@ -34,7 +34,7 @@ from .estimate import pose_statistics
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
-from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, update
+from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, separation, update
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
@@ -100,6 +100,9 @@ class Tracker:
         self._allocate_io()
         self.window = torch.zeros(self.G, self.K, device=dev)
         """Sum of each world's cost since the last update, (G, K)."""
+        self.scatter = torch.zeros(self.G, self.K, device=dev)
+        """Sum of each world's squared deviation from its group's mean cost of the frame since the
+        last update, (G, K), over the worlds that hold the object: what separates worlds from noise."""
         self._window_frames = torch.zeros((), device=dev)
         """Frames in the window, on the device (the captured frame counts them)."""
         self.evidence = torch.zeros(self.G, self.K, device=dev)
@@ -229,6 +232,7 @@ class Tracker:
         self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
         self.pop.write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
         self.window.masked_fill_(sel, 0.0)
+        self.scatter.masked_fill_(sel, 0.0)
         self.evidence.masked_fill_(sel, 0.0)
 
     def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
@@ -327,6 +331,9 @@ class Tracker:
         cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(lost, 1e9)
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
+        held = cost < HELD_COST
+        centre = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)
+        self.scatter += torch.where(held, cost - centre, 0.0).square()
         self._window_frames += 1
         self.joints.update(pop.obs.q, self.real.q)
         self._packed[:, : ESTIMATE.width].copy_(self._summary(self.scored(), lost))
@@ -393,7 +400,9 @@ class Tracker:
     def _update_ops(self) -> None:
         """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
-        upd = update(self.scored(), cfg.optimizer, self.gen, self.methods, self._rows)
+        window = self._window()[0]
+        separated = separation(window, self.scatter / self._window_frames.clamp_min(1), self._window_frames)
+        upd = update(self.scored(), cfg.optimizer, self.gen, self.methods, self._rows, separated)
         opens = None
         if self.contacts.enabled:
             explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
@@ -422,6 +431,7 @@ class Tracker:
                 moved = explore & duplicates(upd.index)
                 self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         self.window.zero_()
+        self.scatter.zero_()
         self.evidence.zero_()
         self._window_frames.zero_()
 
