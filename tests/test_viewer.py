@@ -1,6 +1,6 @@
-"""The live view (setting ``view_port``), as a user sees it: headless Chromium opens the page of a
-running service and takes a screenshot before and after a session tracks; the page must have
-loaded Newton's viewer and drawn the hand and its hypotheses."""
+"""The operator's view (setting ``view_port``), as a user sees it: headless Chromium opens the page
+of a running service and takes a screenshot before and after a session tracks; the page must have
+drawn the hand and its hypotheses and show the session's figures and only the tracker's controls."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def _screenshot(browser, url: str, path, wait: float = 8.0) -> np.ndarray:
 @pytest.mark.skipif(
     CHROMIUM is None or DRIVER is None, reason="no Chromium: scripts/test installs Debian's where it may (as root)"
 )
-def test_the_live_view_draws_the_hand_and_the_hypotheses(tmp_path):
+def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
     view = free_port()
     svc = ServiceProcess(free_port(), view_port=str(view))
     browser = _browser()
@@ -56,19 +56,25 @@ def test_the_live_view_draws_the_hand_and_the_hypotheses(tmp_path):
             url = f"http://127.0.0.1:{view}"
             empty = _screenshot(browser, url, tmp_path / "empty.png")
             assert browser.title == "Viser", browser.title  # the viewer's page loaded
+            assert "No session is tracking" in browser.page_source
+            assert "Show Cloth" not in browser.page_source, "a simulator's controls are offered"
             traj = Trajectory.load(TRAJECTORY)
             info = robot.open_session(
-                traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=8
+                traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=8, name="left"
             )
             for i in range(40):  # the hand closes on the object
                 robot.send(traj.frame(i, info.session))
                 robot.latest_pose(timeout=60, after_seq=i)
             drawn = _screenshot(browser, url, tmp_path / "drawn.png")
-            assert info.session in browser.page_source, "the session is not offered in the page"
+            page = browser.page_source
             robot.close_session()
     finally:
         browser.quit()
         svc.stop()
+    assert info.session in page, "the session is not offered in the page"
+    for figure in ("left", "K=8", " Hz", "latency", " ms", "cost", "mass", "friction"):
+        assert figure in page, (figure, page[-3000:])
+    assert "95 %" in page, "the uncertainty's size is not written"
     scene = (slice(160, 540), slice(320, 660))  # around the object, left of the control panel
     changed = np.abs(drawn[scene] - empty[scene]).sum(-1) > 60
     assert changed.mean() > 0.05, f"only {changed.mean():.2%} of the scene changed when the session tracked"
@@ -99,7 +105,7 @@ def test_the_view_compiles_what_it_draws_at_warm_up():
         loaded = lambda: {name for name, m in warp_context.user_modules.items() if m.execs}  # noqa: E731
         before = loaded()
         view._show(pop, 1)
-        view._draw(pop, torch.rand(3))
+        view._draw(pop, pop.state_0, torch.rand(3))
         assert loaded() == before, loaded() - before
     finally:
         view.close()
