@@ -1,8 +1,8 @@
 """The wire protocol: typed messages, a msgpack codec (no pickle), every key expression,
 the trajectory file format and session recordings (MCAP).
 
-Imports only numpy, msgpack and pydantic (and mcap, to read a recording), so the robot-side client
-stays light.
+Imports only numpy, msgpack and pydantic (and mcap and rosbags, to read a recording), so the
+robot-side client stays light.
 """
 
 from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, MEDIA_TYPE, DecodeError, decode, encode, encoding_of
@@ -18,6 +18,7 @@ from .messages import (
     ErrorCode,
     Estimate,
     OpenSession,
+    PopulationSummary,
     PoseObservation,
     RobotFrame,
     ServiceInfo,
@@ -53,6 +54,7 @@ __all__ = [
     "GroundTruth",
     "Keys",
     "OpenSession",
+    "PopulationSummary",
     "PoseObservation",
     "RobotFrame",
     "SensingAttributes",

@@ -35,6 +35,7 @@ __all__ = [
     "ErrorCode",
     "Estimate",
     "OpenSession",
+    "PopulationSummary",
     "PoseObservation",
     "RobotFrame",
     "ServiceInfo",
@@ -362,6 +363,29 @@ class Estimate(_Message):
     notice: str | None = None
     """What the robot should know about this frame, once: e.g. that its seq jumped and the
     session re-synchronised to it."""
+
+
+class PopulationSummary(_Message):
+    """The session's worlds after a frame, as a recording keeps them: what the estimate rests on."""
+
+    seq: int
+    """The seq of the frame."""
+    stamp: float
+    """That frame's robot clock [s]."""
+    worlds: int
+    """K, the session's worlds."""
+    cost: float
+    """The best world's window cost (dimensionless)."""
+    spread_m: float
+    """RMS position spread of the weighted worlds [m]."""
+    mass: float
+    """The best world's object mass [kg]."""
+    friction: float
+    """The best world's object friction coefficient."""
+    status: str
+    """The track state."""
+    mode_weights: Vector | None = None
+    """The two pose modes' shares of the weights, (2,)."""
 
 
 class SessionStatus(_Message):

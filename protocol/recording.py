@@ -1,21 +1,23 @@
-"""Session recordings: one MCAP file per session, as the service writes them (setting ``record``)
-and as ``inhand-tracker replay`` reads them back. Foxglove opens them as they are.
+"""Session recordings: one MCAP file per session in the rosbag2 profile, as the service writes
+them (setting ``record``) and as ``inhand-tracker replay`` reads them back. Every channel is a ROS 2
+message in CDR with its ``ros2msg`` schema in the file, so rosbags, ``ros2 bag`` and Foxglove read
+it as it is.
 
-Channels (topic, message encoding, schema):
+Channels (topic, ROS 2 type):
 
-    /inhand/frame         json  RobotFrame without its token: what the robot sent, exactly
-    /inhand/observation   json  PoseObservation without its token
-    /inhand/estimate      json  Estimate
-    /inhand/population    json  the population's summary per frame (POPULATION_FIELDS)
-    /inhand/joint_states  cdr   sensor_msgs/msg/JointState: the robot's measured joints
-    /inhand/pose          cdr   geometry_msgs/msg/PoseWithCovarianceStamped: the estimate
-    /tf                   cdr   tf2_msgs/msg/TFMessage: the object's frame under the world frame
+    /inhand/frame         inhand_tracker/msg/RobotFrame: what the robot sent, exactly, without its token
+    /inhand/observation   inhand_tracker/msg/PoseObservation, without its token
+    /inhand/estimate      inhand_tracker/msg/Estimate
+    /inhand/population    inhand_tracker/msg/PopulationSummary: the worlds after each frame
+    /inhand/joint_states  sensor_msgs/msg/JointState: the robot's measured joints
+    /inhand/pose          geometry_msgs/msg/PoseWithCovarianceStamped: the estimate
+    /tf                   tf2_msgs/msg/TFMessage: the object's frame under the world frame
 
-JSON arrays are nested lists; float32 values written by Python's shortest repr read back to the
-same float32. The session's open is the metadata record ``inhand.session`` (SESSION_FIELDS, every
-value a JSON text). Log times are the service's clock, publish times the robot's [ns].
+The inhand_tracker types are the protocol's messages (:mod:`.ros2_records`). The session's open is
+the metadata record ``inhand.session`` (SESSION_FIELDS, every value a JSON text). Log times are the
+service's clock, publish times the robot's [ns].
 
-Imports numpy, msgpack and mcap only: the light client reads recordings.
+Imports numpy, msgpack, mcap and rosbags only: the light client reads recordings.
 """
 
 from __future__ import annotations
@@ -27,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .messages import Estimate
+from .messages import Estimate, PopulationSummary
+from .ros2_records import decode_record
 from .trajectory import Trajectory
 
-__all__ = ["CHANNELS", "POPULATION_FIELDS", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording", "load_trajectory"]
+__all__ = ["CHANNELS", "PROFILE", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording", "load_trajectory"]
 
 CHANNELS = {
     "frame": "/inhand/frame",
@@ -48,9 +51,8 @@ SESSION_FIELDS = (
     "joint_names", "sensor_names", "overrides",
 )  # fmt: skip
 """The open's fields in the metadata record."""
-POPULATION_FIELDS = ("seq", "worlds", "cost", "spread_m", "mass", "friction", "status", "mode_weights")
-"""The population's summary per frame: its worlds, the best world's cost, mass and friction, the
-worlds' position spread [m], the track state and the weights of the two pose modes."""
+PROFILE = "ros2"
+"""The MCAP profile of a recording: rosbag2's."""
 
 
 @dataclass
@@ -63,8 +65,8 @@ class SessionRecording:
     """What the robot sent, as a trajectory without ground truth."""
     estimates: list[Estimate] = field(default_factory=list)
     """Every estimate the service published, in seq order."""
-    population: list[dict] = field(default_factory=list)
-    """The population's summary per frame (POPULATION_FIELDS)."""
+    population: list[PopulationSummary] = field(default_factory=list)
+    """The population's summary per frame."""
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SessionRecording:
@@ -78,15 +80,16 @@ class SessionRecording:
                 raise ValueError(f"recording '{path}': no '{SESSION_METADATA}' metadata: not a session recording")
             opened = {k: json.loads(v) for k, v in records[SESSION_METADATA].items()}
             frames, estimates, population = [], [], []
-            wanted = [CHANNELS[k] for k in ("frame", "estimate", "population")]
-            for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
-                doc = json.loads(message.data)
-                if channel.topic == CHANNELS["frame"]:
+            roles = {CHANNELS[k]: k for k in ("frame", "estimate", "population")}
+            for _, channel, message in reader.iter_messages(topics=list(roles), log_time_order=True):
+                role = roles[channel.topic]
+                doc = decode_record(role, message.data)
+                if role == "frame":
                     frames.append(doc)
-                elif channel.topic == CHANNELS["estimate"]:
+                elif role == "estimate":
                     estimates.append(Estimate.model_validate(doc))
                 else:
-                    population.append(doc)
+                    population.append(PopulationSummary.model_validate(doc))
         if not frames:
             raise ValueError(f"recording '{path}': no frames on {CHANNELS['frame']}")
         opened["p0"] = np.asarray(opened["p0"], np.float32)
@@ -96,7 +99,7 @@ class SessionRecording:
         stamps = np.array([d["stamp"] for d in frames], np.float64)
         steps = np.diff(stamps)
         rate = 1.0 / float(np.median(steps)) if len(steps) and np.median(steps) > 0 else 30.0
-        header = {"session", "seq", "stamp", "token", "mac"}
+        header = {"session", "seq", "stamp"}
         names = [k for k in frames[0] if k not in header]
         sensing = {k: None if frames[0][k] is None else np.asarray([d[k] for d in frames], np.float32) for k in names}
         trajectory = Trajectory(

@@ -25,6 +25,7 @@ from .messages import (
     SessionInfo,
     SessionStatus,
 )
+from .ros2_records import RECORD_TYPES, msg_definition
 from .sensing import SENSING
 
 __all__ = ["MESSAGES", "examples", "plain", "schemas", "write_spec"]
@@ -133,13 +134,18 @@ def _kind(spec: dict) -> str:
 
 
 def write_spec(folder: str | Path) -> list[Path]:
-    """Write ``schema/NAME.json``, ``golden/NAME.msgpack`` with ``golden/NAME.json`` and
-    ``messages.md`` under ``folder``; the paths written."""
+    """Write ``schema/NAME.json``, ``golden/NAME.msgpack`` with ``golden/NAME.json``,
+    ``ros2/msg/NAME.msg`` (the recordings' message types) and ``messages.md`` under ``folder``; the
+    paths written."""
     folder = Path(folder)
     written = []
     all_schemas = schemas()
-    for sub in ("schema", "golden"):
+    for sub in ("schema", "golden", "ros2/msg"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
+    for model, name in RECORD_TYPES.values():
+        path = folder / "ros2" / "msg" / f"{name.rsplit('/', 1)[-1]}.msg"
+        path.write_text(msg_definition(model))
+        written.append(path)
     for name, schema in all_schemas.items():
         path = folder / "schema" / f"{name}.json"
         path.write_text(json.dumps(schema, indent=2) + "\n")

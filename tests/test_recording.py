@@ -5,7 +5,6 @@ estimates on the CPU."""
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 from pathlib import Path
 
@@ -23,8 +22,10 @@ from inhand_tracker.service.paths import DATA_DIR
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 
 
-def test_the_demo_s_recording_opens_in_mcap_and_replays_to_the_same_estimates(tmp_path):
-    from rosbags.typesys import Stores, get_typestore
+def test_the_demo_s_recording_is_a_rosbag2_file_and_replays_to_the_same_estimates(tmp_path):
+    """rosbags reads the recording as a rosbag2 bag (MCAP storage) and decodes every message of
+    every channel from the schemas in the file alone; the light client replays it."""
+    from rosbags.highlevel import AnyReader
 
     out = CliRunner().invoke(app, ["demo", "--device", "cpu", "--worlds", "8", "--record", str(tmp_path)])
     assert out.exit_code == 0, out.output[-3000:]
@@ -39,17 +40,21 @@ def test_the_demo_s_recording_opens_in_mcap_and_replays_to_the_same_estimates(tm
         counts = {summary.channels[i].topic: n for i, n in summary.statistics.channel_message_counts.items()}
         for role in ("frame", "estimate", "population", "joint_states", "pose", "tf"):
             assert counts[CHANNELS[role]] == traj.frames, (role, counts)
+        assert reader.get_header().profile == "ros2"
         schema = summary.schemas[topics[CHANNELS["pose"]].schema_id]
         assert (schema.name, schema.encoding) == ("geometry_msgs/msg/PoseWithCovarianceStamped", "ros2msg")
-        store = get_typestore(Stores.ROS2_JAZZY)
-        poses, estimates = [], []
-        for _, channel, message in reader.iter_messages(topics=[CHANNELS["pose"], CHANNELS["estimate"]]):
-            if channel.topic == CHANNELS["pose"]:
-                poses.append(store.deserialize_cdr(message.data, "geometry_msgs/msg/PoseWithCovarianceStamped"))
-            else:
-                estimates.append(json.loads(message.data))
-    p = poses[-1].pose.pose
-    np.testing.assert_allclose([p.position.x, p.position.y, p.position.z], estimates[-1]["pose"][:3], atol=1e-7)
+        assert {(c.message_encoding, summary.schemas[c.schema_id].encoding) for c in topics.values()} == {
+            ("cdr", "ros2msg")
+        }
+    with AnyReader([path]) as bag:  # its types from the file's schemas, not from this project
+        decoded = {
+            c.topic: [bag.deserialize(raw, c.msgtype) for c, _, raw in bag.messages([c])] for c in bag.connections
+        }
+    assert {t: len(m) for t, m in decoded.items() if m} == {t: n for t, n in counts.items() if n}
+    p, estimate = decoded[CHANNELS["pose"]][-1].pose.pose, decoded[CHANNELS["estimate"]][-1]
+    np.testing.assert_allclose([p.position.x, p.position.y, p.position.z], estimate.pose[:3], atol=1e-7)
+    first = decoded[CHANNELS["frame"]][0]
+    assert first.q.shape == (traj.q.shape[1],) and first.has_force == (traj.force is not None) and not first.has_touch
 
     recording = SessionRecording.load(path)
     assert recording.opened["worlds"] == 8 and recording.opened["object"] == traj.object
@@ -81,9 +86,9 @@ def _session(traj: Trajectory, session: str = "0a1b2c3d4e5f"):
     return info, request
 
 
-def test_every_json_channel_carries_its_full_schema_and_a_killed_service_leaves_a_readable_file(tmp_path):
+def test_every_channel_carries_its_full_schema_and_a_killed_service_leaves_a_readable_file(tmp_path):
     """Recorded for over a second and never closed (as after kill -9): the chunks flushed each
-    second read back; every JSON channel's schema lists its message's fields."""
+    second read back; every channel's ROS 2 schema lists its message's fields."""
     import time
 
     from mcap.data_stream import EndOfFile
@@ -106,11 +111,21 @@ def test_every_json_channel_carries_its_full_schema_and_a_killed_service_leaves_
     records = []
     with contextlib.suppress(EndOfFile):  # the file ends mid-record, where the process stopped
         records.extend(StreamReader(path.open("rb"), skip_magic=False).records)
-    schemas = {r.name: json.loads(r.data) for r in records if isinstance(r, Schema) and r.encoding == "jsonschema"}
-    expected = {"inhand.RobotFrame", "inhand.PoseObservation", "inhand.Estimate", "inhand.PopulationSummary"}
-    assert set(schemas) == expected
-    assert {"q", "controls", "force", "touch", "stamp"} <= set(schemas["inhand.RobotFrame"]["properties"])
-    assert {"pose", "covariance", "status"} <= set(schemas["inhand.Estimate"]["properties"])
+    schemas = {r.name: r.data.decode() for r in records if isinstance(r, Schema)}
+    assert {r.encoding for r in records if isinstance(r, Schema)} == {"ros2msg"}
+
+    def fields(name: str) -> set[str]:  # the message's own fields: its definition before its dependencies'
+        own = schemas[name].split("\n=")[0].splitlines()
+        return {line.split()[1] for line in own if line and line[0] != "#"}
+
+    frame, estimate = fields("inhand_tracker/msg/RobotFrame"), fields("inhand_tracker/msg/Estimate")
+    assert {"q", "controls", "force", "has_force", "touch", "stamp"} <= frame and not {"token", "mac"} & frame
+    assert {"pose", "covariance", "status", "mass", "friction"} <= estimate
+    assert {
+        "inhand_tracker/msg/PoseObservation",
+        "inhand_tracker/msg/PopulationSummary",
+        "tf2_msgs/msg/TFMessage",
+    } < set(schemas)
     messages = [r for r in records if isinstance(r, Message)]
     assert len(messages) >= 2 * 50, f"{len(messages)} messages of {2 * i} read back from the flushed chunks"
 
@@ -179,6 +194,8 @@ def test_a_service_killed_with_sigkill_leaves_a_readable_recording(tmp_path):
     from mcap.records import Channel, Message
     from mcap.stream_reader import StreamReader
 
+    from inhand_tracker.protocol.ros2_records import decode_record
+
     traj = Trajectory.load(TRAJECTORY)
     svc = ServiceProcess(free_port(), record=str(tmp_path))
     client, last = _stream(svc, traj, 4.0)
@@ -190,7 +207,9 @@ def test_a_service_killed_with_sigkill_leaves_a_readable_recording(tmp_path):
     with contextlib.suppress(EndOfFile):  # the file ends where the process stopped
         records.extend(StreamReader(path.open("rb"), skip_magic=False).records)
     channel = next(r.id for r in records if isinstance(r, Channel) and r.topic == CHANNELS["estimate"])
-    estimates = [json.loads(r.data)["seq"] for r in records if isinstance(r, Message) and r.channel_id == channel]
+    estimates = [
+        decode_record("estimate", r.data)["seq"] for r in records if isinstance(r, Message) and r.channel_id == channel
+    ]
     assert last > 60, f"the service answered up to seq {last}"
     # The chunks are flushed every second: at most the last second (30 frames) is lost.
     assert max(estimates) >= last - 45, f"estimates read back up to seq {max(estimates)}; answered up to {last}"

@@ -1,7 +1,7 @@
-"""Every session recorded to an MCAP file (setting ``record``): what the robot sent, every
-estimate and a summary of the population, with ROS 2 message types where they exist, so Foxglove
-opens it and ``inhand-tracker replay`` tracks it again offline. The layout is
-:mod:`protocol.recording`'s."""
+"""Every session recorded to an MCAP file in the rosbag2 profile (setting ``record``): what the
+robot sent, every estimate and a summary of the population, each a ROS 2 message with its schema,
+so rosbags, ``ros2 bag`` and Foxglove open it and ``inhand-tracker replay`` tracks it again
+offline. The layout is :mod:`protocol.recording`'s."""
 
 from __future__ import annotations
 
@@ -20,11 +20,13 @@ from inhand_tracker.protocol import (
     PROTOCOL_VERSION,
     Estimate,
     OpenSession,
+    PopulationSummary,
     PoseObservation,
     RobotFrame,
     SessionInfo,
 )
-from inhand_tracker.protocol.recording import SESSION_FIELDS, SESSION_METADATA
+from inhand_tracker.protocol.recording import PROFILE, SESSION_FIELDS, SESSION_METADATA
+from inhand_tracker.protocol.ros2_records import RECORD_TYPES, encode_record, typestore
 
 from .outputs import Output
 from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, tf_message, to_ros_time
@@ -35,30 +37,12 @@ log = logging.getLogger(__name__)
 
 _JOINTS = "sensor_msgs/msg/JointState"
 _ROS = {"joint_states": _JOINTS, "pose": POSE_TYPE, "tf": TF_TYPE}
-_JSON = {"frame": RobotFrame, "observation": PoseObservation, "estimate": Estimate, "population": None}
-_POPULATION = {
-    "title": "PopulationSummary",
-    "type": "object",
-    "description": "The session's worlds after a frame: what the estimate rests on.",
-    "properties": {
-        "seq": {"type": "integer", "description": "The frame's seq."},
-        "worlds": {"type": "integer", "description": "K, the session's worlds."},
-        "cost": {"type": "number", "description": "The best world's window cost."},
-        "spread_m": {"type": "number", "description": "RMS position spread of the weighted worlds [m]."},
-        "mass": {"type": "number", "description": "The best world's object mass [kg]."},
-        "friction": {"type": "number", "description": "The best world's object friction."},
-        "status": {"type": "string", "description": "The track state."},
-        "mode_weights": {"type": "array", "items": {"type": "number"}, "description": "The two modes' shares."},
-    },
-    "required": ["seq", "worlds", "cost", "spread_m", "mass", "friction", "status", "mode_weights"],
-}
-"""The population channel's JSON Schema (the other JSON channels carry the protocol's messages' own)."""
 _FLUSH_S = 1.0
 """How often a recording's chunk is written out [s]: a process killed outright loses at most this."""
 
 
 def _plain(value):
-    """A message field as JSON: arrays as nested lists."""
+    """A metadata value as JSON: arrays as nested lists."""
     return value.tolist() if isinstance(value, np.ndarray) else value
 
 
@@ -69,16 +53,12 @@ class _File:
         self.path, self.info, self.frame_id = path, info, frame_id
         self.stream = path.open("wb")
         self.writer = Writer(self.stream, compression=CompressionType.ZSTD)
-        self.writer.start(profile="", library="inhand-tracker")
+        self.writer.start(profile=PROFILE, library="inhand-tracker")
         self.channels: dict[str, int] = {}
-        for role, model in _JSON.items():
-            title = model.__name__ if model else "PopulationSummary"
-            # The message's full JSON Schema, as docs/protocol/schema ships it: Foxglove reads the fields.
-            schema = json.dumps(model.model_json_schema() if model else _POPULATION)
-            sid = self.writer.register_schema(name=f"inhand.{title}", encoding="jsonschema", data=schema.encode())
-            self.channels[role] = self.writer.register_channel(CHANNELS[role], "json", sid)
-        for role, msg_type in _ROS.items():
-            text = TYPES.generate_msgdef(msg_type, ros_version=2)[0]
+        store = typestore()
+        types = {role: name for role, (_, name) in RECORD_TYPES.items()} | _ROS
+        for role, msg_type in types.items():
+            text = store.generate_msgdef(msg_type, ros_version=2)[0]
             sid = self.writer.register_schema(name=msg_type, encoding="ros2msg", data=text.encode())
             self.channels[role] = self.writer.register_channel(CHANNELS[role], "cdr", sid)
         # The granted values (info) over the asked ones (request), as the session was opened.
@@ -96,8 +76,8 @@ class _File:
             self.writer.flush()
             self.flushed = time.monotonic()
 
-    def json(self, role: str, doc: dict, stamp: float) -> None:
-        self.write(role, json.dumps({k: _plain(v) for k, v in doc.items()}).encode(), stamp)
+    def record(self, role: str, record, stamp: float) -> None:
+        self.write(role, encode_record(role, record), stamp)
 
     def ros(self, role: str, message, stamp: float) -> None:
         self.write(role, bytes(TYPES.serialize_cdr(message, _ROS[role])), stamp)
@@ -154,7 +134,7 @@ class SessionRecorder(Output):
         f = self._files.get(frame.session)
         if f is None:
             return
-        f.json("frame", frame.model_dump(exclude={"token", "mac"}), frame.stamp)
+        f.record("frame", frame, frame.stamp)
         joints = TYPES.types[_JOINTS](
             header=TYPES.types["std_msgs/msg/Header"](stamp=to_ros_time(frame.stamp), frame_id=f.frame_id),
             name=list(f.info.joint_names),
@@ -167,7 +147,7 @@ class SessionRecorder(Output):
     def observation(self, observation: PoseObservation) -> None:
         with self._guarded(observation.session):
             if (f := self._files.get(observation.session)) is not None:
-                f.json("observation", observation.model_dump(exclude={"token", "mac"}), observation.stamp)
+                f.record("observation", observation, observation.stamp)
 
     def estimate(self, estimate: Estimate) -> None:
         with self._guarded(estimate.session):
@@ -177,14 +157,13 @@ class SessionRecorder(Output):
         f = self._files.get(estimate.session)
         if f is None:
             return
-        f.json("estimate", estimate.model_dump(), estimate.stamp)
-        spread = float(np.sqrt(np.trace(np.asarray(estimate.covariance)[:3, :3])))
-        summary = {
-            "seq": estimate.seq, "worlds": f.info.worlds, "cost": estimate.cost, "spread_m": spread,
-            "mass": estimate.mass, "friction": estimate.friction, "status": estimate.status,
-            "mode_weights": estimate.mode_weights,
-        }  # fmt: skip
-        f.json("population", summary, estimate.stamp)
+        f.record("estimate", estimate, estimate.stamp)
+        summary = PopulationSummary(
+            seq=estimate.seq, stamp=estimate.stamp, worlds=f.info.worlds, cost=estimate.cost,
+            spread_m=float(np.sqrt(np.trace(np.asarray(estimate.covariance)[:3, :3]))), mass=estimate.mass,
+            friction=estimate.friction, status=estimate.status, mode_weights=estimate.mode_weights,
+        )  # fmt: skip
+        f.record("population", summary, estimate.stamp)
         f.ros("pose", pose_message(estimate, f.frame_id), estimate.stamp)
         f.ros("tf", tf_message(estimate, f.frame_id, object_frame(f.info.name or estimate.session)), estimate.stamp)
 

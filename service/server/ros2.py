@@ -30,9 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import zenoh
-from rosbags.typesys import Stores, get_typestore
 
 from inhand_tracker.protocol import Estimate, OpenSession, SessionInfo
+from inhand_tracker.protocol.ros2_records import typestore
 
 from .outputs import Output
 
@@ -49,8 +49,9 @@ __all__ = [
     "to_ros_time",
 ]
 
-TYPES = get_typestore(Stores.ROS2_JAZZY)
-"""The ROS 2 message types (Jazzy's definitions; the types used here are the same since Humble)."""
+TYPES = typestore()
+"""The ROS 2 message types (Jazzy's definitions; the types used here are the same since Humble),
+with the protocol's records (:mod:`protocol.ros2_records`)."""
 POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 _M = TYPES.types
