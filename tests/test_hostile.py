@@ -420,8 +420,10 @@ def test_sessions_without_a_robot_token_or_frames_are_closed(traj):
 
 def test_a_flooding_peer_does_not_starve_another_session(traj):
     """One robot streams at 10 Hz, alone and then beside a peer (its own process, as a robot is)
-    that floods its own session as fast as it can publish: it keeps at least 80 % of its estimate
-    rate, and the flood's backlog stays bounded (counted stale)."""
+    that floods its own session at 300 Hz, far past what the service steps on this CPU: it keeps at
+    least 80 % of its estimate rate, and the flood's backlog stays bounded (counted stale). The
+    flood is paced: a peer spinning a core of this 2-core machine would starve every process on
+    it, which is the machine's limit, not the service's."""
     svc = ServiceProcess(free_port(), groups=2)
     seconds, rate = 4.0, 10.0
 
@@ -448,10 +450,11 @@ def test_a_flooding_peer_does_not_starve_another_session(traj):
             print("open", flush=True)
             sys.stdin.readline()
             n = 0
-            until = time.monotonic() + {seconds}
-            while time.monotonic() < until:
+            began = time.monotonic()
+            while time.monotonic() < began + {seconds}:
                 flood.send(traj.frame(n % traj.frames, info.session, seq=n))
                 n += 1
+                time.sleep(max(0.0, began + n / 300 - time.monotonic()))
             status = flood.status()
             print(json.dumps({{"stale": status.stale, "frames": status.frames}}), flush=True)
     """)
