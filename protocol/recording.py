@@ -1,7 +1,7 @@
 """Session recordings: one MCAP file per session in the rosbag2 profile, as the service writes
 them (setting ``record``) and as ``inhand-tracker replay`` reads them back. Every channel is a ROS 2
-message in CDR with its ``ros2msg`` schema in the file, so rosbags, ``ros2 bag`` and Foxglove read
-it as it is.
+message in CDR with its ``ros2msg`` schema in the file, so tools that read rosbag2's MCAP
+storage (rosbags) take the types from the file itself.
 
 Channels (topic, ROS 2 type):
 

@@ -1,7 +1,7 @@
 """The protocol's records as ROS 2 messages of the package ``inhand_tracker``: each ``.msg``
 definition derived from the record's own JSON Schema, and their CDR through rosbags' type store.
-Session recordings carry them, so that every channel of a recording has a ROS 2 schema: rosbags,
-``ros2 bag`` and Foxglove read it as a rosbag2 file.
+Session recordings carry them, so that every channel of a recording has a ROS 2 schema: tools
+that read rosbag2's MCAP storage (rosbags) read it from the file's own schemas.
 
 A field maps by its JSON type: string to ``string``, integer to ``int64``, number to ``float64``,
 boolean to ``bool``; a float32 array to ``float32[]`` in C order (its leading length follows from

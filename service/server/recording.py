@@ -1,7 +1,7 @@
 """Every session recorded to an MCAP file in the rosbag2 profile (setting ``record``): what the
 robot sent, every estimate and a summary of the population, each a ROS 2 message with its schema,
-so rosbags, ``ros2 bag`` and Foxglove open it and ``inhand-tracker replay`` tracks it again
-offline. The layout is :mod:`protocol.recording`'s."""
+so tools that read rosbag2's MCAP storage (rosbags) open it, and ``inhand-tracker replay``
+tracks it again offline. The layout is :mod:`protocol.recording`'s."""
 
 from __future__ import annotations
 

@@ -8,10 +8,12 @@ friction, and what the colours mean.
 
 At most ``rate_hz`` times a second and only while a browser is connected, the service's loop takes
 a snapshot of the shown worlds (a copy of their bodies' poses, the weights and the fingertips, on
-the device) and a thread of the view's own draws it: the loop never waits for a drawing, and skips
-the snapshot while the last one is still being drawn. With nobody watching the view costs a few
-dictionary look-ups ten times a second. Its kernels are compiled at the service's warm-up, so a
-browser that connects later adds no compilation to a frame."""
+the device) and a thread of the view's own draws it, skipping the snapshot while the last one is
+still being drawn. The drawing still shares the process with the loop: its Python (Newton's
+``log_state``, viser's sending) holds the interpreter's lock, and on CUDA its device work takes
+turns with the loop's, so a watched session's frames run somewhat slower on a CPU. With nobody
+watching the view costs a few dictionary look-ups ten times a second. Its kernels are compiled at
+the service's warm-up, so a browser that connects later adds no compilation to a frame."""
 
 from __future__ import annotations
 

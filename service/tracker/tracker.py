@@ -102,7 +102,8 @@ class Tracker:
         """Sum of each world's cost since the last update, (G, K)."""
         self.scatter = torch.zeros(self.G, self.K, device=dev)
         """Sum of each world's squared deviation from its group's mean cost of the frame since the
-        last update, (G, K), over the worlds that hold the object: what separates worlds from noise."""
+        last update, (G, K), over the worlds that hold the object; kept where ``min_separation`` > 0."""
+        self._separates = cfg.optimizer.min_separation > 0
         self._window_frames = torch.zeros((), device=dev)
         """Frames in the window, on the device (the captured frame counts them)."""
         self.evidence = torch.zeros(self.G, self.K, device=dev)
@@ -331,9 +332,10 @@ class Tracker:
         cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(lost, 1e9)
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.window += cost
-        held = cost < HELD_COST
-        centre = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)
-        self.scatter += torch.where(held, cost - centre, 0.0).square()
+        if self._separates:
+            held = cost < HELD_COST
+            centre = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)
+            self.scatter += torch.where(held, cost - centre, 0.0).square()
         self._window_frames += 1
         self.joints.update(pop.obs.q, self.real.q)
         self._packed[:, : ESTIMATE.width].copy_(self._summary(self.scored(), lost))
@@ -400,8 +402,9 @@ class Tracker:
     def _update_ops(self) -> None:
         """The captured update: the optimizer's resample and perturbation; the window starts again."""
         cfg = self.config
-        window = self._window()[0]
-        separated = separation(window, self.scatter / self._window_frames.clamp_min(1), self._window_frames)
+        separated = None
+        if self._separates:  # worlds apart from noise: the window's mean scatter against its means
+            separated = separation(self._window()[0], self.scatter / self._window_frames, self._window_frames)
         upd = update(self.scored(), cfg.optimizer, self.gen, self.methods, self._rows, separated)
         opens = None
         if self.contacts.enabled:
