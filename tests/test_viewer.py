@@ -5,7 +5,10 @@ drawn the hand and its hypotheses and show the session's figures and only the tr
 from __future__ import annotations
 
 import shutil
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -83,29 +86,66 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
     assert (saturation > 60).mean() > 0.05, f"{(saturation > 60).mean():.2%} of the scene is coloured"
 
 
+def _latencies(robot, traj: Trajectory) -> np.ndarray:
+    """A session's frames' latencies in the service [ms], the whole trajectory."""
+    session = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=8)
+    out = []
+    for i in range(traj.frames):
+        robot.send(traj.frame(i, session.session))
+        out.append(robot.latest_pose(timeout=60, after_seq=i).latency_ms)
+    robot.close_session()
+    return np.asarray(out)
+
+
+def test_a_watching_browser_adds_no_late_frame():
+    """The same session five times, in turn alone and watched by a browser's side of the wire
+    (another process that reads every message the view sends, as a browser on another machine
+    does). A frame is late when its latency is over 1.5 x the same frame's median in the other
+    unwatched runs (frames differ: the grasp's contacts cost more); the watched runs have no more
+    late frames than the unwatched ones have among themselves, beyond noise."""
+    view = free_port()
+    svc = ServiceProcess(free_port(), view_port=str(view))
+    wire = [sys.executable, str(Path(__file__).with_name("viser_wire.py")), f"ws://127.0.0.1:{view}"]
+    runs, messages = {False: [], True: []}, []
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as robot:
+            svc.wait_ready(robot)
+            traj = Trajectory.load(TRAJECTORY)
+            for watched in (False, True, False, True, False):
+                browser = subprocess.Popen(wire, stdout=subprocess.PIPE, text=True) if watched else None
+                time.sleep(3)  # connected, and the page's scene sent
+                runs[watched].append(_latencies(robot, traj))
+                if browser is not None:
+                    browser.terminate()
+                    messages.append(int(browser.communicate(timeout=30)[0]))
+    finally:
+        svc.stop()
+    alone, watched = np.stack(runs[False]), np.stack(runs[True])
+    late = lambda run, others: int((run > 1.5 * np.median(others, axis=0)).sum())  # noqa: E731
+    late_alone = np.mean([late(run, np.delete(alone, i, axis=0)) for i, run in enumerate(alone)])
+    late_watched = np.mean([late(run, alone) for run in watched])
+    assert late_watched <= 1.5 * late_alone + 5, (late_alone, late_watched, len(alone[0]))
+    assert min(messages) > 20, messages  # it was drawn to: the view sends at 10 Hz
+
+
 def test_the_view_compiles_what_it_draws_at_warm_up():
-    """After the service's warm-up, drawing a session's population (another size, other worlds)
-    loads no kernel module the view had not: a browser connecting later costs the tracking loop
-    no compilation."""
-    import torch
+    """After its warm-up, the drawing process's drawing of a session's worlds (another object,
+    another K) loads no kernel module it had not: a browser connecting later compiles nothing."""
     import warp._src.context as warp_context  # Warp keeps its loaded modules there, per device
 
     from inhand_tracker.service.paths import CONFIG_DIR
-    from inhand_tracker.service.server.config import ServiceConfig
-    from inhand_tracker.service.server.sessions import SessionManager
-    from inhand_tracker.service.server.viewer import LiveView
-    from inhand_tracker.sim_backend import Population, PopulationConfig, load_catalog, load_robot
+    from inhand_tracker.service.server.view_drawing import Drawing
+    from inhand_tracker.sim_backend import PopulationConfig, load_catalog, load_robot
 
-    robot = load_robot(CONFIG_DIR / "robots/allegro.toml")
-    manager = SessionManager(ServiceConfig(device="cpu", groups=1, rate_hz=0), {robot.name: robot}, load_catalog())
-    view = LiveView("127.0.0.1", free_port())
+    robot, catalog = load_robot(CONFIG_DIR / "robots/allegro.toml"), load_catalog()
+    drawing = Drawing("127.0.0.1", free_port())
     try:
-        view.warm(manager)
-        pop = Population(robot, load_catalog()["spam_can"], PopulationConfig(groups=2, worlds=3, device="cpu"))
+        drawing.warm(robot, catalog["foam_brick"], PopulationConfig())
         loaded = lambda: {name for name, m in warp_context.user_modules.items() if m.execs}  # noqa: E731
         before = loaded()
-        view._show(pop, 1)
-        view._draw(pop, pop.state_0, torch.rand(3))
+        drawing.show(robot, catalog["spam_can"], PopulationConfig(), 3)
+        body_q = drawing.state.body_q.numpy().ravel()
+        drawing.draw(body_q, np.random.rand(3), np.zeros((4, 3)), None, "text", ("a", "b"))
         assert loaded() == before, loaded() - before
     finally:
-        view.close()
+        drawing.close()
