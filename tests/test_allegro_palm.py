@@ -44,6 +44,22 @@ def test_the_scene_drives_every_joint_and_senses_every_zone(scene, hand):
     assert m.opt.cone == 0 and m.opt.impratio == pytest.approx(1.0)  # MuJoCo's own contact model
 
 
+def test_a_weak_servos_truth_scales_the_scene_s_servos_and_the_robot_s(scene, hand):
+    """The suite whose truth's servos are half the config's: gain, damping and force range halved
+    in the scene, and in the robot spec a Newton truth would use."""
+    weak = load_scene(ALLEGRO_PALM_BLOCK, hand.layout, catalog_object("block").mass, servo_scale=0.5)
+    m, w = scene.model, weak.model
+    np.testing.assert_allclose(w.actuator_gainprm[:, 0], 0.5 * m.actuator_gainprm[:, 0])
+    np.testing.assert_allclose(w.actuator_biasprm[:, 1:3], 0.5 * m.actuator_biasprm[:, 1:3])
+    np.testing.assert_allclose(w.actuator_forcerange, 0.5 * m.actuator_forcerange)
+    dofs = m.jnt_dofadr[[m.joint(n).id for n in hand.layout.joint_names]]
+    np.testing.assert_allclose(w.dof_damping[dofs], 0.5 * m.dof_damping[dofs])
+    assert m.actuator_gainprm[0, 0] == pytest.approx(10.0)  # the config's 10 N m/rad, unchanged
+    assert SUITES["allegro-palm-weak"].gap.servo_scale == 0.5
+    spec = robot_spec("allegro_palm", servo_scale=0.5)
+    assert spec.ke[0] == pytest.approx(5.0) and spec.kd[0] == pytest.approx(0.1) and spec.effort[0] == pytest.approx(0.35)
+
+
 @pytest.mark.parametrize("kind", ["push", "slide"])
 def test_the_block_stays_on_the_palm_moves_and_its_weight_is_felt_there(scene, hand, kind):
     obj = catalog_object("block")

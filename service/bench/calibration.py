@@ -27,13 +27,14 @@ __all__ = ["calibration_recording"]
 def calibration_recording(suite: Suite, device: str = "auto", seconds: float = 20.0, seed: int = 1) -> Trajectory:
     """``seconds`` of the suite's robot stepping every joint through its range, recorded by the
     suite's truth with its sensor noise (the joints' noise is what a calibration sees)."""
-    spec, kin = robot_spec(suite.robot, suite.gap.finger_damping), Kinematics(robot_spec(suite.robot))
+    spec = robot_spec(suite.robot, suite.gap.finger_damping, suite.gap.servo_scale)
+    kin = Kinematics(robot_spec(suite.robot))
     obj = catalog_object(suite.objects[0])
     coupled = distal_coupling(kin.layout)  # a Shadow Hand's driver commands its distal joints so
     demo = excitation_demo(kin, obj, seconds, seed, (*coupled, DISTAL_COUPLING) if coupled else None)
     mass, friction = np.array([obj.mass]), np.array([obj.friction])
     if suite.engine == "scene" and suite.scene is not None:
-        rec = record_mujoco(load_scene(suite.scene, kin.layout, obj.mass), demo, obj.mass, obj.friction)
+        rec = record_mujoco(load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale), demo, obj.mass, obj.friction)
     elif suite.engine == "mujoco":
         with tempfile.TemporaryDirectory() as tmp:
             scene = export_scene(spec, obj.scaled(suite.gap.object_scale), Path(tmp) / "robot.xml")

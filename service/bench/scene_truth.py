@@ -51,10 +51,21 @@ ALLEGRO_PALM_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_scene.x
 step, and a touch sensor on each of the hand's 14 touch sites (``configs/robots/allegro_palm.toml``)."""
 
 
-def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float) -> MujocoScene:
+def _scale_servos(model: mujoco.MjModel, joints: list[int], by: float) -> None:
+    """Position actuators apply kp * (ctrl - q) - kv * qdot within their force range (gainprm[0] =
+    kp, biasprm[1] = -kp, biasprm[2] = -kv): all scaled, with the joints' passive damping."""
+    model.actuator_gainprm[:, 0] *= by
+    model.actuator_biasprm[:, 1:3] *= by
+    model.actuator_forcerange[:] *= by
+    for j in joints:
+        model.dof_damping[model.jnt_dofadr[j]] *= by
+
+
+def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo_scale: float = 1.0) -> MujocoScene:
     """``scene`` in MuJoCo C, with the tracker's robot ``layout`` found in it by name: its joints,
     the joint each actuator drives, and the touch sensor on each touch zone's site. A ValueError
-    names what the scene lacks."""
+    names what the scene lacks. ``servo_scale`` scales the robot's position servos (gain, force
+    range) and its joints' damping: servos other than the scene's authors wrote."""
     path = Path(python_package_path(scene.path))
     model = mujoco.MjModel.from_xml_path(str(path))
 
@@ -73,6 +84,8 @@ def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float) -> Mu
         if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or j not in index:
             raise ValueError(f"scene '{path.name}': actuator '{model.actuator(a).name}' drives no joint of the robot")
         actuator_joint.append(index[j])
+    if servo_scale != 1.0:
+        _scale_servos(model, joints, servo_scale)
     touch_of_site = {
         int(model.sensor_objid[s]): int(model.sensor_adr[s])
         for s in range(model.nsensor)

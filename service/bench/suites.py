@@ -43,6 +43,9 @@ class PhysicsGap:
     """Truth object size relative to the tracker's model."""
     finger_damping: float = 1.0
     """Truth finger joint damping relative to the tracker's model."""
+    servo_scale: float = 1.0
+    """Truth servos' gain, damping and effort limit relative to the robot config's: servos the
+    config does not know, what a calibration recovers."""
     impratio: float = 10.0
     """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding."""
     ramp_targets: bool = True
@@ -165,6 +168,18 @@ SUITES: dict[str, Suite] = {
         scene=ALLEGRO_PALM_BLOCK,
         robot="allegro_palm",
     ),
+    "allegro-palm-weak": Suite(
+        "allegro-palm-weak",
+        ("block",),
+        PUSH_MOTION_KINDS,
+        1,
+        seconds=15.0,
+        gap=PhysicsGap(servo_scale=0.5),
+        sensors=_REAL_SENSORS,
+        engine="scene",
+        scene=ALLEGRO_PALM_BLOCK,
+        robot="allegro_palm",
+    ),
     "cross-engine-shadow": Suite(
         "cross-engine-shadow",
         _SHADOW_OBJECTS,
@@ -178,14 +193,22 @@ SUITES: dict[str, Suite] = {
 }
 
 
-def robot_spec(name: str, finger_damping: float = 1.0) -> RobotSpec:
+def robot_spec(name: str, finger_damping: float = 1.0, servo_scale: float = 1.0) -> RobotSpec:
     """The robot called ``name``: the procedural hand, or a robot config of ``configs/robots``;
-    ``finger_damping`` scales its fingers' damping (a truth's physics gap; a robot from a file has
-    all its joints' damping scaled)."""
+    ``finger_damping`` scales its fingers' damping and ``servo_scale`` its fingers' servos (gain,
+    damping and effort limit): a truth's physics gap. A robot from a file has all its joints scaled."""
     if name == HandSpec().name:
-        return HandSpec(finger_kd=HandSpec().finger_kd * finger_damping)
+        hand = HandSpec()
+        return HandSpec(
+            finger_ke=hand.finger_ke * servo_scale, finger_kd=hand.finger_kd * finger_damping * servo_scale,
+            finger_effort=hand.finger_effort * servo_scale,
+        )  # fmt: skip
     spec = load_robot(CONFIG_DIR / "robots" / f"{name}.toml")
-    if finger_damping == 1.0:
+    if finger_damping == 1.0 and servo_scale == 1.0:
         return spec
     # A robot from a file does not tell its fingers' joints from the others: all are scaled.
-    return replace(spec, kd=tuple(float(kd) * finger_damping for kd in np.broadcast_to(spec.kd, len(spec.joints))))
+    scaled = lambda v, by: tuple(float(x) * by for x in np.broadcast_to(v, len(spec.joints)))  # noqa: E731
+    return replace(
+        spec, ke=scaled(spec.ke, servo_scale), kd=scaled(spec.kd, finger_damping * servo_scale),
+        effort=scaled(spec.effort, servo_scale),
+    )  # fmt: skip

@@ -53,7 +53,7 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
     motions) in the tracker's own simulator (one population per object, one group per physics draw
     of a demo), or the motions in MuJoCo C from the robot's MJCF or the suite's scene file
     (``suite.engine``)."""
-    spec = robot_spec(suite.robot, suite.gap.finger_damping)
+    spec = robot_spec(suite.robot, suite.gap.finger_damping, suite.gap.servo_scale)
     kin = Kinematics(robot_spec(suite.robot))  # the robot's own model plans the demos
     on_palm = kin.layout.carries_on_palm  # palm motions; a hand that pinches gets the demos and motions
     if on_palm and suite.drop:
@@ -95,7 +95,7 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
             with tempfile.TemporaryDirectory() as tmp:
                 xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
                 scene = (
-                    load_scene(suite.scene, kin.layout, obj.mass)
+                    load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale)
                     if suite.scene is not None
                     else export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
                 )
