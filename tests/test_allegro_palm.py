@@ -57,7 +57,7 @@ def test_a_weak_servos_truth_scales_the_scene_s_servos_and_the_robot_s(scene, ha
     assert m.actuator_gainprm[0, 0] == pytest.approx(10.0)  # the config's 10 N m/rad, unchanged
     assert SUITES["allegro-palm-weak"].gap.servo_scale == 0.5
     spec = robot_spec("allegro_palm", servo_scale=0.5)
-    assert spec.ke[0] == pytest.approx(5.0) and spec.kd[0] == pytest.approx(0.1) and spec.effort[0] == pytest.approx(0.35)
+    assert (spec.ke[0], spec.kd[0], spec.effort[0]) == pytest.approx((5.0, 0.1, 0.35))
 
 
 @pytest.mark.parametrize("kind", ["push", "slide"])

@@ -34,7 +34,8 @@ def calibration_recording(suite: Suite, device: str = "auto", seconds: float = 2
     demo = excitation_demo(kin, obj, seconds, seed, (*coupled, DISTAL_COUPLING) if coupled else None)
     mass, friction = np.array([obj.mass]), np.array([obj.friction])
     if suite.engine == "scene" and suite.scene is not None:
-        rec = record_mujoco(load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale), demo, obj.mass, obj.friction)
+        scene = load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale)
+        rec = record_mujoco(scene, demo, obj.mass, obj.friction)
     elif suite.engine == "mujoco":
         with tempfile.TemporaryDirectory() as tmp:
             scene = export_scene(spec, obj.scaled(suite.gap.object_scale), Path(tmp) / "robot.xml")
