@@ -57,7 +57,20 @@ def test_a_weak_servos_truth_scales_the_scene_s_servos_and_the_robot_s(scene, ha
     assert m.actuator_gainprm[0, 0] == pytest.approx(10.0)  # the config's 10 N m/rad, unchanged
     assert SUITES["allegro-palm-weak"].gap.servo_scale == 0.5
     spec = robot_spec("allegro_palm", servo_scale=0.5)
-    assert (spec.ke[0], spec.kd[0], spec.effort[0]) == pytest.approx((5.0, 0.1, 0.35))
+    assert (spec.ke[0], spec.kd[0], spec.effort[0]) == pytest.approx((5.0, 0.0, 0.35))
+
+
+def test_the_tracker_s_model_damps_each_joint_as_the_scene_does(scene, hand):
+    """The file gives the joints their damping; the servos add none (kd = 0), so each joint is
+    damped once, as in the scene, not by the file's damping and the servo's both."""
+    from inhand_tracker.sim_backend import Population, PopulationConfig
+
+    pop = Population(robot_spec("allegro_palm"), catalog_object("block"), PopulationConfig(worlds=1, device="cpu"))
+    dofs = pop.layout.dof_indices
+    passive, servo = pop.model.joint_damping.numpy()[dofs], pop.model.joint_target_kd.numpy()[dofs]
+    m = scene.model
+    truth = m.dof_damping[m.jnt_dofadr[[m.joint(n).id for n in hand.layout.joint_names]]]
+    np.testing.assert_allclose(passive + servo, truth, rtol=1e-6)
 
 
 @pytest.mark.parametrize("kind", ["push", "slide"])

@@ -196,7 +196,8 @@ SUITES: dict[str, Suite] = {
 def robot_spec(name: str, finger_damping: float = 1.0, servo_scale: float = 1.0) -> RobotSpec:
     """The robot called ``name``: the procedural hand, or a robot config of ``configs/robots``;
     ``finger_damping`` scales its fingers' damping and ``servo_scale`` its fingers' servos (gain,
-    damping and effort limit): a truth's physics gap. A robot from a file has all its joints scaled."""
+    damping and effort limit): a truth's physics gap. A robot from a file has all its joints' servos
+    scaled, not the damping its file gives them."""
     if name == HandSpec().name:
         hand = HandSpec()
         return HandSpec(
