@@ -57,8 +57,7 @@ def _scale_servos(model: mujoco.MjModel, joints: list[int], by: float) -> None:
     model.actuator_gainprm[:, 0] *= by
     model.actuator_biasprm[:, 1:3] *= by
     model.actuator_forcerange[:] *= by
-    for j in joints:
-        model.dof_damping[model.jnt_dofadr[j]] *= by
+    model.dof_damping[model.jnt_dofadr[joints]] *= by
 
 
 def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo_scale: float = 1.0) -> MujocoScene:

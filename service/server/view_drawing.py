@@ -225,9 +225,10 @@ def draw_forever(conn: Connection, host: str, port: int) -> None:
                     _, estimate, text, sessions = message
                     part = {n: shared.array[a:b] for n, (a, b) in places.items()}
                     drawing.draw(part["body_q"], part["weights"], part["tips"].reshape(-1, 3), estimate, text, sessions)
-                conn.send(("done", drawing.choice.value, drawing.clients()))
-            elif (drawing.choice.value, drawing.clients()) != told:
                 told = (drawing.choice.value, drawing.clients())
+                conn.send(("done", *told))
+            elif (now := (drawing.choice.value, drawing.clients())) != told:
+                told = now
                 conn.send(("state", *told))
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass  # the service is gone

@@ -42,10 +42,8 @@ _START_S = 120.0
 
 @dataclasses.dataclass
 class _Snapshot:
-    """One drawing's copies, queued on the device behind the frame they show."""
+    """One drawing's copies into the host buffer, queued on the device behind the frame they show."""
 
-    staged: torch.Tensor
-    """The float32 host buffer the copies land in (pinned on CUDA), laid out by ``layout``."""
     message: tuple
     """What goes to the drawing process with it: ("draw", estimate, text, sessions)."""
     taken: torch.cuda.Event | None
@@ -113,14 +111,14 @@ class LiveView(Output):
     def tick(self, sessions: dict) -> None:
         """Hand the chosen session's worlds and latest estimate to the drawing process
         (``sessions``: the manager's, by id)."""
-        self._receive()
         snap = self._snapshot
-        if snap is not None and not self._busy and (snap.taken is None or snap.taken.query()):
-            self._ship(snap)
+        if snap is not None and (snap.taken is None or snap.taken.query()):
+            self._ship(snap)  # the drawing process is idle: it had answered when the snapshot was taken
         now = time.monotonic()
         if now - self._last < self.period:
             return
         self._last = now
+        self._receive()
         ids = tuple(sorted(sessions)) or ("none",)
         session = sessions.get(self._choice) or (sessions[ids[0]] if sessions else None)
         if not self._clients or self._busy or self._snapshot is not None:
@@ -157,12 +155,12 @@ class LiveView(Output):
         """Queue the shown worlds' copies behind the frame (no wait on the device)."""
         pool, group = session.pool, session.group
         pop, staged, at = pool.tracker.pop, self._staged, self._places
-        parts = {
-            "body_q": pop.state_views["body_q"](pop.state_0)[group],
-            "weights": pool.tracker.weights()[group],
-            "tips": pool.tracker.fk.pos[group],
-        }
         with self._turn, pop.on_stream():
+            parts = {
+                "body_q": pop.state_views["body_q"](pop.state_0)[group],
+                "weights": pool.tracker.weights()[group],
+                "tips": pool.tracker.fk.pos[group],
+            }
             for name, value in parts.items():
                 a, b = at[name]
                 staged[a:b].view_as(value).copy_(value, non_blocking=True)
@@ -175,11 +173,11 @@ class LiveView(Output):
             np.asarray(estimate.pose), np.asarray(estimate.mean_pose[:3]),
             np.asarray(estimate.covariance, np.float32)[:3, :3],
         )  # fmt: skip
-        return _Snapshot(staged, ("draw", shown, self._describe(session), ids), taken)
+        return _Snapshot(("draw", shown, self._describe(session), ids), taken)
 
     def _ship(self, snap: _Snapshot) -> None:
         """The snapshot is on the host: into the shared memory, and the drawing process told."""
-        np.ndarray(snap.staged.shape, np.float32, buffer=self._shared.buf)[:] = snap.staged.numpy()
+        np.ndarray(self._staged.shape, np.float32, buffer=self._shared.buf)[:] = self._staged.numpy()
         self._send(snap.message)
         self._snapshot = None
 
