@@ -432,13 +432,16 @@ class Population:
             )
         self.copy_worlds(index.to(self.torch_device, torch.int64))
 
-    def copy_worlds(self, index: torch.Tensor) -> None:
+    def copy_worlds(self, index: torch.Tensor, params_index: torch.Tensor | None = None) -> None:
         """:meth:`resample` for an int64 index on the device already in range: no host work, so
-        it can run inside a captured graph (the tracker's update, whose indices never leave the device)."""
+        it can run inside a captured graph (the tracker's update, whose indices never leave the device).
+        ``params_index`` (G, K): where the physics parameters come from instead, each world then
+        simulating its own state (or its ``index`` source's) with another world's parameters."""
+        params_index = index if params_index is None else params_index
         with self.on_stream():
-            tensors = [view(self.state_0) for view in self.state_views.values()]
-            tensors += [self._warmstart, *self.params.tensors]
-            for t in tensors:
-                t.copy_(torch.gather(t, 1, index[..., None].expand(-1, -1, t.shape[-1])))
+            state = [view(self.state_0) for view in self.state_views.values()] + [self._warmstart]
+            for tensors, source in ((state, index), (self.params.tensors, params_index)):
+                for t in tensors:
+                    t.copy_(torch.gather(t, 1, source[..., None].expand(-1, -1, t.shape[-1])))
             self.params.write_solver_constants()
         self.params.notify(self.device)

@@ -99,6 +99,21 @@ def test_resampled_copies_stay_bit_identical(hand):
         assert torch.equal(tensor[0, 0], tensor[0, 1]) and torch.equal(tensor[0, 2], tensor[0, 3])
 
 
+def test_worlds_can_take_their_parameters_from_other_worlds_than_their_state(hand):
+    pop, _ = _grasped(hand, "spam_can", worlds=3)
+    pop.set_params(mass=torch.tensor([[0.06, 0.1, 0.15]]), friction=torch.tensor([[0.5, 0.8, 1.0]]))
+    wrench = torch.zeros(1, 3, 6)
+    wrench[0, :, 1] = torch.tensor([0.5, -0.5, 1.0])
+    pop.set_wrench(wrench)
+    for _ in range(3):
+        pop.step()
+    before = [t.clone() for t in pop.state_tensors()]
+    pop.copy_worlds(torch.tensor([[0, 1, 2]]), torch.tensor([[2, 2, 0]]))
+    assert pop.mass[0].tolist() == pytest.approx([0.15, 0.15, 0.06])
+    assert pop.friction[0].tolist() == pytest.approx([1.0, 1.0, 0.5])
+    assert all(torch.equal(a, b) for a, b in zip(before, pop.state_tensors(), strict=True))
+
+
 def test_a_displaced_object_keeps_what_the_grasp_cannot_see_and_loses_what_it_can(hand):
     """The tracker's roughening: copies of one world, their held object displaced. The pinch
     squeezes along world x, so a shift along x is pushed back by the pads while a turn about x

@@ -14,6 +14,7 @@ from inhand_tracker.service.bench.recorder import record
 from inhand_tracker.service.evaluation import add_error
 from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
 from inhand_tracker.service.tracker.cost import CostConfig
+from inhand_tracker.service.tracker.estimate import unresolved_variance
 from inhand_tracker.service.tracker.optimizers import OptimizerConfig
 from inhand_tracker.service.tracker.sampling import sample_poses
 from inhand_tracker.service.tracker.tracker import _lowest_point
@@ -237,11 +238,12 @@ class _OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-@pytest.mark.parametrize("method", ["PBO", "REPS"])
-def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording, method):
+@pytest.mark.parametrize(("method", "evidence"), [("PBO", 0.0), ("REPS", 0.0), ("PBO", 10.0)])
+def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording, method, evidence):
     counts = {}
+    optimizer = OptimizerConfig(method=method, min_pose_evidence=evidence)
     for groups, worlds in ((1, 4), (2, 16)):
-        tr = _tracker(hand, worlds=worlds, groups=groups, optimizer=OptimizerConfig(method=method), update_every=5)
+        tr = _tracker(hand, worlds=worlds, groups=groups, optimizer=optimizer, update_every=5)
         rec_q = np.repeat(recording.initial_q[:1], groups, 0)
         tr.start(np.repeat(recording.initial_pose[:1], groups, 0), rec_q)
         frame = Frame(controls=np.repeat(recording.controls[0][:1], groups, 0), q=rec_q)
@@ -258,6 +260,10 @@ def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording
     assert counts[(1, 4)] == counts[(2, 16)], counts
 
 
+def _unresolved(tr: Tracker, cost: np.ndarray) -> np.ndarray:
+    return unresolved_variance(cost, tr._seeded, tr.K, tr.config.estimate)
+
+
 def test_the_reported_covariance_adds_the_unexplained_cost_and_the_start_regions_resolution(hand, recording):
     tr = _tracker(hand, worlds=8)
     tr.start(_noisy_start(recording), recording.initial_q, sigma_t=np.array([0.005, 0.01]), sigma_r=0.1)
@@ -266,17 +272,17 @@ def test_the_reported_covariance_adds_the_unexplained_cost_and_the_start_regions
     resolution = seeded * cfg.estimate.covariance_resolution / 8
     # A world that explains everything leaves the start region's resolution; at the reference cost
     # the floor is the configured one; a lost population's huge or NaN cost is capped at 4x it.
-    at_reference = tr._unresolved(np.array([0.0, cfg.estimate.covariance_cost_ref]))
+    at_reference = _unresolved(tr, np.array([0.0, cfg.estimate.covariance_cost_ref]))
     np.testing.assert_allclose(at_reference, resolution + np.stack([0 * floor, floor]), rtol=1e-6)
-    np.testing.assert_allclose(tr._unresolved(np.array([1e9, np.nan])), resolution + 16 * floor, rtol=1e-6)
-    assert (tr._unresolved(np.array([2.0, 0.0]))[0] > tr._unresolved(np.array([1.0, 0.0]))[0]).all()
+    np.testing.assert_allclose(_unresolved(tr, np.array([1e9, np.nan])), resolution + 16 * floor, rtol=1e-6)
+    assert (_unresolved(tr, np.array([2.0, 0.0]))[0] > _unresolved(tr, np.array([1.0, 0.0]))[0]).all()
     est = tr.step(_frame(recording, 0))
-    added = tr._unresolved(est.cost)
+    added = _unresolved(tr, est.cost)
     assert (np.diagonal(est.covariance, axis1=1, axis2=2) >= added * (1 - 1e-5)).all()
     # More worlds resolve the start region more finely.
     many = _tracker(hand, worlds=32)
     many.start(_noisy_start(recording), recording.initial_q, sigma_t=np.array([0.005, 0.01]), sigma_r=0.1)
-    np.testing.assert_allclose(many._unresolved(np.zeros(2)), resolution / 4, rtol=1e-6)
+    np.testing.assert_allclose(_unresolved(many, np.zeros(2)), resolution / 4, rtol=1e-6)
 
 
 def test_a_bad_frame_is_refused_with_the_field_and_shapes(hand, recording):
@@ -441,3 +447,21 @@ def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(h
             assert np.allclose(contacts[0], nominal, rtol=1e-5)
         tr.start(_noisy_start(recording), recording.initial_q)
         assert not tr.step(_frame(recording, 0)).contacts_explored.any(), "a new session starts with the model's"
+
+
+def test_a_group_whose_poses_explain_nothing_trades_parameters_and_keeps_its_worlds_states(hand, recording):
+    """With ``min_pose_evidence`` out of reach an update gives the worlds other worlds' physics
+    and leaves every object where its own world had it; by default the copies take the state too."""
+    moved = {}
+    for evidence in (0.0, 1e9):
+        tr = _tracker(hand, worlds=24, optimizer=OptimizerConfig(method="REPS", min_pose_evidence=evidence), seed=2)
+        tr.start(_noisy_start(recording), recording.initial_q)
+        for f in range(recording.frames - 1):  # through the grasp: the costs tell the worlds apart
+            tr.step(_frame(recording, f))
+        before, mass = [t.clone() for t in tr.pop.state_tensors()], tr.pop.mass.clone()
+        tr._update_ops()
+        # Within rounding: a zero displacement still turns the object by the unit quaternion.
+        after = tr.pop.state_tensors()
+        moved[evidence] = not all(torch.allclose(a, b, atol=1e-6) for a, b in zip(before, after, strict=True))
+        assert (tr.pop.mass != mass).float().mean() > 0.5
+    assert moved == {0.0: True, 1e9: False}

@@ -13,6 +13,8 @@ from inhand_tracker.service.tracker.optimizers import (
     HELD_COST,
     OptimizerConfig,
     estimate_pmf,
+    pose_evidence,
+    pose_sources,
     reps_eta,
     reps_pmf,
     separation,
@@ -206,9 +208,42 @@ def test_separation_is_about_one_on_noise_and_large_where_a_world_stays_better()
         cost, OptimizerConfig(method="PBO", min_spread=0.0, min_separation=2.5), torch.Generator(), separated=f
     )
     moved = (upd.index != torch.arange(k)).any(-1)
-    assert (moved[100:] | upd.explore[100:].any(-1)).all() and not upd.explore[:100][f[:100] <= 2.5].any()
+    assert (moved[100:] | upd.explore[100:].any(-1)).all()
+    # A group held back keeps its worlds, but for the lost one: it becomes a copy of a held world.
+    back = torch.cat([f[:100] <= 2.5, torch.zeros(100, dtype=torch.bool)])
+    kept = torch.cat([upd.index[back][:, :1], upd.index[back][:, 2:]], -1)
+    assert back.sum() > 50 and torch.equal(kept, torch.cat([torch.tensor([0]), torch.arange(2, k)]).expand_as(kept))
+    assert (upd.index[back][:, 1] != 1).all() and torch.equal(
+        upd.explore[back].nonzero()[:, 1].unique(), torch.tensor([1])
+    )
     with pytest.raises(ValueError, match="min_separation: expected >= 0, got -1"):
         OptimizerConfig(min_separation=-1.0)
+
+
+def test_pose_evidence_tells_costs_the_poses_explain_from_costs_the_mass_explains():
+    """The F ratio of :func:`pose_evidence`: costs from the mass and noise alone score about 1,
+    costs that grow with the distance from a pose far above; a group held back by it gives its
+    worlds another's parameters and keeps their states, except a world that lost its object."""
+    gen = torch.Generator().manual_seed(0)
+    g, k = 64, 256
+    pose = torch.cat(
+        [0.005 * torch.randn(g, k, 3, generator=gen), quat_exp(0.1 * torch.randn(g, k, 3, generator=gen))], -1
+    )
+    mass, friction = torch.rand(g, k, generator=gen), torch.rand(g, k, generator=gen)
+    params = torch.stack([mass, friction], -1)
+    by_mass = 5.0 * (mass - 0.3).abs() + torch.randn(g, k, generator=gen)
+    by_pose = by_mass + 600.0 * (pose[..., :3] - 0.002).norm(dim=-1)
+    assert 0.7 < pose_evidence(by_mass, pose, params).median() < 1.4
+    assert pose_evidence(by_pose, pose, params).min() > 10.0
+    by_mass[:, 3] = 1e9  # a lost world
+    index = torch.zeros(g, k, dtype=torch.int64)
+    config = OptimizerConfig(min_pose_evidence=3.0)
+    state, posed = pose_sources(index, torch.cat([by_mass[:32], by_pose[32:]]), pose, params, config)
+    assert torch.equal(state[32:], index[32:]) and posed[32:].all()
+    kept = (state[:32] == torch.arange(k)).float().mean(-1)
+    assert (kept > 0.9).float().mean() > 0.9 and (state[:, 3] == 0).all()
+    with pytest.raises(ValueError, match="min_pose_evidence: expected >= 0, got -1"):
+        OptimizerConfig(min_pose_evidence=-1.0)
 
 
 def test_eye_and_olp_never_move_worlds():

@@ -4,6 +4,7 @@ two poses apart. Torch ops inside the captured frame."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
@@ -11,7 +12,11 @@ from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_
 from .config import EstimateConfig
 from .optimizers import estimate_pmf
 
-__all__ = ["pose_modes", "pose_statistics"]
+__all__ = ["pose_modes", "pose_statistics", "unresolved_variance"]
+
+_MISMATCH_CAP = 16.0
+"""The most the floor's variance grows with the cost (4x its deviation): a population that lost its
+object scores 1e9, and its region would cover the room; its status says so instead."""
 
 
 def pose_modes(
@@ -68,3 +73,13 @@ def pose_statistics(
         "modes": modes,
         "mode_weights": mode_weights,
     }
+
+
+def unresolved_variance(cost: np.ndarray, seeded: np.ndarray, worlds: int, config: EstimateConfig) -> np.ndarray:
+    """The variance the worlds' spread does not show, (G, 6) [m^2, rad^2], added to the reported
+    covariance (reported, not judged): the model's mismatch, growing with the lowest window
+    ``cost`` (G,) that no world explains, and the resolution of ``worlds`` over the region each
+    group was last seeded with, variances ``seeded`` (G, 6). On the host, with the estimate."""
+    floor = np.array([config.covariance_floor_t**2] * 3 + [config.covariance_floor_r**2] * 3, np.float32)
+    mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / config.covariance_cost_ref, 0.0, _MISMATCH_CAP)
+    return floor * mismatch[:, None] + seeded * (config.covariance_resolution / worlds)

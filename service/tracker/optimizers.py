@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from inhand_tracker.protocol import METHODS as PROTOCOL_METHODS
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 __all__ = [
     "HELD_COST",
@@ -22,6 +23,8 @@ __all__ = [
     "duplicates",
     "estimate_pmf",
     "method_rows",
+    "pose_evidence",
+    "pose_sources",
     "reps_eta",
     "reps_pmf",
     "separation",
@@ -62,6 +65,13 @@ class OptimizerConfig:
     The cost is scale-free to the optimizers, so without it a group resamples on whatever differs,
     signal or not."""
 
+    min_pose_evidence: float = 0.0
+    """Resample a group's object poses only where they explain its window costs beyond what its
+    physics parameters explain (:func:`pose_evidence`, an F ratio, over this); elsewhere only the
+    parameters are resampled and every world keeps its own state. An object lying on a palm is felt
+    through its weight, so the costs rank worlds by mass while the poses are chosen at random, and
+    resampling them drifts the estimate away from where the worlds began. 0: always resample both."""
+
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"optimizer method: expected one of {METHODS}, got {self.method!r}")
@@ -69,6 +79,8 @@ class OptimizerConfig:
             raise ValueError(f"optimizer pbo_keep: expected 0 < fraction <= 1, got {self.pbo_keep}")
         if self.pbo_rank_power < 0:
             raise ValueError(f"optimizer pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
+        if self.min_pose_evidence < 0:
+            raise ValueError(f"optimizer min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
         if self.min_separation < 0:
             raise ValueError(f"optimizer min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
@@ -152,6 +164,69 @@ def separation(mean: torch.Tensor, scatter: torch.Tensor, frames: torch.Tensor) 
     return torch.where(held.sum(-1) >= 2, f, 0.0)
 
 
+def _quadratic(x: torch.Tensor) -> torch.Tensor:
+    """Each column of ``x`` (G, K, N) and its square, standardised per group, (G, K, 2N)."""
+    x = torch.cat([x, x.square()], dim=-1)
+    x = x - x.mean(1, keepdim=True)
+    return x / x.std(1, keepdim=True).clamp_min(1e-9)
+
+
+def _residual(design: torch.Tensor, y: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+    """Sum of squared residuals of the least-squares fit of ``y`` (G, K) on ``design`` (G, K, N)
+    plus a constant, over the ``held`` (G, K) worlds, (G,). The normal equations, with a small
+    ridge, are solved by conjugate gradients written out in batched products: exact after N + 1
+    steps, and unlike the solvers of torch.linalg certain to run inside a captured graph."""
+    x = torch.cat([torch.ones_like(design[..., :1]), design], dim=-1) * held[..., None]
+    gram = x.transpose(1, 2) @ x + 1e-6 * torch.eye(x.shape[-1], device=x.device)
+    rhs = x.transpose(1, 2) @ (y * held)[..., None]
+    beta = torch.zeros_like(rhs)
+    r, p = rhs.clone(), rhs.clone()
+    rr = r.square().sum(1, keepdim=True)
+    for _ in range(2 * x.shape[-1]):  # twice the exact count: float32 rounding
+        gp = gram @ p
+        alpha = rr / (p * gp).sum(1, keepdim=True).clamp_min(1e-30)
+        beta, r = beta + alpha * p, r - alpha * gp
+        rr_next = r.square().sum(1, keepdim=True)
+        p, rr = r + (rr_next / rr.clamp_min(1e-30)) * p, rr_next
+    return ((x @ beta)[..., 0] - y * held).square().sum(-1)
+
+
+def pose_evidence(cost: torch.Tensor, pose: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+    """How much the worlds' object poses explain their window costs beyond their physics
+    parameters, per group, (G,): the F ratio of a nested least-squares fit of ``cost`` (G, K) on a
+    quadratic in ``params`` (G, K, P), against one that adds a quadratic in the poses' offsets
+    (G, K, 7: position, and rotation vector from the group's first world). About 1 where the costs
+    do not depend on the pose, large where they do (a bowl around the poses the robot's sensing
+    favours). Lost worlds (cost from :data:`HELD_COST` up) are left out; a group with too few held
+    worlds for the fit gives inf, so that it resamples as it would without the test."""
+    held = (cost < HELD_COST).float()
+    quat = pose[..., 3:]
+    turn = quat_log(quat_multiply(quat_conjugate(quat[:, :1]).expand_as(quat), quat))
+    reduced = _quadratic(params)
+    full = torch.cat([reduced, _quadratic(torch.cat([pose[..., :3], turn], dim=-1))], dim=-1)
+    y = torch.where(held > 0, cost, 0.0)
+    y = (y - (y * held).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)) * held
+    rss_reduced, rss_full = _residual(reduced, y, held), _residual(full, y, held)
+    extra = full.shape[-1] - reduced.shape[-1]
+    dof = held.sum(-1) - full.shape[-1] - 1
+    f = ((rss_reduced - rss_full) / extra) / (rss_full / dof.clamp_min(1)).clamp_min(1e-12)
+    return torch.where(dof >= 4, f, torch.inf)
+
+
+def pose_sources(
+    index: torch.Tensor, cost: torch.Tensor, pose: torch.Tensor, params: torch.Tensor, config: OptimizerConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each world's state comes from in an update whose worlds take their parameters from
+    ``index`` (G, K): from ``index`` too in groups whose object poses (G, K, 7) explain their window
+    costs ``cost`` (G, K) beyond their ``params`` (G, K, P) (:func:`pose_evidence` over
+    ``config.min_pose_evidence``), and for a world that lost its object; elsewhere its own.
+    Returns the sources (G, K) and which worlds take their state from ``index`` (G, K) bool."""
+    evidence = pose_evidence(cost, pose, params)
+    posed = (evidence > config.min_pose_evidence)[:, None] | (cost >= HELD_COST)
+    own = torch.arange(cost.shape[-1], device=cost.device).expand_as(index)
+    return torch.where(posed, index, own), posed
+
+
 def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """K draws per group from ``pmf`` (G, K) by systematic resampling: one uniform offset and K
     evenly spaced points, so each world is copied floor or ceil of K p_i times. Unlike independent
@@ -184,7 +259,8 @@ def update(
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
     ``separated`` (G,) is each group's :func:`separation`; a group below ``config.min_separation``
-    keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``.
+    keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``,
+    but for those that lost their object.
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
@@ -244,5 +320,7 @@ def _update(
     explore = torch.ones(g, k, dtype=torch.bool, device=dev)
     if config.keep_best:
         explore[:, 0] = False
-    informative = informative[:, None]
-    return Update(index=torch.where(informative, index, identity), explore=explore & informative)
+    # A group held back still replaces the worlds that lost their object, from those that did not.
+    lost = cost >= HELD_COST
+    go = informative[:, None] | (lost & ~lost.all(-1, keepdim=True))
+    return Update(index=torch.where(go, index, identity), explore=explore & go)

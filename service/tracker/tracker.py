@@ -30,11 +30,11 @@ from .capture import CapturedOps
 from .config import TrackerConfig
 from .contacts import ContactExplorer
 from .cost import TERMS, Cost, RealObservation
-from .estimate import pose_statistics
+from .estimate import pose_statistics, unresolved_variance
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
-from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, separation, update
+from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, pose_sources, separation, update
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
@@ -48,10 +48,6 @@ from .sampling import (
 __all__ = ["Tracker"]
 
 log = logging.getLogger(__name__)
-
-_MISMATCH_CAP = 16.0
-"""The most the floor's variance grows with the cost (4x its deviation): a population that lost its
-object scores 1e9, and its region would cover the room; its status says so instead."""
 
 
 def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
@@ -123,9 +119,6 @@ class Tracker:
         ]
         self._jitter_ceiling = torch.tensor(ceiling, device=dev)
         self._diagonal = np.arange(6)
-        self._floor = np.array(
-            [cfg.estimate.covariance_floor_t**2] * 3 + [cfg.estimate.covariance_floor_r**2] * 3, np.float32
-        )
         self._seeded = np.zeros((self.G, 6), np.float32)
         """Each group's variance of its latest seeding, (G, 6) [m^2, rad^2]: what its worlds sample."""
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
@@ -295,7 +288,9 @@ class Tracker:
         estimate.status = self.recovery.status.copy()
         if estimate.overflow.any():
             self._overflowed(np.flatnonzero(estimate.overflow))
-        estimate.covariance[:, self._diagonal, self._diagonal] += self._unresolved(estimate.cost)
+        estimate.covariance[:, self._diagonal, self._diagonal] += unresolved_variance(
+            estimate.cost, self._seeded, self.K, self.config.estimate
+        )
         return estimate
 
     def _overflowed(self, groups: np.ndarray) -> None:
@@ -309,14 +304,6 @@ class Tracker:
                 " contacts_per_world (and constraints_per_world)",
                 groups.tolist(), cfg.contacts_per_world, cfg.constraints_per_world,
             )  # fmt: skip
-
-    def _unresolved(self, cost: np.ndarray) -> np.ndarray:
-        """The variance the worlds' spread does not show, (G, 6) [m^2, rad^2], added to the reported
-        covariance (reported, not judged): the model's mismatch, growing with the lowest window
-        ``cost`` (G,) that no world explains, and the resolution of K worlds over the seeded region."""
-        cfg = self.config
-        mismatch = np.clip(np.nan_to_num(cost, nan=np.inf) / cfg.estimate.covariance_cost_ref, 0.0, _MISMATCH_CAP)
-        return self._floor * mismatch[:, None] + self._seeded * (cfg.estimate.covariance_resolution / self.K)
 
     def _frame_ops(self) -> None:
         """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
@@ -410,7 +397,11 @@ class Tracker:
         if self.contacts.enabled:
             explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
             opens = self.contacts.gate(self._window()[2][:, 0], explores)
-        self.pop.copy_worlds(upd.index)
+        state, posed = upd.index, torch.ones_like(upd.explore)
+        if cfg.optimizer.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
+            params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
+            state, posed = pose_sources(upd.index, self.scored(), self.pop.obs.object_pose, params, cfg.optimizer)
+        self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
             mass = self._explore(self.pop.mass, cfg.exploration.mass_sigma * scale, self._mass_range, explore)
@@ -422,16 +413,17 @@ class Tracker:
             wrench = sample_wrenches(
                 (self.G, self.K), cfg.exploration.wrench_force, cfg.exploration.wrench_torque, self.gen, self.device
             )
-            self.pop.set_wrench(wrench * (explore[..., None] * scale[..., None]))
+            # The wrench and the roughening explore the poses: only where the poses were resampled.
+            self.pop.set_wrench(wrench * ((explore & posed)[..., None] * scale[..., None]))
             if cfg.exploration.jitter_t > 0 or cfg.exploration.jitter_r > 0 or self._bandwidth > 0:
                 unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
-                pose = self.pop.obs.object_pose.gather(1, upd.index[..., None].expand(-1, -1, 7))  # resampled
+                pose = self.pop.obs.object_pose.gather(1, state[..., None].expand(-1, -1, 7))  # resampled
                 shift = unit * self._jitter_sigma(pose)
                 if self._shrink > 0:
                     shift = shift + shrink_toward_mean(pose, self._shrink)
                 # Only extra copies move: each surviving world keeps one copy where it was, so the
                 # estimate does not jitter with the spread it buys.
-                moved = explore & duplicates(upd.index)
+                moved = explore & duplicates(state)
                 self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         self.window.zero_()
         self.scatter.zero_()
