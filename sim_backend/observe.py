@@ -98,6 +98,9 @@ def accumulate_contacts(
     shape0: wp.array[wp.int32],
     shape1: wp.array[wp.int32],
     point0: wp.array[wp.vec3],
+    point1: wp.array[wp.vec3],
+    offset0: wp.array[wp.vec3],
+    offset1: wp.array[wp.vec3],
     normal: wp.array[wp.vec3],
     contact_force: wp.array[wp.spatial_vector],
     shape_body: wp.array[wp.int32],
@@ -132,9 +135,16 @@ def accumulate_contacts(
     b1 = shape_body[shape1[c]]
     # contact_force is the force on shape 0; flip it when the sensor is shape 1.
     f = wp.spatial_top(contact_force[c])
-    point = point0[c]  # on a static shape (the table), already in the world frame
+    # Between the two surfaces, where MuJoCo puts a contact: Newton gives each shape's point on its
+    # core (a capsule's axis, a sphere's centre) and the offset to its surface. On the axis, a
+    # phalanx's contacts lay on the edge its four touch zones share and pressed all four.
+    a = point0[c] + offset0[c]  # a static shape's (the table's) are in the world frame already
+    b = point1[c] + offset1[c]
     if b0 >= 0:
-        point = wp.transform_point(body_q[b0], point0[c])
+        a = wp.transform_point(body_q[b0], a)
+    if b1 >= 0:
+        b = wp.transform_point(body_q[b1], b)
+    point = 0.5 * (a + b)
     press_zones(b0, b1, f, normal[c], point, body_q, object_world, bodies_per_world,
                 zone_first, zone_index, zone_center, zone_half, touch)  # fmt: skip
     if b0 < 0 or b1 < 0:

@@ -193,9 +193,18 @@ class FileRobotSpec:
 RobotSpec = HandSpec | FileRobotSpec
 
 
-SERVO_ARRAYS = {"ke": "joint_target_ke", "kd": "joint_target_kd", "effort": "joint_effort_limit"}
-"""Each servo setting a config's ``[servos]`` may give per joint, and the builder's and model's
-per-DOF array that holds it."""
+SERVO_ARRAYS = {
+    "ke": "joint_target_ke",
+    "kd": "joint_target_kd",
+    "effort": "joint_effort_limit",
+    "damping": "joint_damping",
+    "armature": "joint_armature",
+    "friction": "joint_friction",
+}
+"""Each joint setting a config's ``[servos]`` may give per joint, and the builder's and model's
+per-DOF array that holds it: the position servo's gain [N m/rad or N/m], damping [N m s/rad or
+N s/m] and force limit [N m or N]; the joint's own damping (a robot file's ``damping``, on top of
+the servo's), armature [kg m^2 or kg] and dry friction (``frictionloss``) [N m or N]."""
 
 
 def _read_config(path: Path, seen: tuple[Path, ...] = ()) -> dict:

@@ -95,6 +95,9 @@ def observe_frame(pop: Population) -> None:
         dim=c.rigid_contact_max,
         inputs=[
             *contact_points(c),
+            c.rigid_contact_point1,
+            c.rigid_contact_offset0,
+            c.rigid_contact_offset1,
             c.rigid_contact_normal,
             pop.observables.contact_f,
             pop.model.shape_body,

@@ -16,10 +16,11 @@ if TYPE_CHECKING:
 __all__ = ["ZONE_EDGE", "press_zones", "zone_arrays"]
 
 ZONE_EDGE = wp.constant(1e-4)
-"""How far outside its box [m] a contact still presses a zone. A contact on a zone's rim (a block
-lying across the edge of the palm, its contact points clipped to the palm's face) sits on the box's
-boundary, and float32 rounding of its point in the link's frame put it in or out at random: a
-resting block's weight read 35-90 % of itself. 0.1 mm is far below any taxel's size."""
+"""The rim of a zone's box [m]: a contact this close to a face, inside or out, presses one zone of
+its link, the first whose rim holds it, unless another zone holds it well inside. Contact points
+land exactly on faces (a block lying across the palm's edge, its contact points clipped to the
+palm's face; a phalanx's front where its left and right zones meet), and float32 rounding put them
+in none, one or both zones at random: a resting block's weight read 35-200 % of itself."""
 
 
 @wp.func
@@ -59,12 +60,21 @@ def press_zones(
         w = link // bodies_per_world
         local = link - w * bodies_per_world
         p = wp.transform_point(wp.transform_inverse(body_q[link]), point)
+        # Warp mutates in a loop only what was made by a constructor, not a literal.
+        inner = int(0)  # noqa: UP018, RUF046
+        rim = int(-1)  # noqa: UP018, RUF046
         for i in range(zone_first[local], zone_first[local + 1]):
             d = p - zone_center[i]
             h = zone_half[i]
-            inside = wp.abs(d[0]) <= h[0] + ZONE_EDGE and wp.abs(d[1]) <= h[1] + ZONE_EDGE
-            if inside and wp.abs(d[2]) <= h[2] + ZONE_EDGE:
+            # How far inside the box's nearest face the point lies [m] (negative outside).
+            depth = wp.min(wp.min(h[0] - wp.abs(d[0]), h[1] - wp.abs(d[1])), h[2] - wp.abs(d[2]))
+            if depth > ZONE_EDGE:
                 wp.atomic_add(touch, w, zone_index[i], pressed)
+                inner += 1
+            elif depth >= -ZONE_EDGE and rim < 0:
+                rim = i
+        if inner == 0 and rim >= 0:
+            wp.atomic_add(touch, w, zone_index[rim], pressed)
 
 
 def zone_arrays(pop: Population) -> dict[str, wp.array]:

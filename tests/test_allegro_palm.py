@@ -73,6 +73,28 @@ def test_the_tracker_s_model_damps_each_joint_as_the_scene_does(scene, hand):
     np.testing.assert_allclose(passive + servo, truth, rtol=1e-6)
 
 
+def test_the_weak_truth_s_own_numbers_replay_its_joints_once_the_joint_damping_is_among_them():
+    """The weak suite's calibration recording replayed by the tracker's engine with the truth's
+    servos (gain 5, force limit 0.35) follows the measured joints within their noise (5 mrad) only
+    with the truth's joint damping as well (0.1, half the file's): the file's 0.2 caps the fingers'
+    speed at the force limit over the damping, half the truth's."""
+    import torch
+
+    from inhand_tracker.service.bench.calibration import calibration_recording
+    from inhand_tracker.service.calibration.servos import _replay, _series
+    from inhand_tracker.sim_backend import Population, PopulationConfig
+
+    rec = calibration_recording(SUITES["allegro-palm-weak"], "cpu", seconds=8.0)
+    obj = catalog_object(rec.object)
+    pop = Population(robot_spec("allegro_palm"), obj, PopulationConfig(groups=1, worlds=2, device="cpu"))
+    series = _series([rec], obj, pop.torch_device)
+    servos = {"ke": 5.0, "kd": 0.0, "effort": 0.35}
+    servos = {k: torch.full((2, pop.D), v) for k, v in servos.items()} | {"damping": torch.tensor([[0.1], [0.2]])}
+    rms = np.sqrt(_replay(pop, series, {k: v.expand(2, pop.D) for k, v in servos.items()}).numpy() / series.frames)
+    assert np.median(rms[0]) < 0.008 and rms[0].max() < 0.012, rms[0]
+    assert np.median(rms[1]) > 0.03, rms[1]
+
+
 @pytest.mark.parametrize("kind", ["push", "slide"])
 def test_the_block_stays_on_the_palm_moves_and_its_weight_is_felt_there(scene, hand, kind):
     obj = catalog_object("block")
@@ -86,6 +108,29 @@ def test_the_block_stays_on_the_palm_moves_and_its_weight_is_felt_there(scene, h
     assert truth.touch[settled, 0, :2].sum(axis=1).mean() > 0.5 * obj.mass * GRAVITY  # mostly by the palm
     path = truth.object_pose[:, 0, :2]
     assert np.ptp(path, axis=0).max() > 0.004  # the fingers or thumb moved it on the palm
+
+
+def test_the_palm_s_zones_feel_a_block_lying_across_their_rims_as_the_truth_does(scene, hand):
+    """The block at rest where the slide begins lies across the palm's edge, its contact points
+    clipped to the palm's face on the zones' rim: every one of them counts, so the palm reads the
+    block's weight, as the truth's sensors do."""
+    from dataclasses import replace
+
+    from inhand_tracker.service.bench.demos import Demo
+    from inhand_tracker.service.bench.recorder import record
+    from inhand_tracker.sim_backend import Population, PopulationConfig
+
+    obj = catalog_object("block")
+    demo = make_push_motion(hand, obj, "slide", seconds=8.0)
+    demo = replace(demo, controls=demo.controls[:18], phases=())
+    truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
+    pop = Population(robot_spec("allegro_palm"), obj, PopulationConfig(worlds=1, device="cpu"))
+    start = Demo("slide", demo.controls, truth.initial_pose[0], truth.initial_q[0], ())
+    sim = record(pop, start, np.array([obj.mass]), np.array([obj.friction]))
+    settled = slice(8, 17)
+    # At rest the palm carries all of the weight (the truth's reading has the sensors' noise).
+    assert sim.touch[settled, 0].sum(-1).mean() == pytest.approx(obj.mass * GRAVITY, rel=0.03)
+    np.testing.assert_allclose(sim.touch[settled, 0, :2].sum(-1), truth.touch[settled, 0, :2].sum(-1), rtol=0.15)
 
 
 def test_a_push_motion_refuses_what_it_cannot_script(hand):

@@ -79,7 +79,10 @@ def test_calibrate_names_a_bad_setting_and_a_missing_recording(gripper_recording
     assert result.exit_code == 2 and "no such recording" in result.output
     args = ["calibrate", str(recording), "--robot", str(config), "--settings", "gain", "--device", "cpu"]
     result = CliRunner().invoke(app, args)
-    assert result.exit_code == 2 and "calibrate settings: expected some of ['ke', 'kd', 'effort']" in result.output
+    assert (
+        result.exit_code == 2
+        and "calibrate settings: expected some of ['ke', 'kd', 'effort', 'damping'" in result.output
+    )
 
 
 @pytest.fixture(scope="module")

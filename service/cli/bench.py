@@ -224,7 +224,9 @@ def bench_calibration(
     ctx: typer.Context,
     suite: Annotated[str, typer.Option(help=SUITE_HELP)] = "manipulate",
     seconds: Annotated[float, typer.Option(help="length of the calibration recording [s]")] = 20.0,
-    settings: Annotated[str, typer.Option(help="what to fit, comma-separated: ke, kd, effort")] = "ke,kd",
+    settings: Annotated[
+        str, typer.Option(help="what to fit, comma-separated: ke, kd, effort, damping, armature, friction")
+    ] = "ke,kd",
     worlds: Annotated[int, typer.Option(help="candidates per generation")] = 128,
     generations: Annotated[int, typer.Option(help="CMA-ES generations")] = 30,
     device: Device = "auto",

@@ -18,7 +18,9 @@ def calibrate(
     ctx: typer.Context,
     recordings: Annotated[list[Path], typer.Argument(help="the robot's recordings: .traj or the service's .mcap")],
     robot: Annotated[Path, typer.Option(help="the robot's config (TOML) the recordings were made with")],
-    settings: Annotated[str, typer.Option(help="what to fit, comma-separated: ke, kd, effort")] = "ke,kd",
+    settings: Annotated[
+        str, typer.Option(help="what to fit, comma-separated: ke, kd, effort, damping, armature, friction")
+    ] = "ke,kd",
     worlds: Annotated[int, typer.Option(help="candidates per generation (worlds of the population)")] = 64,
     generations: Annotated[int, typer.Option(help="CMA-ES generations, each a replay of the recordings")] = 25,
     object_: Annotated[
