@@ -81,11 +81,15 @@ def test_the_block_stays_on_the_palm_and_its_weight_is_felt_there(roll):
     weight = mass * GRAVITY
     felt = truth.touch[settled, 0].sum(-1)
     assert np.all(np.abs(felt - weight) < 0.25 * weight), (felt, weight)
-    # The tracker's worlds feel it on the same zones: the same sites on the same links.
+    # The tracker's worlds feel it on the same zones: the same sites on the same links. Each contact
+    # presses one zone of its link, where the truth's sensors feel it: on a phalanx's surface, not
+    # on its capsule's axis where its four zones meet.
     ours_felt = ours.touch[settled, 0]
-    assert np.all(np.abs(ours_felt.sum(-1) - weight) < 0.25 * weight), ours_felt.sum(-1)
+    assert np.all(np.abs(ours_felt.sum(-1) - weight) < 0.05 * weight), ours_felt.sum(-1)
     pressed = lambda t: set(np.flatnonzero(t[settled, 0].mean(0) > 0.05 * weight))  # noqa: E731
     assert pressed(truth.touch) & pressed(ours.touch), (pressed(truth.touch), pressed(ours.touch))
+    both = sorted(pressed(truth.touch) & pressed(ours.touch))
+    np.testing.assert_allclose(ours_felt.mean(0)[both], truth.touch[settled, 0].mean(0)[both], rtol=0.3)
 
 
 @pytest.mark.slow
