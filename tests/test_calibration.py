@@ -133,3 +133,16 @@ def test_the_replay_report_names_the_joints_the_model_check_found():
     said.clear()
     _latency(ReplayResult([], []), status.model_copy(update={"joints_off": {}}), said.append)
     assert not any("model check" in s for s in said)
+
+
+def test_an_overlay_sets_the_joints_own_damping_armature_and_friction(tmp_path):
+    for f in GRIPPER.parent.glob("example_gripper.*"):
+        shutil.copy(f, tmp_path)
+    overlay = tmp_path / "example_gripper.calibrated.toml"
+    servos = "damping = [0.5, 0.25]\narmature = [0.01, 0.02]\nfriction = [0.1, 0.0]\n"
+    overlay.write_text(f'extends = "example_gripper.toml"\n\n[servos]\n{servos}')
+    pop = Population(load_robot(overlay), catalog_object("foam_brick"), PopulationConfig(worlds=2, device="cpu"))
+    for name, values in (("damping", [0.5, 0.25]), ("armature", [0.01, 0.02]), ("friction", [0.1, 0.0])):
+        assert pop.servos(name)[0, 1].tolist() == pytest.approx(values), name
+    base = Population(load_robot(GRIPPER), catalog_object("foam_brick"), PopulationConfig(worlds=1, device="cpu"))
+    assert base.servos("damping")[0, 0].tolist() != pytest.approx([0.5, 0.25])
