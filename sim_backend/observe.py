@@ -92,6 +92,20 @@ def _point_velocity(body_q: wp.transform, body_qd: wp.spatial_vector, com: wp.ve
     return wp.spatial_top(body_qd) + wp.cross(wp.spatial_bottom(body_qd), p - com_world)
 
 
+@wp.func
+def _between_surfaces(b0: int, b1: int, a: wp.vec3, b: wp.vec3, body_q: wp.array[wp.transform]) -> wp.vec3:
+    """The world point halfway between a contact's surface points ``a`` on body ``b0`` and ``b`` on
+    ``b1`` (body frames; a static shape's, the table's, in the world frame), where MuJoCo puts a
+    contact. Newton gives each shape's point on its core (a capsule's axis, a sphere's centre) and
+    the offset to its surface: on the axis, a phalanx's contacts lay on the edge its four touch
+    zones share, and pressed all four."""
+    if b0 >= 0:
+        a = wp.transform_point(body_q[b0], a)
+    if b1 >= 0:
+        b = wp.transform_point(body_q[b1], b)
+    return 0.5 * (a + b)
+
+
 @wp.kernel(enable_backward=False)
 def accumulate_contacts(
     contact_count: wp.array[wp.int32],
@@ -135,16 +149,7 @@ def accumulate_contacts(
     b1 = shape_body[shape1[c]]
     # contact_force is the force on shape 0; flip it when the sensor is shape 1.
     f = wp.spatial_top(contact_force[c])
-    # Between the two surfaces, where MuJoCo puts a contact: Newton gives each shape's point on its
-    # core (a capsule's axis, a sphere's centre) and the offset to its surface. On the axis, a
-    # phalanx's contacts lay on the edge its four touch zones share and pressed all four.
-    a = point0[c] + offset0[c]  # a static shape's (the table's) are in the world frame already
-    b = point1[c] + offset1[c]
-    if b0 >= 0:
-        a = wp.transform_point(body_q[b0], a)
-    if b1 >= 0:
-        b = wp.transform_point(body_q[b1], b)
-    point = 0.5 * (a + b)
+    point = _between_surfaces(b0, b1, point0[c] + offset0[c], point1[c] + offset1[c], body_q)
     press_zones(b0, b1, f, normal[c], point, body_q, object_world, bodies_per_world,
                 zone_first, zone_index, zone_center, zone_half, touch)  # fmt: skip
     if b0 < 0 or b1 < 0:
