@@ -192,13 +192,13 @@ def _residual(design: torch.Tensor, y: torch.Tensor, held: torch.Tensor) -> torc
 
 
 def pose_evidence(cost: torch.Tensor, pose: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
-    """How much the worlds' object poses explain their window costs beyond their physics
-    parameters, per group, (G,): the F ratio of a nested least-squares fit of ``cost`` (G, K) on a
-    quadratic in ``params`` (G, K, P), against one that adds a quadratic in the poses' offsets
-    (G, K, 7: position, and rotation vector from the group's first world). About 1 where the costs
-    do not depend on the pose, large where they do (a bowl around the poses the robot's sensing
-    favours). Lost worlds (cost from :data:`HELD_COST` up) are left out; a group with too few held
-    worlds for the fit gives inf, so that it resamples as it would without the test."""
+    """How much the worlds' object poses (G, K, 7) explain their window costs ``cost`` (G, K) beyond
+    their physics parameters ``params`` (G, K, P), per group, (G,): the F ratio of a nested
+    least-squares fit of the costs on a quadratic in the parameters, against one that adds a
+    quadratic in the poses (position, and rotation vector from the group's first world). About 1
+    where the costs do not depend on the pose, large where they do (a bowl around the poses the
+    robot's sensing favours). Lost worlds (cost from :data:`HELD_COST` up) are left out; a group with
+    too few held worlds for the fit gives inf, so that it resamples as it would without the test."""
     held = (cost < HELD_COST).float()
     quat = pose[..., 3:]
     turn = quat_log(quat_multiply(quat_conjugate(quat[:, :1]).expand_as(quat), quat))
