@@ -187,6 +187,13 @@ class _Search:
         self.xs = self.cost = np.zeros(0)
         """The last generation's candidates as (N, S * D) log factors, and their errors (N,)."""
 
+    def joint_rms(self, factors: list[np.ndarray]) -> np.ndarray:
+        """Each joint's RMS error [rad or m] replaying with each of ``factors`` ((S, D) log factors,
+        at most one per world), (len(factors), D); the last fills the worlds left over."""
+        rows = factors + [factors[-1]] * (self.worlds - len(factors))
+        err = _replay(self.pop, self.series, self.candidates(np.stack(rows)))
+        return np.sqrt(err.cpu().numpy() / self.frames_valid)[: len(factors)]
+
     def run(self, mean: np.ndarray, sigma: float, generations: int, expand: Callable) -> np.ndarray:
         """``generations`` of separable CMA-ES (each joint's servo acts on its own joint, so a
         diagonal covariance learns as much in far fewer generations) from ``mean``, whose dimensions
@@ -240,29 +247,40 @@ def fit_servos(
         return {name: base[i] * factor[:, i] for i, name in enumerate(settings)}
 
     # Each setting's log factor is one shared by every joint plus the joint's own. A robot's servos
-    # are often off by one factor (a firmware's gain, a motor's rating), and a search over the joints'
-    # factors alone has to find that move in S x D dimensions at once: it stopped in a trade (more
-    # effort for the same damping) 9-39 mrad off where the truth's numbers replay within 6.
+    # are often off by one factor (a firmware's gain, a motor's rating), and a joint's settings trade
+    # against each other (at its limit a servo moves as fast as effort over damping): from the
+    # config's values the search ran up a valley of more effort, 9-39 mrad off where the truth's
+    # numbers, every setting halved, replay within 6. So one replay first scales all of a joint's
+    # settings together along the diagonal, a factor per world, and the search starts from each
+    # joint's best.
     n_set = len(settings)
+    search = _Search(pop, series, candidates, worlds, seed, progress)
+    scales = np.linspace(-_FACTOR, _FACTOR, worlds - 1)
+    rms = search.joint_rms([np.zeros((n_set, d))] + [np.full((n_set, d), x) for x in scales])
+    # A joint leaves its config's values only where the diagonal halves its error: elsewhere the
+    # data may pin its settings' ratios but hardly their scale, and the search is better off near the config.
+    diagonal = np.where(rms[1:].min(0) < 0.5 * rms[0], scales[rms[1:].argmin(0)], 0.0)  # (D,)
+    start = np.concatenate([np.zeros(n_set), np.tile(diagonal, n_set)])
 
     def factors(x: np.ndarray) -> np.ndarray:  # (N, S + S * D) -> (N, S, D), within the bounds
         shared, own = x[:, :n_set, None], x[:, n_set:].reshape(-1, n_set, d)
         return np.clip(shared + own, -_FACTOR, _FACTOR)
 
-    search = _Search(pop, series, candidates, worlds, seed, progress)
-    x_mean = factors(search.run(np.zeros(n_set * (d + 1)), 0.5, generations, factors)[None])[0]
+    searched = factors(search.run(start, 0.5, generations, factors)[None])[0]
     elite = search.xs[np.argsort(search.cost)[: max(2, worlds // 4)]].reshape(-1, n_set, d)
     spread = elite.std(axis=0)  # (S, D) in log factors
     measured = series.q.cpu().numpy()
     motion = measured.max(axis=(0, 1)) - measured.min(axis=(0, 1))
     excited = motion >= _EXCITED * (pop.layout.upper - pop.layout.lower)
-    # One more replay scores the config's servos (world 0) against the search's (the others); a
-    # joint keeps the fitted servo only where it was excited and its own error fell by a margin
-    # (its servo acts on its own joint: a fit that does not help it is noise).
-    check = np.stack([np.zeros(n_set * d)] + [x_mean.ravel()] * (worlds - 1))
-    rms = np.sqrt(_replay(pop, series, candidates(check)).cpu().numpy() / search.frames_valid)
-    identified = excited & (rms[1] < (1.0 - _GAIN) * rms[0])
-    rms = np.stack([rms[0], np.where(identified, rms[1], rms[0])])
+    # One more replay scores the config's servos, the diagonal's and the search's: each joint takes
+    # the better of the last two, and keeps it only where it was excited and its own error fell by a
+    # margin (its servo acts on its own joint: a fit that does not help it is noise).
+    on_diagonal = np.tile(diagonal, (n_set, 1))
+    rms = search.joint_rms([np.zeros((n_set, d)), on_diagonal, searched])
+    x_mean = np.where(rms[2] <= rms[1], searched, on_diagonal)
+    best = np.minimum(rms[1], rms[2])
+    identified = excited & (best < (1.0 - _GAIN) * rms[0])
+    rms = np.stack([rms[0], np.where(identified, best, rms[0])])
     x_fit = np.where(identified, x_mean, 0.0)
     fitted = {s: nominal[s] * np.exp(x_fit[i]) for i, s in enumerate(settings)}
     return ServoFit(
