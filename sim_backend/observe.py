@@ -149,11 +149,14 @@ def accumulate_contacts(
     b1 = shape_body[shape1[c]]
     # contact_force is the force on shape 0; flip it when the sensor is shape 1.
     f = wp.spatial_top(contact_force[c])
-    point = _between_surfaces(b0, b1, point0[c] + offset0[c], point1[c] + offset1[c], body_q)
-    press_zones(b0, b1, f, normal[c], point, body_q, object_world, bodies_per_world,
+    touched = _between_surfaces(b0, b1, point0[c] + offset0[c], point1[c] + offset1[c], body_q)
+    press_zones(b0, b1, f, normal[c], touched, body_q, object_world, bodies_per_world,
                 zone_first, zone_index, zone_center, zone_half, touch)  # fmt: skip
     if b0 < 0 or b1 < 0:
         return
+    # The pads' slip velocity stays at shape 0's core point (a pad's centre), where the bundled
+    # recordings measured it and the slip thresholds were set.
+    point = wp.transform_point(body_q[b0], point0[c])
     sensor = b0
     obj = b1
     sign = 1.0

@@ -194,6 +194,16 @@ class _Search:
         err = _replay(self.pop, self.series, self.candidates(np.stack(rows)))
         return np.sqrt(err.cpu().numpy() / self.frames_valid)[: len(factors)]
 
+    def diagonal(self, n_set: int) -> np.ndarray:
+        """Each joint's best log factor (D,) for all its ``n_set`` settings at once, from one replay
+        with a factor per world between 1/10 and 10. A joint leaves its config's values (factor 0)
+        only where that halves its error: elsewhere the data may pin its settings' ratios but hardly
+        their scale, and the search is better off near the config."""
+        d = self.pop.D
+        scales = np.linspace(-_FACTOR, _FACTOR, self.worlds - 1)
+        rms = self.joint_rms([np.zeros((n_set, d))] + [np.full((n_set, d), x) for x in scales])
+        return np.where(rms[1:].min(0) < 0.5 * rms[0], scales[rms[1:].argmin(0)], 0.0)
+
     def run(self, mean: np.ndarray, sigma: float, generations: int, expand: Callable) -> np.ndarray:
         """``generations`` of separable CMA-ES (each joint's servo acts on its own joint, so a
         diagonal covariance learns as much in far fewer generations) from ``mean``, whose dimensions
@@ -255,11 +265,7 @@ def fit_servos(
     # joint's best.
     n_set = len(settings)
     search = _Search(pop, series, candidates, worlds, seed, progress)
-    scales = np.linspace(-_FACTOR, _FACTOR, worlds - 1)
-    rms = search.joint_rms([np.zeros((n_set, d))] + [np.full((n_set, d), x) for x in scales])
-    # A joint leaves its config's values only where the diagonal halves its error: elsewhere the
-    # data may pin its settings' ratios but hardly their scale, and the search is better off near the config.
-    diagonal = np.where(rms[1:].min(0) < 0.5 * rms[0], scales[rms[1:].argmin(0)], 0.0)  # (D,)
+    diagonal = search.diagonal(n_set)
     start = np.concatenate([np.zeros(n_set), np.tile(diagonal, n_set)])
 
     def factors(x: np.ndarray) -> np.ndarray:  # (N, S + S * D) -> (N, S, D), within the bounds
