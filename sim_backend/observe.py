@@ -98,7 +98,7 @@ def _between_surfaces(b0: int, b1: int, a: wp.vec3, b: wp.vec3, body_q: wp.array
     ``b1`` (body frames; a static shape's, the table's, in the world frame), where MuJoCo puts a
     contact. Newton gives each shape's point on its core (a capsule's axis, a sphere's centre) and
     the offset to its surface: on the axis, a phalanx's contacts lay on the edge its four touch
-    zones share, and pressed all four."""
+    zones share."""
     if b0 >= 0:
         a = wp.transform_point(body_q[b0], a)
     if b1 >= 0:

@@ -20,7 +20,7 @@ ZONE_EDGE = wp.constant(1e-4)
 its link, the first whose rim holds it, unless another zone holds it well inside. Contact points
 land exactly on faces (a block lying across the palm's edge, its contact points clipped to the
 palm's face; a phalanx's front where its left and right zones meet), and float32 rounding put them
-in none, one or both zones at random: a resting block's weight read 35-200 % of itself."""
+in none, one or both zones at random: the Allegro palm read 36-88 % of a resting block's weight."""
 
 
 @wp.func

@@ -1,5 +1,6 @@
-"""Servo identification: the robot's position servos (gain, damping, effort limit per joint) fitted
-to a recording of its commands and measured joints, with the population as the sampler.
+"""Servo identification: the robot's position servos (gain, damping, effort limit per joint) and
+its joints' own damping, armature and friction fitted to a recording of its commands and measured
+joints, with the population as the sampler.
 
 Every world of a population replays the recording's commands with a candidate of its own; the
 candidates are scaled from the robot config's values by log factors that CMA-ES (the ``cmaes``
@@ -183,7 +184,7 @@ class _Search:
         self.worlds, self.seed, self.progress = worlds, seed, progress
         self.frames_valid = float(series.valid.sum())
         self.history: list[float] = []
-        """The best candidate's mean squared joint error [rad^2] per generation, both stages."""
+        """The best candidate's mean squared joint error [rad^2] per generation."""
         self.xs = self.cost = np.zeros(0)
         """The last generation's candidates as (N, S * D) log factors, and their errors (N,)."""
 

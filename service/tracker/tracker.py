@@ -392,7 +392,8 @@ class Tracker:
         separated = None
         if self._separates:  # worlds apart from noise: the window's mean scatter against its means
             separated = separation(self._window()[0], self.scatter / self._window_frames, self._window_frames)
-        upd = update(self.scored(), cfg.optimizer, self.gen, self.methods, self._rows, separated)
+        cost = self.scored()
+        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated)
         opens = None
         if self.contacts.enabled:
             explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
@@ -400,7 +401,7 @@ class Tracker:
         state, posed = upd.index, torch.ones_like(upd.explore)
         if cfg.optimizer.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
             params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
-            state, posed = pose_sources(upd.index, self.scored(), self.pop.obs.object_pose, params, cfg.optimizer)
+            state, posed = pose_sources(upd.index, cost, self.pop.obs.object_pose, params, cfg.optimizer)
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
