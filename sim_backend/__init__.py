@@ -11,8 +11,9 @@ from .kinematics import Kinematics, SensorFK  # noqa: E402
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana  # noqa: E402
 from .observe import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise  # noqa: E402
 from .params import ObjectParams  # noqa: E402
-from .population import Population, no_collection  # noqa: E402
+from .population import Population  # noqa: E402
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot  # noqa: E402
+from .step import no_collection  # noqa: E402
 
 __all__ = [
     "CATALOG",

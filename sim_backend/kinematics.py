@@ -16,7 +16,7 @@ from .observe import sensor_poses
 from .robots import RobotLayout, RobotSpec, add_robot
 from .rotations import quat_multiply, quat_rotate
 
-__all__ = ["Kinematics", "SensorFK"]
+__all__ = ["Kinematics", "SensorFK", "joint_chains"]
 
 
 class Kinematics:
@@ -81,6 +81,27 @@ class Kinematics:
             step = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(err.size), err)
             q[idx] = np.clip(q[idx] + step, lay.lower[idx], lay.upper[idx])
         return q
+
+
+def joint_chains(model: newton.Model, layout: RobotLayout) -> np.ndarray:
+    """Which chain (a finger, a wrist) each actuated joint of ``layout`` belongs to, (D,) int from
+    0, numbered in joint order: a chain climbs from a joint to its parent joint while that
+    parent is actuated and carries no other actuated joint, so it stops below a palm.
+    ``model``: any model whose first world holds the robot."""
+    start, parent, child = (a.numpy() for a in (model.joint_qd_start, model.joint_parent, model.joint_child))
+    joint = np.searchsorted(start, layout.dof_indices, side="right") - 1  # each actuated DOF's joint
+    actuated = np.unique(joint)
+    moving = {int(child[j]): int(j) for j in actuated}  # body -> the actuated joint that moves it
+    below = parent[actuated]
+    branches = np.bincount(below[below >= 0], minlength=model.body_count)
+
+    def root(j: int) -> int:
+        while (up := moving.get(int(parent[j]))) is not None and branches[parent[j]] == 1:
+            j = up
+        return j
+
+    roots = [root(int(j)) for j in joint]
+    return np.unique(roots, return_inverse=True)[1].astype(np.int64)
 
 
 class SensorFK:

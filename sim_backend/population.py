@@ -11,8 +11,6 @@ once as a graph and replayed by :meth:`Population.step`, on CUDA and on Warp's C
 from __future__ import annotations
 
 import contextlib
-import gc
-from collections.abc import Iterator
 from contextlib import AbstractContextManager
 
 import newton
@@ -28,23 +26,9 @@ from .params import ObjectParams
 from .robots import SERVO_ARRAYS, RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 from .separate import separate_objects
-from .step import frame_arrays, simulate
+from .step import frame_arrays, no_collection, simulate
 
-__all__ = ["Population", "no_collection"]
-
-
-@contextlib.contextmanager
-def no_collection() -> Iterator[None]:
-    """No cycle collection (on any thread) while a CUDA graph is captured: a dropped population's
-    graphs live in a reference cycle, and freeing a graph during another's capture invalidates it."""
-    gc.collect()
-    collecting = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if collecting:
-            gc.enable()
+__all__ = ["Population"]
 
 
 class Population:
@@ -132,6 +116,8 @@ class Population:
         self._target_view = targets[..., dof[0] : dof[0] + len(dof)] if contiguous else None
         self._targets_all = targets
         self._target_index = torch.as_tensor(dof, device=self.torch_device)
+        self._dof_index = torch.as_tensor(self.layout.dof_indices, device=self.torch_device)
+        self._servo_views: dict[str, torch.Tensor] = {}
         self._goal_view = t(self.goal).view(G, K, self.D)
         self._last_goal_view = t(self.last_goal).view(G, K, self.D)
         self._target_stage = torch.zeros((G, self.D), dtype=torch.float32, device=self.torch_device)
@@ -378,27 +364,41 @@ class Population:
             self.params.notify(self.device)
 
     def servos(self, name: str) -> torch.Tensor:
-        """The robot's servo setting ``name`` ("ke": gain [N m/rad or N/m], "kd": damping [N m s/rad
-        or N s/m], "effort": limit [N m or N]) in every world, (G, K, D): a view of the model."""
-        every = wp.to_torch(getattr(self.model, SERVO_ARRAYS[name])).view(self.G, self.K, self._dofs)
-        return every[..., torch.as_tensor(self.layout.dof_indices, device=self.torch_device)]
+        """The robot's servo setting ``name`` (:data:`SERVO_ARRAYS`: "ke" gain [N m/rad or N/m],
+        "kd" damping [N m s/rad or N s/m], "effort" limit [N m or N], the joint's own "damping",
+        "armature", "friction") in every world, (G, K, D): a copy."""
+        return self._servo_array(name)[..., self._dof_index]
 
     def set_servos(self, **settings: torch.Tensor | np.ndarray) -> None:
-        """Give each world its own servos: ``ke``, ``kd`` and ``effort`` as in :meth:`servos`, each
-        (G, K, D) or broadcastable, finite and >= 0 (a ValueError names the setting). Eager (the
-        solver republishes the DOF settings), so not for a captured frame: a calibration's
-        candidates, a model with its servos fitted."""
-        dof = torch.as_tensor(self.layout.dof_indices, device=self.torch_device)
+        """Give each world its own servos: settings as in :meth:`servos`, each (G, K, D) or
+        broadcastable, finite and >= 0 (a ValueError names the setting)."""
+        checked = {}
         for name, value in settings.items():
             if name not in SERVO_ARRAYS:
                 raise ValueError(f"servos: unknown setting '{name}' (known: {sorted(SERVO_ARRAYS)})")
             value = torch.as_tensor(value, dtype=torch.float32, device=self.torch_device)
             if not bool(torch.isfinite(value).all() and (value >= 0).all()):
                 raise ValueError(f"servos {name}: expected finite values >= 0, got min {value.min().item():.4g}")
-            every = wp.to_torch(getattr(self.model, SERVO_ARRAYS[name])).view(self.G, self.K, self._dofs)
-            every[..., dof] = value.expand(self.G, self.K, self.D)
+            checked[name] = value.expand(self.G, self.K, self.D)
+        self.write_servos(checked)
+
+    def write_servos(self, settings: dict[str, torch.Tensor]) -> None:
+        """:meth:`set_servos` for values already checked, (G, K, D) on the device: without an
+        armature (inertia, which the solver republishes on the host) no host work, so it can run
+        inside a captured graph (the tracker's servo exploration)."""
+        for name, value in settings.items():
+            self._servo_array(name).index_copy_(2, self._dof_index, value)
+        flags = newton.ModelFlags
         with self.on_stream():
-            self.solver.notify_model_changed(newton.ModelFlags.JOINT_DOF_PROPERTIES)
+            self.solver.notify_model_changed(
+                flags.JOINT_DOF_PROPERTIES if "armature" in settings else flags.JOINT_DOF_FORCE_PROPERTIES
+            )
+
+    def _servo_array(self, name: str) -> torch.Tensor:  # the whole per-DOF array, (G, K, DOFs): a view
+        if name not in self._servo_views:
+            array = wp.to_torch(getattr(self.model, SERVO_ARRAYS[name]))
+            self._servo_views[name] = array.view(self.G, self.K, self._dofs)
+        return self._servo_views[name]
 
     def _check_param(self, name: str, value: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
         """``value`` as a (G, K) float32 tensor on the device, after checking it on the host."""
@@ -425,11 +425,9 @@ class Population:
             raise ValueError(f"index: expected shape ({self.G}, {self.K}), got {tuple(index.shape)}")
         if index.dtype not in (torch.int32, torch.int64):
             raise ValueError(f"index: expected an integer tensor, got {index.dtype}")
-        host = index.cpu()
-        if bool(((host < 0) | (host >= self.K)).any()):
-            raise ValueError(
-                f"index: values must lie in [0, {self.K}), got min {int(host.min())} max {int(host.max())}"
-            )
+        low, high = int(index.min()), int(index.max())
+        if low < 0 or high >= self.K:
+            raise ValueError(f"index: values must lie in [0, {self.K}), got min {low} max {high}")
         self.copy_worlds(index.to(self.torch_device, torch.int64))
 
     def copy_worlds(self, index: torch.Tensor, params_index: torch.Tensor | None = None) -> None:

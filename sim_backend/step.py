@@ -4,6 +4,9 @@ the population and replayed per frame."""
 
 from __future__ import annotations
 
+import contextlib
+import gc
+from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -16,7 +19,21 @@ from .zones import zone_arrays
 if TYPE_CHECKING:
     from .population import Population
 
-__all__ = ["frame_arrays", "observe_frame", "simulate"]
+__all__ = ["frame_arrays", "no_collection", "observe_frame", "simulate"]
+
+
+@contextlib.contextmanager
+def no_collection() -> Iterator[None]:
+    """No cycle collection (on any thread) while a CUDA graph is captured: a dropped population's
+    graphs live in a reference cycle, and freeing a graph during another's capture invalidates it."""
+    gc.collect()
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if collecting:
+            gc.enable()
 
 
 @wp.kernel(enable_backward=False)

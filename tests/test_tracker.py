@@ -238,12 +238,14 @@ class _OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-@pytest.mark.parametrize(("method", "evidence"), [("PBO", 0.0), ("REPS", 0.0), ("PBO", 10.0)])
-def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording, method, evidence):
+@pytest.mark.parametrize(
+    ("method", "evidence", "servos"), [("PBO", 0, 0), ("REPS", 0, 0), ("PBO", 10, 0), ("PBO", 0, 0.5)]
+)
+def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording, method, evidence, servos):
     counts = {}
     optimizer = OptimizerConfig(method=method, min_pose_evidence=evidence)
     for groups, worlds in ((1, 4), (2, 16)):
-        tr = _tracker(hand, worlds=worlds, groups=groups, optimizer=optimizer, update_every=5)
+        tr = _tracker(hand, worlds=worlds, groups=groups, optimizer=optimizer, update_every=5, servo_sigma0=servos)
         rec_q = np.repeat(recording.initial_q[:1], groups, 0)
         tr.start(np.repeat(recording.initial_pose[:1], groups, 0), rec_q)
         frame = Frame(controls=np.repeat(recording.controls[0][:1], groups, 0), q=rec_q)

@@ -110,6 +110,9 @@ class TrackResult:
     contacts_explored: bool | None = None
     """Whether the tracker's worlds explored their contacts by the track's end: its lowest cost
     said the model's contacts were wrong (:attr:`ContactExploration.contact_gate_cost`)."""
+    servo_strength: dict[str, float] | None = None
+    """Where the tracker explored its servos: each chain's strength factor on the config's at the
+    track's end, the estimate's weighted mean (:class:`.ServoExploration`)."""
     open_loop: np.ndarray | None = field(default=None, repr=False)
     """ADD of the tracker's physics run open loop from the true start with the true mass and
     friction, per frame, (F,) [m]: how far the engines disagree about this track's motion."""
@@ -128,6 +131,7 @@ class TrackResult:
             "best_world_add_mean_mm": float(self.add_best.mean() * 1e3),
             "diverged_frames": self.diverged,
             **({} if self.contacts_explored is None else {"contacts_explored": self.contacts_explored}),
+            **({} if self.servo_strength is None else {"servo_strength": self.servo_strength}),
             **({} if self.add_s is None else {"add_s_mean_mm": float(self.add_s.mean() * 1e3)}),
             **({} if self.covered is None else {"coverage_95": float(self.covered.mean())}),
             **(
@@ -253,7 +257,8 @@ def _follow(
     """Feed the trajectories ``rows`` (one per group) to ``tracker`` frame by frame, with a
     camera's noisy pose where ``run.observations`` says; what the estimates said, per frame and
     group: ``pose``, ``best_pose``, ``covariance``, ``status``, ``cost``, ``lost``, and per group
-    ``diverged`` (frames) and ``explored`` (contacts, at the end)."""
+    ``diverged`` (frames), ``explored`` (contacts, at the end) and ``servos`` (strengths by chain
+    name, (G,) each, at the end; empty without servo exploration)."""
     frames, groups = rec.frames, len(rows)
     said = {
         "pose": np.empty((frames, groups, 7), np.float32),
@@ -277,7 +282,9 @@ def _follow(
             tracker.observe(int(g), noisy, cov)
         if tick:
             tick()
-    return {**said, "diverged": diverged, "explored": est.contacts_explored}
+    servos = tracker.servos.strengths(tracker.weights()) if tracker.servos.enabled else {}
+    servos = {name: value.cpu().numpy() for name, value in servos.items()}
+    return {**said, "diverged": diverged, "explored": est.contacts_explored, "servos": servos}
 
 
 def _score(
@@ -305,7 +312,8 @@ def _score(
         out.append(
             TrackResult(t, rec.names[t.trajectory], obj, add[:n, g], add_best[:n, g], int(said["diverged"][g]),
                         add_s[: -(-n // _ADDS_EVERY), g], inside[:n, g], said["status"][:n, g],
-                        events[t.trajectory], frames, bool(said["explored"][g]))
+                        events[t.trajectory], frames, bool(said["explored"][g]),
+                        {n: round(float(v[g]), 3) for n, v in said["servos"].items()} or None)
         )  # fmt: skip
     return out
 

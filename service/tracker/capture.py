@@ -10,7 +10,7 @@ one Warp CPU graph replay.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 import warp as wp
@@ -24,8 +24,8 @@ class CapturedOps:
     """``fn`` (no arguments, no return: it reads and writes fixed tensors) as one graph replay.
 
     The first call on CUDA runs ``fn`` eagerly, which compiles kernels and initialises torch's
-    lazy state, and then records it; later calls replay the record. ``generator``: a torch
-    generator ``fn`` draws from, registered so that each replay draws fresh numbers. ``pool``:
+    lazy state, and then records it; later calls replay the record. ``generators``: the torch
+    generators ``fn`` draws from, registered so that each replay draws fresh numbers. ``pool``:
     another CapturedOps whose memory pool to share (stages that never run at once).
     """
 
@@ -33,17 +33,17 @@ class CapturedOps:
         self,
         fn: Callable[[], None],
         device: wp.context.Device,
-        generator: torch.Generator | None = None,
+        generators: Sequence[torch.Generator] = (),
         pool: CapturedOps | None = None,
     ):
         self.fn = fn
         self.device = device
-        self.generator = generator
+        self.generators = tuple(generators)
         self._pool_from = pool
         self.graph: torch.cuda.CUDAGraph | None = None
         self._warp_graph = None  # keeps Warp's arrays allocated during the capture alive
         self.stream = wp.stream_to_torch(device.stream) if device.is_cuda else None
-        can_capture = generator is None or hasattr(torch.cuda.CUDAGraph, "register_generator_state")
+        can_capture = not self.generators or hasattr(torch.cuda.CUDAGraph, "register_generator_state")
         self.enabled = device.is_cuda and can_capture
 
     @property
@@ -70,8 +70,8 @@ class CapturedOps:
 
     def _capture(self) -> None:
         graph = torch.cuda.CUDAGraph()
-        if self.generator is not None:
-            graph.register_generator_state(self.generator)
+        for generator in self.generators:
+            graph.register_generator_state(generator)
         pool = self._pool_from.graph.pool() if self._pool_from is not None and self._pool_from.graph else None
         # thread_local: the service's Zenoh threads keep running while the loop thread captures.
         with (

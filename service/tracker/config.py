@@ -20,6 +20,7 @@ __all__ = [
     "ObservationConfig",
     "RecoveryConfig",
     "Seeding",
+    "ServoExploration",
     "TrackerConfig",
     "setting_types",
 ]
@@ -155,6 +156,42 @@ class ContactExploration:
 
 
 @dataclass(frozen=True)
+class ServoExploration:
+    """Exploring the strength of each finger's servos, where the model check says the hand does
+    not follow the robot's joints: the worlds scale a chain's servo gain, damping and effort limit
+    and its joints' own damping by one factor (a servo twice as strong is all four), drawn around
+    the config's, as a calibration's search scales them together. Off by default: a calibrated
+    robot needs none of it."""
+
+    servo_sigma0: float = 0.0
+    """Spread of a chain's strength drawn when its exploration opens, standard deviation of its
+    logarithm, within a factor of 4 of the config's; 0: off."""
+    servo_sigma: float = 0.1
+    """Once open: noise of the strength's logarithm per update."""
+    servo_gate: float = 0.03
+    """A chain's exploration opens once one of its joints ran further than this [rad or m] (RMS,
+    the model check's nearest world) from the measured one for ``servo_gate_updates`` updates in a
+    row, for the rest of the session."""
+    servo_gate_updates: int = 4
+    """Updates in a row past the gate that open it: a finger blocked by the object for a moment
+    does not say its servo is wrong."""
+    servo_worlds: int = 2
+    """Servo exploration only in groups of at least this many worlds."""
+
+    def __post_init__(self) -> None:
+        _check(
+            self,
+            {
+                "servo_sigma0": (0.0, 5.0, ""),
+                "servo_sigma": (0.0, 5.0, ""),
+                "servo_gate": (0.0, _INF, " rad or m"),
+                "servo_gate_updates": (1, _INF, " update"),
+                "servo_worlds": (2, _INF, " world"),
+            },
+        )
+
+
+@dataclass(frozen=True)
 class EstimateConfig:
     """What an estimate reports: the pose, its covariance and its modes."""
 
@@ -282,7 +319,7 @@ class ObservationConfig:
         )
 
 
-TRACKER_GROUPS = {"seeding", "exploration", "contacts", "estimate", "recovery", "observations"}
+TRACKER_GROUPS = {"seeding", "exploration", "contacts", "servos", "estimate", "recovery", "observations"}
 """TrackerConfig's groups whose settings are named by their own names alone."""
 
 
@@ -295,6 +332,7 @@ class TrackerConfig:
     seeding: Seeding = field(default_factory=Seeding)
     exploration: Exploration = field(default_factory=Exploration)
     contacts: ContactExploration = field(default_factory=ContactExploration)
+    servos: ServoExploration = field(default_factory=ServoExploration)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     observations: ObservationConfig = field(default_factory=ObservationConfig)

@@ -44,6 +44,7 @@ from .sampling import (
     shrink_toward_mean,
     silverman_bandwidth,
 )
+from .servos import ServoExplorer
 
 __all__ = ["Tracker"]
 
@@ -84,6 +85,7 @@ class Tracker:
         self.olp = torch.tensor([m == "OLP" for m in self.methods], device=dev)
         """Which groups run the open-loop baseline, (G,) bool."""
         self.contacts = ContactExplorer(cfg.contacts, pop, self.gen)
+        self.servos = ServoExplorer(cfg.servos, pop, cfg.seed)
         scale = np.ones(self.G) if exploration is None else np.asarray(exploration, dtype=np.float64)
         if scale.shape != (self.G,) or (scale < 0).any():
             raise ValueError(f"tracker exploration: expected {self.G} multipliers >= 0, got {scale}")
@@ -127,7 +129,8 @@ class Tracker:
         shrinks = 0 < cfg.exploration.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
         self._shrink = 1.0 - math.sqrt(1.0 - self._bandwidth**2) if shrinks else 0.0
         self._frame_graph = CapturedOps(self._frame_ops, pop.device)
-        self._update_graph = CapturedOps(self._update_ops, pop.device, generator=self.gen, pool=self._frame_graph)
+        randoms = (self.gen, self.servos.gen)
+        self._update_graph = CapturedOps(self._update_ops, pop.device, generators=randoms, pool=self._frame_graph)
         obj = pop.object
         self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
         points = obj.surface_points(1000).astype(np.float64)
@@ -158,9 +161,11 @@ class Tracker:
         if groups is None:
             self.frame = self.window_frames = 0
             self._window_frames.zero_()
-        self.cost.reset(torch.as_tensor(mask, device=self.device))
-        self.joints.start(torch.as_tensor(mask, device=self.device))
-        self.contacts.start(torch.as_tensor(mask, device=self.device), self.olp)
+        started = torch.as_tensor(mask, device=self.device)
+        self.cost.reset(started)
+        self.joints.start(started)
+        self.contacts.start(started, self.olp)
+        self.servos.start(started)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
@@ -394,10 +399,9 @@ class Tracker:
             separated = separation(self._window()[0], self.scatter / self._window_frames, self._window_frames)
         cost = self.scored()
         upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated)
-        opens = None
-        if self.contacts.enabled:
-            explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
-            opens = self.contacts.gate(self._window()[2][:, 0], explores)
+        explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
+        opens = self.contacts.gate(self._window()[2][:, 0], explores) if self.contacts.enabled else None
+        servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
         state, posed = upd.index, torch.ones_like(upd.explore)
         if cfg.optimizer.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
             params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
@@ -411,6 +415,8 @@ class Tracker:
             )
             contacts = () if opens is None else self.contacts.explored(explore, scale, opens)
             self.pop.write_params(mass, friction, *contacts)
+            if servo_opens is not None:
+                self.servos.explored(upd.index, explore, scale, servo_opens)
             wrench = sample_wrenches(
                 (self.G, self.K), cfg.exploration.wrench_force, cfg.exploration.wrench_torque, self.gen, self.device
             )
