@@ -453,7 +453,8 @@ def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(h
 
 def test_a_group_whose_poses_explain_nothing_trades_parameters_and_keeps_its_worlds_states(hand, recording):
     """With ``min_pose_evidence`` out of reach an update gives the worlds other worlds' physics
-    and leaves every object where its own world had it; by default the copies take the state too."""
+    and leaves every object where its own world had it, and the estimate weighs their poses alike
+    (their costs rank physics); by default the copies take the state too."""
     moved = {}
     for evidence in (0.0, 1e9):
         tr = _tracker(hand, worlds=24, optimizer=OptimizerConfig(method="REPS", min_pose_evidence=evidence), seed=2)
@@ -466,4 +467,7 @@ def test_a_group_whose_poses_explain_nothing_trades_parameters_and_keeps_its_wor
         after = tr.pop.state_tensors()
         moved[evidence] = not all(torch.allclose(a, b, atol=1e-6) for a, b in zip(before, after, strict=True))
         assert (tr.pop.mass != mass).float().mean() > 0.5
+        est = tr.step(_frame(recording, recording.frames - 1))
+        position = tr.pop.obs.object_pose[..., :3].mean(1).numpy()
+        assert np.allclose(est.pose[:, :3], position, atol=1e-6) == (evidence > 0), (est.pose[:, :3], position)
     assert moved == {0.0: True, 1e9: False}

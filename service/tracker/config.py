@@ -168,10 +168,11 @@ class ServoExploration:
     logarithm, within a factor of 4 of the config's; 0: off."""
     servo_sigma: float = 0.1
     """Once open: noise of the strength's logarithm per update."""
-    servo_gate: float = 0.03
+    servo_gate: float = 0.01
     """A chain's exploration opens once one of its joints ran further than this [rad or m] (RMS,
     the model check's nearest world) from the measured one for ``servo_gate_updates`` updates in a
-    row, for the rest of the session."""
+    row, for the rest of the session: twice the joint noise of a real hand's encoders, a third of
+    what the service's model check reports."""
     servo_gate_updates: int = 4
     """Updates in a row past the gate that open it: a finger blocked by the object for a moment
     does not say its servo is wrong."""

@@ -42,17 +42,23 @@ def pose_modes(
 
 
 def pose_statistics(
-    object_pose: torch.Tensor, window: torch.Tensor, origin: torch.Tensor, config: EstimateConfig
+    object_pose: torch.Tensor,
+    window: torch.Tensor,
+    origin: torch.Tensor,
+    config: EstimateConfig,
+    sharpness: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The lowest-cost world of each group, (G,), and the estimate's pose fields from every world's
     ``object_pose`` (G, K, 7) weighted by its ``window`` cost (G, K): ``pose``, ``best_pose``,
     ``mean_pose`` (G, 7), ``covariance`` (G, 6, 6), ``modes`` (G, 2, 7), ``mode_weights`` (G, 2).
-    ``origin`` (7,) stands in for a NaN world's pose."""
+    ``origin`` (7,) stands in for a NaN world's pose; ``sharpness`` (G, 1): each group's factor on
+    ``estimate_lambda`` (0 weighs every held world alike)."""
     best = window.argmin(-1)
     # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
     poses = torch.where(torch.isfinite(object_pose).all(-1, keepdim=True), object_pose, origin)
     pose = torch.gather(poses, 1, best[:, None, None].expand(-1, 1, 7))[:, 0]
-    weights = estimate_pmf(window, config.estimate_lambda)  # (G, K)
+    lam = config.estimate_lambda if sharpness is None else config.estimate_lambda * sharpness
+    weights = estimate_pmf(window, lam)  # (G, K)
     position = poses[..., :3]
     quat = poses[..., 3:]
     # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).

@@ -104,10 +104,11 @@ def wrs_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
     return torch.softmax(-lam * (cost - cost.amin(-1, keepdim=True)) / spread, dim=-1)
 
 
-def estimate_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
+def estimate_pmf(cost: torch.Tensor, lam: float | torch.Tensor) -> torch.Tensor:
     """The estimate's weights, (G, K): softmax of -lambda (C_i - min C) / std C over the worlds whose
     cost is below :data:`HELD_COST`; the others weigh nothing (all alike if none is below it).
-    The standard deviation, not the range of eq. 4: the range follows the single worst world."""
+    The standard deviation, not the range of eq. 4: the range follows the single worst world.
+    ``lam``: a number, or one per group (G, 1)."""
     held = cost < HELD_COST
     held = held | ~held.any(-1, keepdim=True)
     n = held.sum(-1, keepdim=True)

@@ -112,19 +112,17 @@ class Tracker:
         self.frame = 0
         self._rows = method_rows(self.methods, dev)
         # Made here, not in the captured update: a tensor from host numbers is a copy a graph cannot hold.
-        self._jitter_floor = torch.tensor(
-            [cfg.exploration.jitter_t] * 3 + [cfg.exploration.jitter_r] * 3, device=dev
-        ).view(1, 1, 6)
-        ceiling = [
-            max(cfg.seeding.sigma_t, cfg.exploration.jitter_t),
-            max(cfg.seeding.sigma_r, cfg.exploration.jitter_r),
-        ]
+        jitter, seeding = cfg.exploration, cfg.seeding
+        self._jitter_floor = torch.tensor([jitter.jitter_t] * 3 + [jitter.jitter_r] * 3, device=dev).view(1, 1, 6)
+        ceiling = [max(seeding.sigma_t, jitter.jitter_t), max(seeding.sigma_r, jitter.jitter_r)]
         self._jitter_ceiling = torch.tensor(ceiling, device=dev)
         self._diagonal = np.arange(6)
         self._seeded = np.zeros((self.G, 6), np.float32)
         """Each group's variance of its latest seeding, (G, 6) [m^2, rad^2]: what its worlds sample."""
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
+        self._sharpness = torch.ones(self.G, 1, device=dev)
+        """Each group's factor on the estimate's weights, (G, 1): 0 while its poses explain none of its costs."""
         self._bandwidth = cfg.exploration.jitter_bandwidth * silverman_bandwidth(self.K)
         shrinks = 0 < cfg.exploration.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
         self._shrink = 1.0 - math.sqrt(1.0 - self._bandwidth**2) if shrinks else 0.0
@@ -166,6 +164,7 @@ class Tracker:
         self.joints.start(started)
         self.contacts.start(started, self.olp)
         self.servos.start(started)
+        self._sharpness.masked_fill_(started[:, None], 1.0)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
@@ -375,7 +374,7 @@ class Tracker:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
         copy; ``lost`` (G, K) says which worlds lost their object."""
         pop = self.pop
-        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate)
+        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, self._sharpness)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         return ESTIMATE.pack(
             {
@@ -406,6 +405,8 @@ class Tracker:
         if cfg.optimizer.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
             params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
             state, posed = pose_sources(upd.index, cost, self.pop.obs.object_pose, params, cfg.optimizer)
+            # Costs that rank the worlds by their physics say nothing of their poses: weigh them alike.
+            self._sharpness.copy_(posed.all(-1, keepdim=True))
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, scale = upd.explore, self._exploration[:, None]
