@@ -386,10 +386,10 @@ class Population:
         """:meth:`set_servos` for values already checked, (G, K, D) on the device: without an
         armature (inertia, which the solver republishes on the host) no host work, so it can run
         inside a captured graph (the tracker's servo exploration)."""
-        for name, value in settings.items():
-            self._servo_array(name).index_copy_(2, self._dof_index, value)
         flags = newton.ModelFlags
         with self.on_stream():
+            for name, value in settings.items():
+                self._servo_array(name).index_copy_(2, self._dof_index, value)
             self.solver.notify_model_changed(
                 flags.JOINT_DOF_PROPERTIES if "armature" in settings else flags.JOINT_DOF_FORCE_PROPERTIES
             )

@@ -41,7 +41,8 @@ class ServoExplorer:
         """Each chain by its first joint's name, (C,)."""
         self._chain = torch.as_tensor(chains, device=dev)
         C = len(self.names)
-        self.nominal = {name: pop.servos(name) for name in SCALED_SERVOS} if self.enabled else {}
+        with pop.on_stream():
+            self.nominal = {name: pop.servos(name) for name in SCALED_SERVOS} if self.enabled else {}
         """The config's settings, (G, K, D) each."""
         self.log_strength = torch.zeros(G, K, C, device=dev)
         """Each world's strength per chain, the logarithm of its factor on the config's, (G, K, C)."""
