@@ -101,8 +101,8 @@ def test_a_watching_browser_adds_no_late_frame():
     """The same session five times, in turn alone and watched by a browser's side of the wire
     (another process that reads every message the view sends, as a browser on another machine
     does). A frame is late when its latency is over 1.5 x the same frame's median in the other
-    unwatched runs (frames differ: the grasp's contacts cost more); the watched runs have no more
-    late frames than the unwatched ones have among themselves, beyond noise."""
+    unwatched runs (frames differ: the grasp's contacts cost more); the watched runs have at most
+    one frame in ten late beyond what the unwatched ones have among themselves."""
     view = free_port()
     svc = ServiceProcess(free_port(), view_port=str(view))
     wire = [sys.executable, str(Path(__file__).with_name("viser_wire.py")), f"ws://127.0.0.1:{view}"]
@@ -124,7 +124,9 @@ def test_a_watching_browser_adds_no_late_frame():
     late = lambda run, others: int((run > 1.5 * np.median(others, axis=0)).sum())  # noqa: E731
     late_alone = np.mean([late(run, np.delete(alone, i, axis=0)) for i, run in enumerate(alone)])
     late_watched = np.mean([late(run, alone) for run in watched])
-    assert late_watched <= 1.5 * late_alone + 5, (late_alone, late_watched, len(alone[0]))
+    # A view drawn in the loop at 10 Hz would make about one frame in three late; on 2 busy cores
+    # a watched run's late frames vary by a few percent of the frames from run to run.
+    assert late_watched <= late_alone + 0.1 * len(alone[0]), (late_alone, late_watched, len(alone[0]))
     assert min(messages) > 20, messages  # it was drawn to: the view sends at 10 Hz
 
 

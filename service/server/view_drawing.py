@@ -191,9 +191,13 @@ def draw_forever(conn: Connection, host: str, port: int) -> None:
 
     setup_logging("WARNING")
     quiet_warp()
-    # Drawing is worth less than tracking: on a machine with few cores the scheduler gives the
-    # service's loop the core whenever both want it.
-    os.nice(10)
+    # Drawing is worth less than tracking: on a machine with few cores it runs only on a core the
+    # service's loop leaves idle (a niced process still takes its share of a busy core, late frames
+    # on 2 cores).
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except OSError:  # a sandbox that refuses the policy: the lowest priority it allows
+        os.nice(19)
     try:
         drawing = Drawing(host, port)
     except Exception as exc:
