@@ -37,7 +37,7 @@ class ServoExplorer:
         self.enabled = config.servo_sigma0 > 0 and K >= config.servo_worlds
         """Whether any group of this population may explore its servos."""
         chains = joint_chains(pop.model, pop.layout)
-        self.names = tuple(pop.layout.joint_names[int(np.flatnonzero(chains == c)[0])] for c in range(chains.max() + 1))
+        self.names = tuple(pop.layout.joint_names[i] for i in np.unique(chains, return_index=True)[1])
         """Each chain by its first joint's name, (C,)."""
         self._chain = torch.as_tensor(chains, device=dev)
         C = len(self.names)
