@@ -19,7 +19,7 @@ import torch
 import warp as wp
 
 from . import observe
-from .build import build_model, contact_capacity, make_physics, robot_contacts
+from .build import DROPPED, build_model, contact_capacity, make_physics, robot_contacts
 from .config import PopulationConfig, resolve_device
 from .objects import ObjectSpec
 from .params import ObjectParams
@@ -125,8 +125,8 @@ class Population:
         self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
         self._wrench = t(self.buf.wrench).view(G, K, 6)
         self.overflow = t(self.observables.overflow).view(G, K)
-        """What each world's last substep dropped for want of room, (G, K) int32 bitmask
-        (newton.solvers.SolverMuJoCo.OverflowBits): 0 when nothing was."""
+        """What each world's last substep overflowed, (G, K) int32 bitmask
+        (newton.solvers.SolverMuJoCo.OverflowBits): 0 when nothing did; :meth:`dropped` reads it."""
 
     def _capture(self, turn: AbstractContextManager) -> None:
         # Compile every kernel once outside capture, then record; the eager frame is undone.
@@ -164,6 +164,10 @@ class Population:
                 wp.capture_launch(self._graph)
             else:
                 simulate(self)
+
+    def dropped(self) -> torch.Tensor:
+        """Which worlds' last substep left contacts or constraint rows out for want of room, (G, K) bool."""
+        return (self.overflow & DROPPED) != 0
 
     def step_eager(self) -> None:
         """The same frame launched kernel by kernel (for checking the graph)."""

@@ -3,6 +3,7 @@ frame that is a fixed number of torch ops whatever G and K are."""
 
 from __future__ import annotations
 
+import mujoco_warp as mjw
 import numpy as np
 import pytest
 import torch
@@ -182,6 +183,11 @@ def test_a_contact_overflow_is_reported_with_the_numbers(hand, recording, caplog
     roomy = Tracker(Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=2, device="cpu")))
     roomy.start(recording.initial_pose, recording.initial_q)
     assert not any(roomy.step(_frame(recording, f)).overflow.any() for f in range(recording.frames))
+    # The solver's iteration limits share the overflow mask but drop nothing: not an overflow.
+    for bits, dropped in [(mjw.OverflowType.LS_ITERATIONS | mjw.OverflowType.ITERATIONS, False),
+                          (mjw.OverflowType.NEFC, True), (1 << 17, True)]:  # fmt: skip
+        roomy.pop.overflow.fill_(int(bits))
+        assert bool(roomy.pop.dropped().all()) is dropped, f"overflow bits {int(bits):#x}"
 
 
 def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):

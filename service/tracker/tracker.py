@@ -386,7 +386,7 @@ class Tracker:
                 "contact_disagreement": at_best(self.cost.last_terms[..., 3]),  # sensors in disagreement
                 "hand": self.real.sensor_pos.mean(1),
                 "contacts_explored": self.contacts.open.float(),
-                "overflow": (pop.overflow != 0).any(-1).float(),
+                "overflow": pop.dropped().any(-1).float(),
             }
         )
 
