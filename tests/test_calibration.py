@@ -56,13 +56,16 @@ def gripper_recording(tmp_path_factory) -> tuple[Path, Path]:
 def test_calibrate_recovers_known_gains_of_a_synthetic_robot_and_writes_an_overlay(gripper_recording):
     recording, config = gripper_recording
     args = ["calibrate", str(recording), "--robot", str(config), "--worlds", "24", "--generations", "30"]
-    result = CliRunner().invoke(app, [*args, "--device", "cpu", "--json"])
+    result = CliRunner().invoke(app, [*args, "--device", "cpu", "--json", "--joint-noise", "2e-4"])
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     fitted = {s: [j[s]["fitted"] for j in summary["joints"]] for s in ("ke", "kd")}
     assert fitted["ke"] == pytest.approx(TRUE_KE, rel=0.1) and fitted["kd"] == pytest.approx(TRUE_KD, rel=0.1), fitted
     right = summary["joints"][1]
     assert right["rms_after"] < 0.2 * right["rms_before"], right
+    # The joints' stated noise comes out of the error in quadrature: no model follows it.
+    for joint in summary["joints"]:
+        assert joint["rms_after_net"] == pytest.approx(np.sqrt(max(joint["rms_after"] ** 2 - 4e-8, 0.0)), abs=1e-7)
     # The overlay extends the config and changes the population built from it.
     overlay = config.with_name("example_gripper.calibrated.toml")
     assert 'extends = "example_gripper.toml"' in overlay.read_text()
@@ -70,13 +73,17 @@ def test_calibrate_recovers_known_gains_of_a_synthetic_robot_and_writes_an_overl
     assert spec.name == "example_gripper" and dict(spec.servos)["ke"] == pytest.approx(TRUE_KE, rel=0.1)
     pop = Population(spec, catalog_object("foam_brick"), PopulationConfig(groups=1, worlds=2, device="cpu"))
     assert pop.servos("ke")[0, 1].tolist() == pytest.approx(TRUE_KE, rel=0.1)
-    assert "| right_slide |" in config.with_name("example_gripper.calibrated.md").read_text()
+    report = config.with_name("example_gripper.calibrated.md").read_text()
+    assert "| right_slide |" in report and "RMS after, net of noise" in report
 
 
 def test_calibrate_names_a_bad_setting_and_a_missing_recording(gripper_recording, tmp_path):
     recording, config = gripper_recording
     result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "none.traj"), "--robot", str(config)])
     assert result.exit_code == 2 and "no such recording" in result.output
+    noisy = ["calibrate", str(recording), "--robot", str(config), "--joint-noise", "-1", "--device", "cpu"]
+    result = CliRunner().invoke(app, noisy)
+    assert result.exit_code == 2 and "joint_noise: expected 0 to 1 rad or m, got -1" in result.output
     args = ["calibrate", str(recording), "--robot", str(config), "--settings", "gain", "--device", "cpu"]
     result = CliRunner().invoke(app, args)
     assert (

@@ -48,8 +48,11 @@ def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command:
 def calibration_report(fit: ServoFit) -> str:
     """A markdown table per joint: RMS joint error before and after, each setting's fitted value
     against the config's with its spread, and whether the data excited the joint."""
-    head = "| joint | RMS before | RMS after | " + " | ".join(fit.settings) + " |"
-    rows = [head, "|" + "---|" * (3 + len(fit.settings))]
+    noisy = fit.joint_noise > 0
+    net = " | RMS after, net of noise" if noisy else ""
+    head = f"| joint | RMS before | RMS after{net} | " + " | ".join(fit.settings) + " |"
+    rows = [head, "|" + "---|" * (3 + noisy + len(fit.settings))]
+    after_net = fit.net(fit.rms_after)
     for j, name in enumerate(fit.joints):
         cells = []
         for s in fit.settings:
@@ -61,6 +64,7 @@ def calibration_report(fit: ServoFit) -> str:
             )
         note = "" if fit.excited[j] else " (not excited)"
         errors = f"{fit.rms_before[j] * 1e3:.2f} | {fit.rms_after[j] * 1e3:.2f}"
+        errors += f" | {after_net[j] * 1e3:.2f}" if noisy else ""
         rows.append(f"| {name}{note} | {errors} | " + " | ".join(cells) + " |")
     quiet = [n for n, e in zip(fit.joints, fit.excited, strict=True) if not e]
     return "\n".join(
@@ -70,7 +74,13 @@ def calibration_report(fit: ServoFit) -> str:
             f"{fit.worlds} candidates a generation, {fit.generations} generations, {fit.frames} frames,"
             f" {fit.seconds:.0f} s. RMS joint error in mrad (mm for slides); a joint keeps its fitted servo where"
             " that lowers its own error by 5 % or more; a setting's spread is how far the best quarter of the"
-            " last generation disagrees.",
+            " last generation disagrees."
+            + (
+                f" The measured joints carry {fit.joint_noise * 1e3:.2g} mrad (mm) of noise, which no model follows:"
+                " net of it, the error is the square root of the difference of the squares."
+                if noisy
+                else ""
+            ),
             "",
             *rows,
             "",

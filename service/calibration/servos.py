@@ -77,6 +77,13 @@ class ServoFit:
     device: str
     history: list[float] = field(default_factory=list)
     """The best candidate's mean squared joint error per generation [rad^2 or m^2]."""
+    joint_noise: float = 0.0
+    """The measured joints' own noise, a standard deviation [rad or m]: no model follows them closer."""
+
+    def net(self, rms: np.ndarray) -> np.ndarray:
+        """RMS errors ``rms`` with the joints' noise taken out, (D,) [rad or m]: independent of the
+        model's error, it adds to it in quadrature."""
+        return np.sqrt(np.maximum(np.square(rms) - self.joint_noise**2, 0.0))
 
     def summary(self) -> dict:
         """As JSON-able numbers, per joint."""
@@ -87,6 +94,7 @@ class ServoFit:
                 "identified": bool(self.identified[j]),
                 "rms_before": float(self.rms_before[j]),
                 "rms_after": float(self.rms_after[j]),
+                "rms_after_net": float(self.net(self.rms_after)[j]),
                 **{
                     s: {
                         "nominal": float(self.nominal[s][j]),
@@ -108,6 +116,7 @@ class ServoFit:
             "seconds": self.seconds,
             "rms_before": float(np.sqrt(np.mean(self.rms_before**2))),
             "rms_after": float(np.sqrt(np.mean(self.rms_after**2))),
+            "joint_noise": self.joint_noise,
             "history": self.history,
             "joints": per_joint,
         }
@@ -238,12 +247,16 @@ def fit_servos(
     device: str = "auto",
     seed: int = 0,
     progress: Callable[[int, float], None] | None = None,
+    joint_noise: float = 0.0,
 ) -> ServoFit:
     """Fit ``settings`` of every actuated joint of ``spec`` to ``trajectories`` (commands and
     measured joints of that robot; ``obj`` is what the population simulates beside it) with
-    ``worlds`` candidates a generation; ``progress(generation, best)`` after each. A ValueError
+    ``worlds`` candidates a generation; ``progress(generation, best)`` after each. ``joint_noise``:
+    the measured joints' noise [rad or m], which the report takes out of the errors. A ValueError
     names a bad argument."""
     _check(settings, worlds, generations, trajectories)
+    if not (0.0 <= joint_noise < 1.0):
+        raise ValueError(f"calibrate: joint_noise: expected 0 to 1 rad or m, got {joint_noise}")
     t0 = time.perf_counter()
     pop = Population(spec, obj, PopulationConfig(groups=len(trajectories), worlds=worlds, device=device, seed=seed))
     d = pop.D
@@ -307,4 +320,5 @@ def fit_servos(
         seconds=time.perf_counter() - t0,
         device=pop.device.alias,
         history=search.history,
+        joint_noise=joint_noise,
     )

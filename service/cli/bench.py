@@ -250,7 +250,10 @@ def bench_calibration(
             traj = calibration_recording(chosen, device, seconds)
             traj.save(out / f"{suite}-calibration.traj")
             spec, obj = robot_spec(chosen.robot), catalog_object(traj.object)
-            fit = fit_servos(spec, obj, [traj], tuple(names(settings) or ()), worlds, generations, device)
+            fit = fit_servos(
+                spec, obj, [traj], tuple(names(settings) or ()), worlds, generations, device,
+                joint_noise=chosen.sensors.joint_sigma,
+            )  # fmt: skip
     except ValueError as exc:
         raise fail(f"bench calibration: {exc}") from None
     config = CONFIG_DIR / "robots" / f"{chosen.robot}.toml"

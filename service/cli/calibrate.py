@@ -27,6 +27,9 @@ def calibrate(
         str | None, typer.Option("--object", help="what the worlds simulate beside the hand (default: the recordings')")
     ] = None,
     out: Annotated[Path | None, typer.Option(help="the overlay (default: NAME.calibrated.toml beside it)")] = None,
+    joint_noise: Annotated[
+        float, typer.Option(help="the measured joints' noise, a standard deviation [rad or m]: the report takes it out")
+    ] = 0.0,
     device: Device = "auto",
     json_: Json = False,
 ) -> None:
@@ -50,7 +53,7 @@ def calibrate(
         with contextlib.redirect_stdout(sys.stderr):
             fit = fit_servos(
                 spec, obj, trajs, settings=tuple(names(settings) or ()), worlds=worlds, generations=generations,
-                device=device,
+                device=device, joint_noise=joint_noise,
             )  # fmt: skip
     except ValueError as exc:
         raise fail(f"calibrate: {exc}") from None
