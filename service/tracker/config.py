@@ -88,11 +88,12 @@ class Exploration:
     kernel of the population's own width, as regularised particle filters draw it), up to sigma_t
     and sigma_r; its width is this multiple of Silverman's rule for K poses. 0: jitter_t and
     jitter_r only."""
-    jitter_shrink_worlds: int = 256
+    jitter_shrink_worlds: int = 1
     """In groups of at least this many worlds, every displaced copy first moves 1 - sqrt(1 - h^2)
     of the way to the group's mean (Liu and West's shrinkage), so the roughening keeps the spread
-    instead of adding to it at every update; smaller groups need the extra spread against
-    collapse. 0: never."""
+    instead of adding to it at every update. Without it, where the sensing cannot tell the worlds
+    apart (an object resting on a palm), each update widens a small group and its mean wanders
+    with it. 0: never."""
 
     def __post_init__(self) -> None:
         _check(
