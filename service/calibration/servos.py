@@ -171,7 +171,9 @@ def _replay(pop: Population, series: _Series, servos: dict[str, torch.Tensor]) -
     return err.sum(0)
 
 
-def _check(settings: tuple[str, ...], worlds: int, generations: int, trajectories: list[Trajectory]) -> None:
+def _check(
+    settings: tuple[str, ...], worlds: int, generations: int, trajectories: list[Trajectory], joint_noise: float
+) -> None:
     """A ValueError naming a bad argument of :func:`fit_servos`."""
     unknown = sorted(set(settings) - set(SERVO_SETTINGS))
     if unknown or not settings:
@@ -182,6 +184,8 @@ def _check(settings: tuple[str, ...], worlds: int, generations: int, trajectorie
         raise ValueError("calibrate: no recording given")
     if wrong := [t.name for t in trajectories if t.robot != trajectories[0].robot]:
         raise ValueError(f"calibrate: recordings of several robots ({trajectories[0].robot} and {wrong[0]})")
+    if not (0.0 <= joint_noise < 1.0):
+        raise ValueError(f"calibrate: joint_noise: expected 0 to 1 rad or m, got {joint_noise}")
 
 
 class _Search:
@@ -252,11 +256,8 @@ def fit_servos(
     """Fit ``settings`` of every actuated joint of ``spec`` to ``trajectories`` (commands and
     measured joints of that robot; ``obj`` is what the population simulates beside it) with
     ``worlds`` candidates a generation; ``progress(generation, best)`` after each. ``joint_noise``:
-    the measured joints' noise [rad or m], which the report takes out of the errors. A ValueError
-    names a bad argument."""
-    _check(settings, worlds, generations, trajectories)
-    if not (0.0 <= joint_noise < 1.0):
-        raise ValueError(f"calibrate: joint_noise: expected 0 to 1 rad or m, got {joint_noise}")
+    the measured joints' noise [rad or m], out of the report's errors. A ValueError names a bad argument."""
+    _check(settings, worlds, generations, trajectories, joint_noise)
     t0 = time.perf_counter()
     pop = Population(spec, obj, PopulationConfig(groups=len(trajectories), worlds=worlds, device=device, seed=seed))
     d = pop.D
@@ -289,9 +290,7 @@ def fit_servos(
     searched = factors(search.run(start, 0.5, generations, factors)[None])[0]
     elite = search.xs[np.argsort(search.cost)[: max(2, worlds // 4)]].reshape(-1, n_set, d)
     spread = elite.std(axis=0)  # (S, D) in log factors
-    measured = series.q.cpu().numpy()
-    motion = measured.max(axis=(0, 1)) - measured.min(axis=(0, 1))
-    excited = motion >= _EXCITED * (pop.layout.upper - pop.layout.lower)
+    excited = np.ptp(series.q.cpu().numpy(), axis=(0, 1)) >= _EXCITED * (pop.layout.upper - pop.layout.lower)
     # One more replay scores the config's servos, the diagonal's and the search's: each joint takes
     # the better of the last two, and keeps it only where it was excited and its own error fell by a
     # margin (its servo acts on its own joint: a fit that does not help it is noise).
