@@ -20,15 +20,11 @@ from .robots import RobotLayout, RobotSpec, add_robot
 __all__ = ["DROPPED", "BuiltModel", "Physics", "build_model", "make_physics"]
 
 
-_Bits = newton.solvers.SolverMuJoCo.OverflowBits
-DROPPED = int(
-    _Bits.CONTACT_PIPELINE | _Bits.SOLVER_NCONMAX | mjw.OverflowType.NEFC | mjw.OverflowType.NJMAX_NNZ
-    | mjw.OverflowType.BROADPHASE | mjw.OverflowType.NARROWPHASE | mjw.OverflowType.CCD
-    | mjw.OverflowType.EPA_HORIZON | mjw.OverflowType.NVMAX
-)  # fmt: skip
-"""The bits of a world's overflow mask that mean its step left contacts or constraint rows out for
-want of room. The solver's iteration limits share the mask but drop nothing: a step that stops at
-its iteration budget keeps every contact, and a fixed budget is how a frame keeps its time."""
+DROPPED = ~int(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
+"""The bits of a world's overflow mask (newton.solvers.SolverMuJoCo.OverflowBits) that mean its step
+left contacts or constraint rows out for want of room: all but the solver's iteration limits, which
+share the mask but drop nothing. A step that stops at its iteration budget keeps every contact, and
+a fixed budget is how a frame keeps its time."""
 
 
 @dataclass

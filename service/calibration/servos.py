@@ -87,6 +87,7 @@ class ServoFit:
 
     def summary(self) -> dict:
         """As JSON-able numbers, per joint."""
+        after_net = self.net(self.rms_after)
         per_joint = [
             {
                 "joint": name,
@@ -94,7 +95,7 @@ class ServoFit:
                 "identified": bool(self.identified[j]),
                 "rms_before": float(self.rms_before[j]),
                 "rms_after": float(self.rms_after[j]),
-                "rms_after_net": float(self.net(self.rms_after)[j]),
+                "rms_after_net": float(after_net[j]),
                 **{
                     s: {
                         "nominal": float(self.nominal[s][j]),
