@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from cmaes import SepCMA
+from cmaes import CMA
 
 from inhand_tracker.protocol import Trajectory
 from inhand_tracker.sim_backend import Population, PopulationConfig
@@ -199,8 +199,9 @@ class _Search:
         self.frames_valid = float(series.valid.sum())
         self.history: list[float] = []
         """The best candidate's mean squared joint error [rad^2] per generation."""
-        self.xs = self.cost = np.zeros(0)
-        """The last generation's candidates as (N, S * D) log factors, and their errors (N,)."""
+        self.xs = self.err = np.zeros(0)
+        """The last generation's candidates as (N, S, D) log factors, and each joint's mean squared
+        error with them, (N, D)."""
 
     def joint_rms(self, factors: list[np.ndarray]) -> np.ndarray:
         """Each joint's RMS error [rad or m] replaying with each of ``factors`` ((S, D) log factors,
@@ -219,27 +220,38 @@ class _Search:
         rms = self.joint_rms([np.zeros((n_set, d))] + [np.full((n_set, d), x) for x in scales])
         return np.where(rms[1:].min(0) < 0.5 * rms[0], scales[rms[1:].argmin(0)], 0.0)
 
-    def run(self, mean: np.ndarray, sigma: float, generations: int, expand: Callable) -> np.ndarray:
-        """``generations`` of separable CMA-ES (each joint's servo acts on its own joint, so a
-        diagonal covariance learns as much in far fewer generations) from ``mean``, whose dimensions
-        ``expand`` maps to (N, S, D) log factors; returns the final mean."""
-        bounds = np.tile([-_FACTOR, _FACTOR], (len(mean), 1))
-        cma = SepCMA(mean, sigma, bounds=bounds, population_size=self.worlds, seed=self.seed)
-        d = self.pop.D
+    def run(self, mean: np.ndarray, sigma: float, generations: int) -> np.ndarray:
+        """``generations`` of CMA-ES per joint from ``mean`` ((S, D) log factors); returns the final
+        means, (S, D). A joint's servo acts mostly on its own joint, so every world carries a
+        candidate for each joint and each joint's search learns from its own joint's error: N worlds
+        are N samples for each joint's few settings, where one search over all of them (S * D
+        dimensions) learned little in tens of generations. Each search keeps a full covariance: a
+        joint's settings trade against each other along a valley (gain and damping scaled together
+        keep their time constant) that a diagonal one cannot follow."""
+        n_set, d = mean.shape
+        # cmaes needs two dimensions at least: a one-setting fit carries a second that nothing reads.
+        width = max(n_set, 2)
+        bounds = np.tile([-_FACTOR, _FACTOR], (width, 1))
+        start = np.zeros((width, d))
+        start[:n_set] = mean
+        cmas = [
+            CMA(start[:, j], sigma, bounds=bounds, population_size=self.worlds, seed=self.seed + j) for j in range(d)
+        ]
         for _ in range(generations):
-            xs = np.stack([cma.ask() for _ in range(self.worlds)])
-            full = expand(xs)
-            cost = (_replay(self.pop, self.series, self.candidates(full)).sum(-1) / (self.frames_valid * d)).cpu()
-            cma.tell(list(zip(xs, cost.numpy().astype(np.float64), strict=True)))
-            self.xs, self.cost = full.reshape(len(xs), -1), cost.numpy()
-            self.history.append(float(self.cost.min()))
+            xs = np.stack([np.stack([c.ask() for _ in range(self.worlds)]) for c in cmas], axis=-1)  # (N, W, D)
+            full = xs[:, :n_set]
+            err = (_replay(self.pop, self.series, self.candidates(full)) / self.frames_valid).cpu().numpy()
+            for j, c in enumerate(cmas):
+                c.tell(list(zip(xs[:, :, j], err[:, j].astype(np.float64), strict=True)))
+            self.xs, self.err = full, err
+            self.history.append(float(err.mean(-1).min()))
             log.info(
                 f"calibrate: generation {len(self.history)}: mean squared joint error best {self.history[-1]:.3g},"
-                f" median {float(np.median(self.cost)):.3g}, spread {float(xs.std(0).mean()):.3g}"
+                f" median {float(np.median(err.mean(-1))):.3g}, spread {float(full.std(0).mean()):.3g}"
             )
             if self.progress is not None:
                 self.progress(len(self.history), self.history[-1])
-        return cma.mean
+        return np.stack([c.mean[:n_set] for c in cmas], axis=-1)
 
 
 def fit_servos(
@@ -272,30 +284,23 @@ def fit_servos(
         factor = torch.exp(torch.as_tensor(x, dtype=torch.float32, device=pop.torch_device).view(-1, len(settings), d))
         return {name: base[i] * factor[:, i] for i, name in enumerate(settings)}
 
-    # Each setting's log factor is one shared by every joint plus the joint's own. A robot's servos
-    # are often off by one factor (a firmware's gain, a motor's rating), and a joint's settings trade
-    # against each other (at its limit a servo moves as fast as effort over damping): from the
-    # config's values the search ran up a valley of more effort, 9-39 mrad off where the truth's
-    # numbers, every setting halved, replay within 6. So one replay first scales all of a joint's
-    # settings together along the diagonal, a factor per world, and the search starts from each
-    # joint's best.
+    # A joint's settings trade against each other (at its limit a servo moves as fast as effort
+    # over damping): from the config's values the search ran up a valley of more effort, 9-39 mrad
+    # off where the truth's numbers, every setting halved, replay within 6. So one replay first
+    # scales all of a joint's settings together along the diagonal, a factor per world, and the
+    # search starts from each joint's best.
     n_set = len(settings)
     search = _Search(pop, series, candidates, worlds, seed, progress)
     diagonal = search.diagonal(n_set)
-    start = np.concatenate([np.zeros(n_set), np.tile(diagonal, n_set)])
-
-    def factors(x: np.ndarray) -> np.ndarray:  # (N, S + S * D) -> (N, S, D), within the bounds
-        shared, own = x[:, :n_set, None], x[:, n_set:].reshape(-1, n_set, d)
-        return np.clip(shared + own, -_FACTOR, _FACTOR)
-
-    searched = factors(search.run(start, 0.5, generations, factors)[None])[0]
-    elite = search.xs[np.argsort(search.cost)[: max(2, worlds // 4)]].reshape(-1, n_set, d)
-    spread = elite.std(axis=0)  # (S, D) in log factors
+    on_diagonal = np.tile(diagonal, (n_set, 1))
+    searched = search.run(on_diagonal, 0.3, generations)
+    # The spread of each joint's best quarter, ranked by its own error.
+    best = np.argsort(search.err, axis=0)[: max(2, worlds // 4)]  # (B, D)
+    spread = np.take_along_axis(search.xs, best[:, None, :], axis=0).std(axis=0)  # (S, D) in log factors
     excited = np.ptp(series.q.cpu().numpy(), axis=(0, 1)) >= _EXCITED * (pop.layout.upper - pop.layout.lower)
     # One more replay scores the config's servos, the diagonal's and the search's: each joint takes
     # the better of the last two, and keeps it only where it was excited and its own error fell by a
     # margin (its servo acts on its own joint: a fit that does not help it is noise).
-    on_diagonal = np.tile(diagonal, (n_set, 1))
     rms = search.joint_rms([np.zeros((n_set, d)), on_diagonal, searched])
     x_mean = np.where(rms[2] <= rms[1], searched, on_diagonal)
     best = np.minimum(rms[1], rms[2])
