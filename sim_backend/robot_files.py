@@ -56,11 +56,13 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
     spec = replace(spec, path=python_package_path(spec.path))
     if not os.path.isfile(spec.path):
         raise ValueError(f"robot '{spec.name}' path: no such file '{spec.path}'")
-    body_start, joint_start = builder.body_count, builder.joint_count
+    body_start, joint_start, shape_start = builder.body_count, builder.joint_count, builder.shape_count
+    pair_start = _pair_count(builder)
     ext = os.path.splitext(spec.path)[1].lower()
     if len(spec.base) != 7:
         raise ValueError(f"robot '{spec.name}' base: expected 7 values (x, y, z, qx, qy, qz, qw), got {len(spec.base)}")
     _import(builder, spec, ext)
+    _collide_pairs(builder, shape_start, pair_start)
 
     labels = [builder.joint_label[j] for j in range(joint_start, builder.joint_count)]
     by_name = {_short(lbl): joint_start + i for i, lbl in enumerate(labels)}
@@ -169,6 +171,49 @@ def _per_joint(spec: FileRobotSpec, name: str) -> np.ndarray:
     if not (np.isfinite(value).all() and (value >= 0).all()):
         raise ValueError(f"robot '{spec.name}' {name}: expected finite values >= 0, got {value.tolist()}")
     return np.broadcast_to(value, (len(spec.joints),))
+
+
+def _pair_count(builder: newton.ModelBuilder) -> int:
+    """How many explicit contact pairs (MJCF ``<contact><pair>``) the builder holds."""
+    attr = builder.custom_attributes.get("mujoco:pair_geom1")
+    return len(attr.values) if attr is not None and isinstance(attr.values, list) else 0
+
+
+def _collide_pairs(builder: newton.ModelBuilder, shape_start: int, pair_start: int) -> None:
+    """Let the shape pairs an MJCF names in ``<contact><pair>`` (from ``pair_start`` on) collide in
+    Newton's collision pipeline, which the worlds use: Newton's importer keeps them for MuJoCo's own
+    collision only, so a hand whose contype and conaffinity keep its links apart (the Shadow hand's)
+    would pass its thumb through its fingers, where the real hand's touch sensors read them pressing
+    each other. Each paired shape gets a collision group of its own, which collides with every
+    group, and a filter pair for each robot shape it collided with neither before nor by the file's
+    pairs. (The pairs' own contact settings, such as a frictionless ``condim="1"``, are not kept:
+    the contact takes the shapes' settings.)"""
+    attr = lambda name: builder.custom_attributes[name].values  # noqa: E731
+    if _pair_count(builder) <= pair_start:
+        return
+    pairs = {
+        frozenset((int(a), int(b)))
+        for a, b in zip(attr("mujoco:pair_geom1")[pair_start:], attr("mujoco:pair_geom2")[pair_start:], strict=True)
+        if a >= shape_start and b >= shape_start
+    }
+    paired = sorted({s for p in pairs for s in p})
+    shapes = [
+        s for s in range(shape_start, builder.shape_count) if builder.shape_flags[s] & newton.ShapeFlags.COLLIDE_SHAPES
+    ]
+    group = list(builder.shape_collision_group)
+    filtered = {frozenset(p) for p in builder.shape_collision_filter_pairs}
+
+    def collided(a: int, b: int) -> bool:  # Newton's broad phase test (broad_phase_common.test_group_pair)
+        ga, gb = group[a], group[b]
+        together = ga != 0 and gb != 0 and (ga == gb or gb < 0 if ga > 0 else ga != gb)
+        return together and frozenset((a, b)) not in filtered and builder.shape_body[a] != builder.shape_body[b]
+
+    exclude = {frozenset((a, b)) for a in paired for b in shapes if a != b and not collided(a, b)} - pairs
+    fresh = min(min(group, default=0), 0) - 1
+    for i, s in enumerate(paired):
+        builder.shape_collision_group[s] = fresh - i
+    for a, b in sorted(tuple(sorted(p)) for p in exclude):
+        builder.add_shape_collision_filter_pair(a, b)
 
 
 def _short(label: str) -> str:

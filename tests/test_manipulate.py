@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from inhand_tracker.service.bench.demos import Demo
 from inhand_tracker.service.bench.mujoco_truth import record_mujoco
 from inhand_tracker.service.bench.palm_motions import PALM_MOTION_KINDS, make_palm_motion
 from inhand_tracker.service.bench.recorder import record
@@ -131,3 +132,27 @@ def test_contact_capacity_is_sized_from_the_robot_and_object():
     assert sized.contacts_per_world > 32 and sized.constraints_per_world == 5 * sized.contacts_per_world
     chosen = PopulationConfig(groups=1, worlds=2, device="cpu", use_graph=False, contacts_per_world=40)
     assert Population(spec, obj, chosen).config.contacts_per_world == 40
+
+
+def test_the_hands_contact_pairs_collide_as_the_file_names_them(hand):
+    """The scene's file lets the thumb press the fingers through explicit contact pairs while its
+    collision masks keep the hand's links apart otherwise; the worlds simulate the pairs too, so
+    their touch zones read the thumb pressing the first finger as the scene's sensors do."""
+    spec, kin = hand
+    obj = catalog_object("block")
+    names = list(kin.layout.joint_names)
+    pinch = kin.layout.default_q.copy()
+    for joint, angle in {"THJ4": 0.9, "THJ3": 0.9, "FFJ2": 0.9, "FFJ1": 0.5, "FFJ0": 0.57}.items():
+        pinch[names.index(f"robot0:{joint}")] = angle
+    frames = 45
+    ramp = np.clip(np.arange(frames) / 30, 0, 1)[:, None]
+    controls = kin.layout.default_q + ramp * (pinch - kin.layout.default_q)
+    away = np.array([1.0, 1.0, 0.025, 0.0, 0.0, 0.0, 1.0])  # the block out of reach
+    demo = Demo("pinch", controls, away, kin.layout.default_q.copy(), phases=())
+    pop = Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu"))
+    touch = record(pop, demo, np.array([obj.mass]), np.array([obj.friction])).touch[-10:, 0].mean(0)
+    zones = kin.layout.zone_names
+    felt = lambda *links: sum(t for t, z in zip(touch, zones, strict=True) if z.startswith(links))  # noqa: E731
+    first_finger, thumb = felt("robot0:T_ffmiddle", "robot0:T_ffdistal"), felt("robot0:T_thmiddle", "robot0:T_thtip")
+    assert first_finger > 0.05 and thumb > 0.05, (first_finger, thumb)
+    assert felt("robot0:T_rf", "robot0:T_lf") == 0.0  # links no pair names stay apart
