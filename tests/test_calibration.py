@@ -153,3 +153,19 @@ def test_an_overlay_sets_the_joints_own_damping_armature_and_friction(tmp_path):
         assert pop.servos(name)[0, 1].tolist() == pytest.approx(values), name
     base = Population(load_robot(GRIPPER), catalog_object("foam_brick"), PopulationConfig(worlds=1, device="cpu"))
     assert base.servos("damping")[0, 0].tolist() != pytest.approx([0.5, 0.25])
+
+
+def test_the_report_names_a_joint_the_fit_leaves_far_off():
+    from inhand_tracker.service.calibration import ServoFit
+    from inhand_tracker.service.calibration.overlay import calibration_report
+
+    two = np.array([1.0, 1.0])
+    fit = ServoFit(
+        robot="gripper", joints=("left", "right"), settings=("ke",), nominal={"ke": two}, fitted={"ke": 2 * two},
+        spread={"ke": 0.1 * two}, identified=np.array([True, True]), excited=np.array([True, True]),
+        rms_before=np.array([0.02, 0.09]), rms_after=np.array([0.005, 0.04]), worlds=8, generations=2, frames=10,
+        seconds=1.0, device="cpu", joint_noise=0.004,
+    )  # fmt: skip
+    report = calibration_report(fit)
+    assert "more than 15 mrad (mm) off, net of the noise: right 40." in report, report
+    assert "left 3" not in report

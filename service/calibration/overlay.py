@@ -45,6 +45,12 @@ def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command:
     return out
 
 
+STAYS_OFF = 0.015
+"""A joint further than this off after a fit, net of the joints' noise [rad or m], is named in the
+report: three times the error a calibrated hand leaves in the benchmarks (allegro-palm-weak: at
+most 3.3 mrad), half what the service's model check names at run time."""
+
+
 def calibration_report(fit: ServoFit) -> str:
     """A markdown table per joint: RMS joint error before and after, each setting's fitted value
     against the config's with its spread, and whether the data excited the joint."""
@@ -67,6 +73,7 @@ def calibration_report(fit: ServoFit) -> str:
         errors += f" | {after_net[j] * 1e3:.2f}" if noisy else ""
         rows.append(f"| {name}{note} | {errors} | " + " | ".join(cells) + " |")
     quiet = [n for n, e in zip(fit.joints, fit.excited, strict=True) if not e]
+    off = [f"{n} {e * 1e3:.0f}" for n, e in zip(fit.joints, after_net, strict=True) if e > STAYS_OFF]
     return "\n".join(
         [
             f"# Servo calibration of `{fit.robot}`",
@@ -88,5 +95,17 @@ def calibration_report(fit: ServoFit) -> str:
             if quiet
             else "Every joint was excited.",
             "",
+            *(
+                [
+                    f"Joints the fit leaves more than {STAYS_OFF * 1e3:.0f} mrad (mm) off, net of the noise: "
+                    f"{', '.join(off)}. Their model differs in more than its servos (a coupling, a contact, a "
+                    "mass): a fitted servo there stands in for what is missing and may press harder than the "
+                    "robot. Where tracking with the overlay does worse, set their values in its [servos] "
+                    "table back to the config's.",
+                    "",
+                ]
+                if off
+                else []
+            ),
         ]
     )
