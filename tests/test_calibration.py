@@ -155,7 +155,19 @@ def test_an_overlay_sets_the_joints_own_damping_armature_and_friction(tmp_path):
     assert base.servos("damping")[0, 0].tolist() != pytest.approx([0.5, 0.25])
 
 
-def test_the_report_names_a_joint_the_fit_leaves_far_off():
+def test_a_joint_the_fit_leaves_far_off_keeps_the_configs_servo(gripper_recording, monkeypatch):
+    from inhand_tracker.protocol import Trajectory
+    from inhand_tracker.service.calibration import fit_servos, servos
+
+    recording, config = gripper_recording
+    spec, obj = load_robot(config), catalog_object("foam_brick")
+    monkeypatch.setattr(servos, "STAYS_OFF", 1e-9)  # every joint as far off as a missing coupling leaves it
+    fit = fit_servos(spec, obj, [Trajectory.load(recording)], worlds=8, generations=2, device="cpu")
+    assert not fit.identified.any() and fit.fitted["ke"].tolist() == pytest.approx(fit.nominal["ke"].tolist())
+    assert (fit.rms_after == fit.rms_before).all() and (fit.rms_fit < fit.rms_before).any()
+
+
+def test_the_report_names_the_joints_a_fit_leaves_far_off():
     from inhand_tracker.service.calibration import ServoFit
     from inhand_tracker.service.calibration.overlay import calibration_report
 
@@ -163,9 +175,9 @@ def test_the_report_names_a_joint_the_fit_leaves_far_off():
     fit = ServoFit(
         robot="gripper", joints=("left", "right"), settings=("ke",), nominal={"ke": two}, fitted={"ke": 2 * two},
         spread={"ke": 0.1 * two}, identified=np.array([True, True]), excited=np.array([True, True]),
-        rms_before=np.array([0.02, 0.09]), rms_after=np.array([0.005, 0.04]), worlds=8, generations=2, frames=10,
-        seconds=1.0, device="cpu", joint_noise=0.004,
+        rms_before=np.array([0.02, 0.09]), rms_after=np.array([0.005, 0.09]), rms_fit=np.array([0.005, 0.04]),
+        worlds=8, generations=2, frames=10, seconds=1.0, device="cpu", joint_noise=0.004,
     )  # fmt: skip
     report = calibration_report(fit)
-    assert "more than 15 mrad (mm) off, net of the noise: right 40." in report, report
+    assert "more than 15 mrad (mm) off, net of the noise, keep the config's servos: right 40." in report, report
     assert "left 3" not in report

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .servos import ServoFit
+from .servos import STAYS_OFF, ServoFit
 
 __all__ = ["calibration_report", "write_overlay"]
 
@@ -31,7 +31,7 @@ def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command:
         + f" on {datetime.date.today().isoformat()} ({fit.device}):",
         f"# joint RMS error {before:.2f} -> {after:.2f} mrad (mm for slides) over {fit.frames} frames;",
         f"# {int(fit.identified.sum())} of {fit.identified.size} joints take their fitted servos, the others keep the"
-        " config's (the fit did not lower their error).",
+        f" config's (the fit did not lower their error, or left them more than {STAYS_OFF * 1e3:.0f} mrad off).",
         "# Name this file in the service's `robots` setting in place of the config.",
         f'extends = "{Path(os.path.relpath(config.resolve(), out.resolve().parent)).as_posix()}"',
         "",
@@ -43,12 +43,6 @@ def write_overlay(fit: ServoFit, config: Path, out: Path | None = None, command:
     out.with_suffix(".md").write_text(calibration_report(fit))
     out.with_suffix(".json").write_text(json.dumps(fit.summary(), indent=2))
     return out
-
-
-STAYS_OFF = 0.015
-"""A joint further than this off after a fit, net of the joints' noise [rad or m], is named in the
-report: three times the error a calibrated hand leaves in the benchmarks (allegro-palm-weak: at
-most 3.3 mrad), half what the service's model check names at run time."""
 
 
 def calibration_report(fit: ServoFit) -> str:
@@ -73,14 +67,17 @@ def calibration_report(fit: ServoFit) -> str:
         errors += f" | {after_net[j] * 1e3:.2f}" if noisy else ""
         rows.append(f"| {name}{note} | {errors} | " + " | ".join(cells) + " |")
     quiet = [n for n, e in zip(fit.joints, fit.excited, strict=True) if not e]
-    off = [f"{n} {e * 1e3:.0f}" for n, e in zip(fit.joints, after_net, strict=True) if e > STAYS_OFF]
+    fit_net = fit.net(fit.rms_fit if fit.rms_fit is not None else fit.rms_after)
+    named = zip(fit.joints, fit_net, fit.excited, strict=True)
+    off = [f"{n} {e * 1e3:.0f}" for n, e, excited in named if excited and e > STAYS_OFF]
     return "\n".join(
         [
             f"# Servo calibration of `{fit.robot}`",
             "",
             f"{fit.worlds} candidates a generation, {fit.generations} generations, {fit.frames} frames,"
             f" {fit.seconds:.0f} s. RMS joint error in mrad (mm for slides); a joint keeps its fitted servo where"
-            " that lowers its own error by 5 % or more; a setting's spread is how far the best quarter of the"
+            f" that lowers its own error by 5 % or more and leaves it within {STAYS_OFF * 1e3:.0f} mrad net of the"
+            " noise; a setting's spread is how far the best quarter of the"
             " last generation disagrees."
             + (
                 f" The measured joints carry {fit.joint_noise * 1e3:.2g} mrad (mm) of noise, which no model follows:"
@@ -97,11 +94,10 @@ def calibration_report(fit: ServoFit) -> str:
             "",
             *(
                 [
-                    f"Joints the fit leaves more than {STAYS_OFF * 1e3:.0f} mrad (mm) off, net of the noise: "
-                    f"{', '.join(off)}. Their model differs in more than its servos (a coupling, a contact, a "
-                    "mass): a fitted servo there stands in for what is missing and may press harder than the "
-                    "robot. Where tracking with the overlay does worse, set their values in its [servos] "
-                    "table back to the config's.",
+                    f"Joints the fit leaves more than {STAYS_OFF * 1e3:.0f} mrad (mm) off, net of the noise, keep"
+                    f" the config's servos: {', '.join(off)}. Their model differs in more than its servos (a"
+                    " coupling, a contact, a mass): a fitted servo there would stand in for what is missing and"
+                    " press harder than the robot.",
                     "",
                 ]
                 if off
