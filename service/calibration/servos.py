@@ -51,7 +51,7 @@ the config's servo: its model differs in more than its servo (a coupling, a cont
 a fitted servo there stands in for what is missing. Half what the service's model check names at
 run time; a calibrated hand leaves at most 3.3 mrad in the benchmarks (allegro-palm-weak). On the
 Shadow hand's manipulate suite the fingers the fit left 15-130 mrad off took gains 3-8 times the
-scene's own and tracking with them lost 5-7 mm; kept on the config's, REPS gained 1.3 mm."""
+scene's own and tracking with them lost 5-7 mm; kept on the config's, the fit gained 1.5 mm."""
 
 
 @dataclass(frozen=True)
