@@ -203,10 +203,13 @@ def _collide_pairs(builder: newton.ModelBuilder, shape_start: int, pair_start: i
     group = list(builder.shape_collision_group)
     filtered = {frozenset(p) for p in builder.shape_collision_filter_pairs}
 
-    def collided(a: int, b: int) -> bool:  # Newton's broad phase test (broad_phase_common.test_group_pair)
+    def collided(a: int, b: int) -> bool:
+        # Newton's broad phase (broad_phase_common.test_group_pair): group 0 collides with nothing, a
+        # positive group with itself and the negatives, a negative one with all but itself.
         ga, gb = group[a], group[b]
-        together = ga != 0 and gb != 0 and (ga == gb or gb < 0 if ga > 0 else ga != gb)
-        return together and frozenset((a, b)) not in filtered and builder.shape_body[a] != builder.shape_body[b]
+        if ga == 0 or gb == 0 or builder.shape_body[a] == builder.shape_body[b] or frozenset((a, b)) in filtered:
+            return False
+        return (ga == gb or gb < 0) if ga > 0 else ga != gb
 
     exclude = {frozenset((a, b)) for a in paired for b in shapes if a != b and not collided(a, b)} - pairs
     fresh = min(min(group, default=0), 0) - 1

@@ -67,8 +67,7 @@ def calibration_report(fit: ServoFit) -> str:
         errors += f" | {after_net[j] * 1e3:.2f}" if noisy else ""
         rows.append(f"| {name}{note} | {errors} | " + " | ".join(cells) + " |")
     quiet = [n for n, e in zip(fit.joints, fit.excited, strict=True) if not e]
-    fit_net = fit.net(fit.rms_fit if fit.rms_fit is not None else fit.rms_after)
-    named = zip(fit.joints, fit_net, fit.excited, strict=True)
+    named = zip(fit.joints, fit.net(fit.rms_fit), fit.excited, strict=True)
     off = [f"{n} {e * 1e3:.0f}" for n, e, excited in named if excited and e > STAYS_OFF]
     return "\n".join(
         [

@@ -54,6 +54,12 @@ Shadow hand's manipulate suite the fingers the fit left 15-130 mrad off took gai
 scene's own and tracking with them lost 5-7 mm; kept on the config's, the fit gained 1.5 mm."""
 
 
+def _net(rms: np.ndarray, noise: float) -> np.ndarray:
+    """RMS errors with a measurement noise of standard deviation ``noise`` taken out: independent of
+    the model's error, it adds to it in quadrature."""
+    return np.sqrt(np.maximum(np.square(rms) - noise**2, 0.0))
+
+
 @dataclass(frozen=True)
 class ServoFit:
     """What a calibration found, per actuated joint (D,)."""
@@ -82,7 +88,7 @@ class ServoFit:
     frames: int
     seconds: float
     device: str
-    rms_fit: np.ndarray | None = None
+    rms_fit: np.ndarray
     """The fit's own RMS error per joint, (D,) [rad or m], kept or not."""
     history: list[float] = field(default_factory=list)
     """The best candidate's mean squared joint error per generation [rad^2 or m^2]."""
@@ -90,9 +96,8 @@ class ServoFit:
     """The measured joints' own noise, a standard deviation [rad or m]: no model follows them closer."""
 
     def net(self, rms: np.ndarray) -> np.ndarray:
-        """RMS errors ``rms`` with the joints' noise taken out, (D,) [rad or m]: independent of the
-        model's error, it adds to it in quadrature."""
-        return np.sqrt(np.maximum(np.square(rms) - self.joint_noise**2, 0.0))
+        """RMS errors ``rms`` with the joints' noise taken out, (D,) [rad or m]."""
+        return _net(rms, self.joint_noise)
 
     def summary(self) -> dict:
         """As JSON-able numbers, per joint."""
@@ -105,7 +110,7 @@ class ServoFit:
                 "rms_before": float(self.rms_before[j]),
                 "rms_after": float(self.rms_after[j]),
                 "rms_after_net": float(after_net[j]),
-                **({"rms_fit": float(self.rms_fit[j])} if self.rms_fit is not None else {}),
+                "rms_fit": float(self.rms_fit[j]),
                 **{
                     s: {
                         "nominal": float(self.nominal[s][j]),
@@ -305,8 +310,8 @@ def fit_servos(
     on_diagonal = np.tile(diagonal, (n_set, 1))
     searched = search.run(on_diagonal, 0.3, generations)
     # The spread of each joint's best quarter, ranked by its own error.
-    best = np.argsort(search.err, axis=0)[: max(2, worlds // 4)]  # (B, D)
-    spread = np.take_along_axis(search.xs, best[:, None, :], axis=0).std(axis=0)  # (S, D) in log factors
+    elite = np.argsort(search.err, axis=0)[: max(2, worlds // 4)]  # (B, D)
+    spread = np.take_along_axis(search.xs, elite[:, None, :], axis=0).std(axis=0)  # (S, D) in log factors
     excited = np.ptp(series.q.cpu().numpy(), axis=(0, 1)) >= _EXCITED * (pop.layout.upper - pop.layout.lower)
     # One more replay scores the config's servos, the diagonal's and the search's: each joint takes
     # the better of the last two, and keeps it only where it was excited, its own error fell by a
@@ -315,8 +320,7 @@ def fit_servos(
     rms = search.joint_rms([np.zeros((n_set, d)), on_diagonal, searched])
     x_mean = np.where(rms[2] <= rms[1], searched, on_diagonal)
     best = np.minimum(rms[1], rms[2])
-    near = np.sqrt(np.maximum(best**2 - joint_noise**2, 0.0)) <= STAYS_OFF
-    identified = excited & (best < (1.0 - _GAIN) * rms[0]) & near
+    identified = excited & (best < (1.0 - _GAIN) * rms[0]) & (_net(best, joint_noise) <= STAYS_OFF)
     rms = np.stack([rms[0], np.where(identified, best, rms[0])])
     x_fit = np.where(identified, x_mean, 0.0)
     fitted = {s: nominal[s] * np.exp(x_fit[i]) for i, s in enumerate(settings)}
