@@ -186,17 +186,23 @@ def _collide_pairs(builder: newton.ModelBuilder, shape_start: int, pair_start: i
     would pass its thumb through its fingers, where the real hand's touch sensors read them pressing
     each other. Each paired shape gets a collision group of its own, which collides with every
     group, and a filter pair for each robot shape it collided with neither before nor by the file's
-    pairs. (The pairs' own contact settings, such as a frictionless ``condim="1"``, are not kept:
-    the contact takes the shapes' settings.)"""
+    pairs. A paired shape also takes the smallest ``condim`` of its pairs (the Shadow hand's are all
+    1, frictionless): MuJoCo gives a contact of two shapes of one priority the larger of their
+    condims, so two paired shapes touch as their pair says, and the object (of higher priority)
+    touches them as before. Kept as the shapes have them: the pairs' friction and solver settings."""
     attr = lambda name: builder.custom_attributes[name].values  # noqa: E731
     if _pair_count(builder) <= pair_start:
         return
-    pairs = {
-        frozenset((int(a), int(b)))
-        for a, b in zip(attr("mujoco:pair_geom1")[pair_start:], attr("mujoco:pair_geom2")[pair_start:], strict=True)
-        if a >= shape_start and b >= shape_start
-    }
+    named = zip(*(attr(f"mujoco:pair_{k}")[pair_start:] for k in ("geom1", "geom2", "condim")), strict=True)
+    condims: dict[frozenset[int], int] = {}
+    for a, b, c in named:
+        if a >= shape_start and b >= shape_start:
+            condims[frozenset((int(a), int(b)))] = int(c)
+    pairs = set(condims)
     paired = sorted({s for p in pairs for s in p})
+    for s in paired:
+        # Frictionless pairs: fingers that press each other slide, as the file's hand does.
+        attr("mujoco:condim")[s] = min(c for p, c in condims.items() if s in p)
     shapes = [
         s for s in range(shape_start, builder.shape_count) if builder.shape_flags[s] & newton.ShapeFlags.COLLIDE_SHAPES
     ]
