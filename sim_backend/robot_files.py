@@ -188,8 +188,9 @@ def _collide_pairs(builder: newton.ModelBuilder, shape_start: int, pair_start: i
     group, and a filter pair for each robot shape it collided with neither before nor by the file's
     pairs. A paired shape also takes the smallest ``condim`` of its pairs (the Shadow hand's are all
     1, frictionless): MuJoCo gives a contact of two shapes of one priority the larger of their
-    condims, so two paired shapes touch as their pair says, and the object (of higher priority)
-    touches them as before. Kept as the shapes have them: the pairs' friction and solver settings."""
+    condims, so two paired shapes touch as their pair says; the object (of higher priority) touches
+    them as before, and any other shape by its own condim. Kept as the shapes have them: the pairs'
+    friction and solver settings."""
     attr = lambda name: builder.custom_attributes[name].values  # noqa: E731
     if _pair_count(builder) <= pair_start:
         return
