@@ -188,22 +188,24 @@ def _collide_pairs(builder: newton.ModelBuilder, shape_start: int, pair_start: i
     group, and a filter pair for each robot shape it collided with neither before nor by the file's
     pairs. A paired shape also takes the smallest ``condim`` of its pairs (the Shadow hand's are all
     1, frictionless): MuJoCo gives a contact of two shapes of one priority the larger of their
-    condims, so two paired shapes touch as their pair says; the object (of higher priority) touches
-    them as before, and any other shape by its own condim. Kept as the shapes have them: the pairs'
-    friction and solver settings."""
+    condims, so two paired shapes touch as their pair says wherever each shape's pairs agree (the
+    Shadow hand's do); the object (of higher priority) touches them as before, and any other shape
+    by its own condim. Kept as the shapes have them: the pairs' friction and solver settings."""
     attr = lambda name: builder.custom_attributes[name].values  # noqa: E731
     if _pair_count(builder) <= pair_start:
         return
     named = zip(*(attr(f"mujoco:pair_{k}")[pair_start:] for k in ("geom1", "geom2", "condim")), strict=True)
-    condims: dict[frozenset[int], int] = {}
+    pairs: set[frozenset[int]] = set()
+    condim: dict[int, int] = {}  # each paired shape's smallest pair condim
     for a, b, c in named:
         if a >= shape_start and b >= shape_start:
-            condims[frozenset((int(a), int(b)))] = int(c)
-    pairs = set(condims)
-    paired = sorted({s for p in pairs for s in p})
+            pairs.add(frozenset((int(a), int(b))))
+            for s in (int(a), int(b)):
+                condim[s] = min(condim.get(s, int(c)), int(c))
+    paired = sorted(condim)
     for s in paired:
         # Frictionless pairs: fingers that press each other slide, as the file's hand does.
-        attr("mujoco:condim")[s] = min(c for p, c in condims.items() if s in p)
+        attr("mujoco:condim")[s] = condim[s]
     shapes = [
         s for s in range(shape_start, builder.shape_count) if builder.shape_flags[s] & newton.ShapeFlags.COLLIDE_SHAPES
     ]
