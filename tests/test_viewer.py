@@ -4,6 +4,7 @@ drawn the hand and its hypotheses and show the session's figures and only the tr
 
 from __future__ import annotations
 
+import select
 import shutil
 import subprocess
 import sys
@@ -97,6 +98,21 @@ def _latencies(robot, traj: Trajectory) -> np.ndarray:
     return np.asarray(out)
 
 
+def _connected(wire: list[str]) -> subprocess.Popen:
+    """The browser's stand-in, once the view counts it as a client and has sent it the page's scene."""
+    browser = subprocess.Popen(wire, stdout=subprocess.PIPE, text=True)
+    ready, _, _ = select.select([browser.stdout], [], [], 120)
+    assert ready and browser.stdout.readline().strip() == "connected", "the browser's stand-in did not connect"
+    time.sleep(2)  # the page's scene sent
+    return browser
+
+
+def _received(browser: subprocess.Popen) -> int:
+    """How many messages the stand-in read, all it was sent included."""
+    browser.terminate()
+    return int(browser.communicate(timeout=60)[0])
+
+
 def test_a_watching_browser_adds_no_late_frame():
     """The same session five times, in turn alone and watched by a browser's side of the wire
     (another process that reads every message the view sends, as a browser on another machine
@@ -112,12 +128,14 @@ def test_a_watching_browser_adds_no_late_frame():
             svc.wait_ready(robot)
             traj = Trajectory.load(TRAJECTORY)
             for watched in (False, True, False, True, False):
-                browser = subprocess.Popen(wire, stdout=subprocess.PIPE, text=True) if watched else None
-                time.sleep(3)  # connected, and the page's scene sent
+                browser = _connected(wire) if watched else None
+                start = time.monotonic()
                 runs[watched].append(_latencies(robot, traj))
                 if browser is not None:
-                    browser.terminate()
-                    messages.append(int(browser.communicate(timeout=30)[0]))
+                    messages.append(_received(browser))
+            idle = _connected(wire)  # as long as a run, with nothing to draw
+            time.sleep(time.monotonic() - start)
+            messages.append(_received(idle))
     finally:
         svc.stop()
     alone, watched = np.stack(runs[False]), np.stack(runs[True])
@@ -127,7 +145,9 @@ def test_a_watching_browser_adds_no_late_frame():
     # A view drawn in the loop at 10 Hz would make about one frame in three late; on 2 busy cores
     # a watched run's late frames vary by a few percent of the frames from run to run.
     assert late_watched <= late_alone + 0.1 * len(alone[0]), (late_alone, late_watched, len(alone[0]))
-    assert min(messages) > 20, messages  # it was drawn to: the view sends at 10 Hz
+    # It was drawn to: on a busy runner the view draws less often than its 10 Hz, but it draws.
+    *watching, nothing = messages
+    assert min(watching) >= nothing + 3, messages
 
 
 def test_the_view_compiles_what_it_draws_at_warm_up():
