@@ -133,8 +133,9 @@ def test_a_watching_browser_adds_no_late_frame():
                 runs[watched].append(_latencies(robot, traj))
                 if browser is not None:
                     messages.append(_received(browser))
+            seconds = time.monotonic() - start
             idle = _connected(wire)  # as long as a run, with nothing to draw
-            time.sleep(time.monotonic() - start)
+            time.sleep(seconds)
             messages.append(_received(idle))
     finally:
         svc.stop()
