@@ -40,17 +40,10 @@ def _browser():
 def _screenshot(browser, url: str, path, wait: float = 8.0) -> np.ndarray:
     """The page ``wait`` seconds after it opened, as RGB pixels."""
     import imageio.v3 as iio
-    from selenium.common.exceptions import TimeoutException
 
     browser.get(url)
     time.sleep(wait)
-    for attempt in range(3):
-        try:  # software WebGL on a busy runner can keep the renderer past WebDriver's 10 s for a frame
-            browser.save_screenshot(str(path))
-            break
-        except TimeoutException:
-            if attempt == 2:
-                raise
+    browser.save_screenshot(str(path))
     return iio.imread(path)[..., :3].astype(np.int16)
 
 
