@@ -336,8 +336,9 @@ class Estimate(_Message):
     stamp: float
     """That frame's robot clock [s]."""
     pose: Pose
-    """The estimate of the object's pose, (7,): by default the cost-weighted mean over the
-    session's worlds (``mean_pose``), else the lowest-cost world's (setting ``mean_estimate``)."""
+    """The estimate of the object's pose, (7,): by default the cost-weighted mean over the worlds of
+    the lowest-cost world's mode (``modes``), which is ``mean_pose`` wherever the worlds agree, else
+    the lowest-cost world's (setting ``mean_estimate``)."""
     mean_pose: Pose
     """The cost-weighted mean object pose over the session's worlds, (7,)."""
     covariance: Matrix6

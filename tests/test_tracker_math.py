@@ -349,11 +349,36 @@ def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():
     poses[0, :, 0] += torch.linspace(0, 0.004, 10)  # a few millimetres of spread within each mode
     poses[0, 1, 3:] = -upright[3:]  # the same rotation, the other sign
     weights = torch.full((1, 10), 0.1)
-    seeds, shares = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
+    seeds, shares, first = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
     assert torch.allclose(shares, torch.tensor([[0.6, 0.4]])) and torch.allclose(seeds[0, 1, 3:], turned[3:])
+    assert first[0].tolist() == [True] * 6 + [False] * 4
     weights = torch.tensor([[0.16] * 6 + [0.01] * 4])  # the turned worlds disagree with the robot
-    _, shares = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
+    _, shares, _ = pose_modes(poses, poses[:, 0], weights, angle=0.5, distance=0.02)
     assert shares[0, 1] == pytest.approx(0.04)
+
+
+def test_the_mean_is_taken_over_the_lowest_cost_worlds_mode_not_between_two():
+    from inhand_tracker.service.tracker.config import EstimateConfig
+    from inhand_tracker.service.tracker.estimate import pose_statistics
+
+    in_hand = torch.tensor([0.10, 0.0, 0.05, 0.0, 0.0, 0.0, 1.0])
+    rolled_off = torch.tensor([0.10, 0.15, -0.05, 0.0, 0.0, 0.0, 1.0])  # 18 cm away, on the table
+    poses = torch.stack([in_hand] * 4 + [rolled_off] * 6)[None].clone()
+    poses[0, :4, 0] += torch.tensor([-0.002, -0.001, 0.001, 0.002])  # spread within the hand's mode
+    window = torch.tensor([[1.0, 1.2, 1.3, 1.4] + [1.1] * 6])  # contact barely tells the modes apart
+    origin = in_hand.clone()
+    _, split = pose_statistics(poses, window, origin, EstimateConfig())
+    _, across = pose_statistics(poses, window, origin, EstimateConfig(mean_over_mode=False))
+    assert split["pose"][0, :3].tolist() == pytest.approx([0.1, 0.0, 0.05], abs=2e-3)  # within the hand's mode
+    assert across["pose"][0, 1] > 0.07  # the mean of all lies between the hand and the table
+    # Where every world is in one mode the two means are one.
+    _, one = pose_statistics(poses[:, :4], window[:, :4], origin, EstimateConfig())
+    _, all_ = pose_statistics(poses[:, :4], window[:, :4], origin, EstimateConfig(mean_over_mode=False))
+    assert torch.allclose(one["pose"], all_["pose"]) and torch.allclose(one["covariance"], all_["covariance"])
+    # The mean of all, its covariance and the re-seeding anchor (mean_pose) are the same either way.
+    assert torch.allclose(split["mean_pose"], across["pose"]) and torch.allclose(
+        split["covariance"], across["covariance"]
+    )
 
 
 def test_point_spread_matches_sampled_poses_and_counts_a_turn_by_how_far_it_moves_the_object():
@@ -394,6 +419,27 @@ def test_worlds_that_agree_on_the_position_but_not_on_the_turn_are_uncertain():
     recovery.start(pose, np.ones(3, bool))
     recovery.watch(est, None, np.zeros(3, bool), hand=np.zeros((3, 3), np.float32))
     assert list(recovery.status) == [TrackState.TRACKING, TrackState.UNCERTAIN, TrackState.UNCERTAIN]
+
+
+def test_a_reseed_centres_on_the_mean_of_all_worlds_not_on_the_reported_mode():
+    from inhand_tracker.service.tracker import TrackerConfig
+    from inhand_tracker.service.tracker.layout import GroupEstimates
+    from inhand_tracker.service.tracker.recovery import Recovery
+
+    mode = np.array([[0.1, 0.0, 0.05, 0, 0, 0, 1]], np.float32)  # what the estimate reports
+    mean = np.array([[0.1, 0.04, 0.03, 0, 0, 0, 1]], np.float32)  # the mean of all the worlds
+
+    def estimate(lost: float) -> GroupEstimates:
+        return GroupEstimates(frame=1, pose=mode, best_pose=mode, cost=np.zeros(1), mean_pose=mean,
+                              covariance=np.eye(6)[None] * 1e-8, mass=np.ones(1), friction=np.ones(1),
+                              lost=np.full(1, lost), contact_disagreement=np.zeros(1),
+                              status=np.zeros(1, np.int64), mode_weights=np.array([[1.0, 0.0]]))  # fmt: skip
+
+    recovery = Recovery(TrackerConfig(), groups=1, sensors=4, moment=np.eye(3) * 1e-3)
+    recovery.start(mode, np.ones(1, bool))
+    recovery.watch(estimate(0.0), None, np.zeros(1, bool), hand=np.zeros((1, 3), np.float32))  # trusted
+    (reseed,) = recovery.watch(estimate(1.0), None, np.zeros(1, bool), hand=np.zeros((1, 3), np.float32))
+    assert np.allclose(reseed.anchor, mean), "re-seeded around a mode, the worlds followed it off the hand"
 
 
 def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():

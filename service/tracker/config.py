@@ -201,6 +201,12 @@ class EstimateConfig:
     """Report the cost-weighted mean of the worlds' object poses; False: the lowest-cost world's
     (the paper's). Costs a few millimetres apart barely separate worlds, so one world picked
     among them carries their spread as error, which the mean averages out."""
+    mean_over_mode: bool = True
+    """Report the mean over the worlds of the lowest-cost world's mode (within ``mode_angle`` and
+    ``mode_distance`` of it) rather than over all: where the worlds split, as when the object left
+    the hand in some and not in others, the mean of all lies between the modes, where none is.
+    Where the worlds agree the mode holds all of them. ``mean_pose``, the covariance and the
+    re-seeding anchor stay those of all the worlds."""
     estimate_lambda: float = 2.0
     """Sharpness of the weights behind the mean pose and covariance: softmax of
     -lambda (C - min C) / std C over the worlds that still hold the object. Scaled by the standard

@@ -21,12 +21,12 @@ object scores 1e9, and its region would cover the room; its status says so inste
 
 def pose_modes(
     poses: torch.Tensor, best: torch.Tensor, weights: torch.Tensor, angle: float, distance: float
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The two heaviest pose modes of each group's worlds ``poses`` (G, K, 7) under ``weights``
     (G, K): the one around the lowest-cost world's pose ``best`` (G, 7), and the one around the
     heaviest world outside it. A mode is the worlds within ``angle`` [rad] and ``distance`` [m]
-    of its seed (a quaternion and its negative are one rotation). Returns the seeds (G, 2, 7) and
-    the modes' shares of the weights (G, 2)."""
+    of its seed (a quaternion and its negative are one rotation). Returns the seeds (G, 2, 7),
+    the modes' shares of the weights (G, 2) and which worlds are in the first mode (G, K) bool."""
 
     def near(seed: torch.Tensor) -> torch.Tensor:  # (G, 7) -> (G, K) bool
         dot = (poses[..., 3:] * seed[:, None, 3:]).sum(-1).abs().clamp(max=1.0)
@@ -38,7 +38,7 @@ def pose_modes(
     second_seed = poses.gather(1, heaviest_away[:, None, None].expand(-1, 1, 7))[:, 0]
     second = near(second_seed) & ~first
     shares = torch.stack([(weights * first).sum(-1), (weights * second).sum(-1)], -1)
-    return torch.stack([best, second_seed], 1), shares
+    return torch.stack([best, second_seed], 1), shares, first
 
 
 def pose_statistics(
@@ -70,9 +70,18 @@ def pose_statistics(
         dim=-1,
     )
     mean_pose = torch.cat([mean_p, mean_q], dim=-1)
-    modes, mode_weights = pose_modes(poses, pose, weights, config.mode_angle, config.mode_distance)
+    modes, mode_weights, first = pose_modes(poses, pose, weights, config.mode_angle, config.mode_distance)
+    reported = mean_pose
+    if config.mean_over_mode:
+        # A mean across two modes (an object in the hand and one that rolled off it) lies where
+        # neither is: the report takes the lowest-cost world's mode, all the worlds where they agree.
+        # Where the costs say nothing of the poses (sharpness 0) the lowest is no mode's: all count.
+        mode = first if sharpness is None else first | (sharpness <= 0)
+        share = weights * mode / (weights * mode).sum(-1, keepdim=True)
+        share_q = torch.nn.functional.normalize((share[..., None] * quat).sum(1), dim=-1)
+        reported = torch.cat([(share[..., None] * position).sum(1), share_q], dim=-1)
     return best, {
-        "pose": mean_pose if config.mean_estimate else pose,
+        "pose": reported if config.mean_estimate else pose,
         "best_pose": pose,
         "mean_pose": mean_pose,
         "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),

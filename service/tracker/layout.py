@@ -149,8 +149,8 @@ class GroupEstimates:
 
     frame: int
     pose: np.ndarray
-    """The estimate, (G, 7): position [m], quaternion (x, y, z, w); the mean pose or the best
-    world's (``EstimateConfig.mean_estimate``)."""
+    """The estimate, (G, 7): position [m], quaternion (x, y, z, w); the mean over the best world's
+    mode (``EstimateConfig.mean_over_mode``), over all, or the best world's (``mean_estimate``)."""
     best_pose: np.ndarray
     """The lowest-cost world's object pose, (G, 7)."""
     cost: np.ndarray

@@ -139,7 +139,10 @@ class Recovery:
         # (a sudden slip) does not hold the anchor back: the contacts' agreement says more.
         tracking = ~(unsure | ambiguous | recovering | diverged | lost_contact)
         trusted = tracking | (~diverged & (est.contact_disagreement == 0))
-        self.trusted[trusted] = est.pose[trusted]
+        # The mean over every world, not the report's one mode: re-seeded around a mode the worlds
+        # split into, the population followed it off the hand where the mean of all had held it.
+        anchor = est.mean_pose if cfg.estimate.mean_estimate else est.pose
+        self.trusted[trusted] = anchor[trusted]
         self._trusted_hand[trusted] = hand[trusted]
         self._trusted_held[trusted] = touching[trusted]
         # The real fingers touch nothing while the worlds still hold the object: it fell (or was let
