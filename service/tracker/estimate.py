@@ -41,6 +41,13 @@ def pose_modes(
     return torch.stack([best, second_seed], 1), shares, first
 
 
+def _weighted_mean(weights: torch.Tensor, position: torch.Tensor, quat: torch.Tensor) -> torch.Tensor:
+    """The pose (G, 7) of ``weights`` (G, K, summing to 1) over ``position`` (G, K, 3) and ``quat``
+    (G, K, 4), the quaternions already in one hemisphere (fine for spreads << 1 rad)."""
+    mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
+    return torch.cat([(weights[..., None] * position).sum(1), mean_q], dim=-1)
+
+
 def pose_statistics(
     object_pose: torch.Tensor,
     window: torch.Tensor,
@@ -63,13 +70,12 @@ def pose_statistics(
     quat = poses[..., 3:]
     # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
     quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
-    mean_p = (weights[..., None] * position).sum(1)
-    mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
+    mean_pose = _weighted_mean(weights, position, quat)
+    mean_p, mean_q = mean_pose[:, :3], mean_pose[:, 3:]
     delta = torch.cat(
         [position - mean_p[:, None], quat_log(quat_multiply(quat_conjugate(mean_q)[:, None].expand_as(quat), quat))],
         dim=-1,
     )
-    mean_pose = torch.cat([mean_p, mean_q], dim=-1)
     modes, mode_weights, first = pose_modes(poses, pose, weights, config.mode_angle, config.mode_distance)
     reported = mean_pose
     if config.mean_over_mode:
@@ -77,9 +83,7 @@ def pose_statistics(
         # neither is: the report takes the lowest-cost world's mode, all the worlds where they agree.
         # Where the costs say nothing of the poses (sharpness 0) the lowest is no mode's: all count.
         mode = first if sharpness is None else first | (sharpness <= 0)
-        share = weights * mode / (weights * mode).sum(-1, keepdim=True)
-        share_q = torch.nn.functional.normalize((share[..., None] * quat).sum(1), dim=-1)
-        reported = torch.cat([(share[..., None] * position).sum(1), share_q], dim=-1)
+        reported = _weighted_mean(weights * mode / (weights * mode).sum(-1, keepdim=True), position, quat)
     return best, {
         "pose": reported if config.mean_estimate else pose,
         "best_pose": pose,
