@@ -37,13 +37,24 @@ def _browser():
     return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=DRIVER))
 
 
-def _screenshot(browser, url: str, path, wait: float = 8.0) -> np.ndarray:
-    """The page ``wait`` seconds after it opened, as RGB pixels."""
+def _screenshot(browser, url: str, path, wait: float = 8.0, attempts: int = 3) -> np.ndarray:
+    """The page ``wait`` seconds after it opened, as RGB pixels. ChromeDriver gives the renderer a
+    fixed 10 s to answer a screenshot; on a loaded 2-core machine software WebGL can hold it longer,
+    so a screenshot the renderer did not answer is asked for again (the page is live: a later one
+    shows the same scene)."""
     import imageio.v3 as iio
+    from selenium.common.exceptions import TimeoutException
 
     browser.get(url)
     time.sleep(wait)
-    browser.save_screenshot(str(path))
+    for attempt in range(attempts):
+        try:
+            browser.save_screenshot(str(path))
+            break
+        except TimeoutException:
+            if attempt == attempts - 1:
+                raise
+            time.sleep(wait)
     return iio.imread(path)[..., :3].astype(np.int16)
 
 
