@@ -44,9 +44,10 @@ HEALTH_NAN = 1
 HEALTH_LOST = 2
 """A world's object fell through the table or flies off faster than anything held (it exploded)."""
 HEALTH_AWAY = 3
-"""A world's object lies far from the hand but is otherwise plausible: above the table and slower
-than an explosion. Lost while the real hand holds the object; a valid hypothesis when it does not
-(the object was put down, or dropped, and the hand moved on), which only the tracker knows."""
+"""A world's object lies far from the hand, or (for a hand that carries objects on its palm) rests
+on the scene and touches no link of the hand, but is otherwise plausible: above the table and
+slower than an explosion. Lost while the real hand holds the object; a valid hypothesis when it
+does not (the object was put down, or dropped, and the hand moved on), which only the tracker knows."""
 
 
 @wp.kernel(enable_backward=False)
@@ -106,6 +107,35 @@ def _between_surfaces(b0: int, b1: int, a: wp.vec3, b: wp.vec3, body_q: wp.array
     return 0.5 * (a + b)
 
 
+@wp.func
+def count_object_contact(
+    b0: int,
+    b1: int,
+    pressed: float,
+    object_world: wp.array[wp.int32],
+    hand_contacts: wp.array[wp.int32],
+    rest_contacts: wp.array[wp.int32],
+):
+    """Count a contact of a world's object: with a body of its world (a link of the hand) in
+    ``hand_contacts``, even inside the detection gap; with the static scene (body -1: the table)
+    in ``rest_contacts`` only where it presses."""
+    obj = -1
+    other = b1
+    if b0 >= 0:
+        if object_world[b0] >= 0:
+            obj = b0
+    if obj < 0 and b1 >= 0:
+        if object_world[b1] >= 0:
+            obj = b1
+            other = b0
+    if obj < 0:
+        return
+    if other >= 0:
+        wp.atomic_add(hand_contacts, object_world[obj], 1)
+    elif pressed > 0.0:
+        wp.atomic_add(rest_contacts, object_world[obj], 1)
+
+
 @wp.kernel(enable_backward=False)
 def accumulate_contacts(
     contact_count: wp.array[wp.int32],
@@ -134,10 +164,13 @@ def accumulate_contacts(
     spin_acc: wp.array2d[wp.vec3],
     weight_acc: wp.array2d[float],
     touch: wp.array2d[float],
+    hand_contacts: wp.array[wp.int32],
+    rest_contacts: wp.array[wp.int32],
 ):
     """Sum, per sensor, the force from its world's object and the force-weighted slip velocity;
     per touch zone, the normal force of every contact inside it, the object's or not
-    (:func:`.zones.press_zones`).
+    (:func:`.zones.press_zones`); per world, the object's contacts with the robot's links (within
+    the detection gap) and those that press it against the static scene.
 
     ``sensor_row[b]`` is w * L + l when body b carries sensor l of world w, else -1;
     ``object_world[b]`` is w when body b is world w's object, else -1. Launch dim: contact capacity.
@@ -152,6 +185,7 @@ def accumulate_contacts(
     touched = _between_surfaces(b0, b1, point0[c] + offset0[c], point1[c] + offset1[c], body_q)
     press_zones(b0, b1, f, normal[c], touched, body_q, object_world, bodies_per_world,
                 zone_first, zone_index, zone_center, zone_half, touch)  # fmt: skip
+    count_object_contact(b0, b1, wp.length(f), object_world, hand_contacts, rest_contacts)
     if b0 < 0 or b1 < 0:
         return
     # The pads' slip velocity stays at shape 0's core point (a pad's centre), where the bundled
@@ -241,10 +275,15 @@ def object_health(
     floor_z: float,
     lost_distance: float,
     lost_speed: float,
+    hand_contacts: wp.array[wp.int32],
+    rest_contacts: wp.array[wp.int32],
+    on_palm: int,
     pose_out: wp.array2d[float],
     health_out: wp.array[wp.int32],
 ):
-    """Object pose (x, y, z, qx, qy, qz, qw) and health of each world. Launch dim (W,)."""
+    """Object pose (x, y, z, qx, qy, qz, qw) and health of each world. Launch dim (W,).
+    ``on_palm``: the hand carries objects on its palm, so an object resting on the scene
+    (``rest_contacts``) that touches no link (``hand_contacts``) has left it, however near."""
     w = wp.tid()
     x = body_q[w * bodies_per_world + object_body]
     qd = body_qd[w * bodies_per_world + object_body]
@@ -270,6 +309,8 @@ def object_health(
     elif p[2] < floor_z or wp.length(wp.spatial_top(qd)) > lost_speed:
         health = HEALTH_LOST
     elif wp.length(p - centre) > lost_distance:
+        health = HEALTH_AWAY
+    elif on_palm != 0 and rest_contacts[w] > 0 and hand_contacts[w] == 0:
         health = HEALTH_AWAY
     health_out[w] = health
 
@@ -327,6 +368,10 @@ class Buffers:
     slip_acc: wp.array
     spin_acc: wp.array
     weight_acc: wp.array
+    hand_contacts: wp.array
+    """Contacts of each world's object with the robot's links this frame, (W,) int32."""
+    rest_contacts: wp.array
+    """Contacts pressing each world's object against the static scene this frame, (W,) int32."""
     wrench: wp.array
     """Perturbation wrench on each world's object for the next frame, (W,) spatial_vector."""
 
@@ -350,6 +395,8 @@ def allocate_buffers(w: int, d: int, l: int, zones: int = 0) -> Buffers:
         slip_acc=z((w, l), dtype=wp.vec3),
         spin_acc=z((w, l), dtype=wp.vec3),
         weight_acc=z((w, l), dtype=float),
+        hand_contacts=z(w, dtype=wp.int32),
+        rest_contacts=z(w, dtype=wp.int32),
         wrench=z(w, dtype=wp.spatial_vector),
     )
 

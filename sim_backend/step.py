@@ -107,6 +107,8 @@ def observe_frame(pop: Population) -> None:
     c = pop.contacts
     if pop.Z:
         b.touch.zero_()  # the sensors' sums are cleared by sensor_poses, the zones' here
+    b.hand_contacts.zero_()
+    b.rest_contacts.zero_()
     wp.launch(
         observe.accumulate_contacts,
         dim=c.rigid_contact_max,
@@ -130,7 +132,7 @@ def observe_frame(pop: Population) -> None:
             s["zone_center"],
             s["zone_half"],
         ],
-        outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, b.touch],
+        outputs=[b.force_acc, b.slip_acc, b.spin_acc, b.weight_acc, b.touch, b.hand_contacts, b.rest_contacts],
     )
     observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
     wp.launch(
@@ -148,6 +150,9 @@ def observe_frame(pop: Population) -> None:
             cfg.floor_z,
             cfg.lost_distance,
             cfg.lost_speed,
+            b.hand_contacts,
+            b.rest_contacts,
+            int(pop.layout.carries_on_palm),
         ],
         outputs=[b.object_pose, b.health],
     )

@@ -151,3 +151,24 @@ def test_the_short_suite_runs_on_a_cpu(tmp_path):
     assert result.exit_code == 0, result.output
     report = (out / "report.md").read_text()
     assert "allegro-palm-short" in report and "| PBO |" in report
+
+
+def test_a_block_resting_on_the_table_beside_the_palm_is_away_and_one_in_the_air_is_not(hand):
+    """A hand that carries objects on its palm has left a block that rests on the table and touches
+    no link, however near (here 15 cm from the palm, well inside the distance that says "far");
+    a block on the palm, or in the air above it or beside it, is still a hypothesis."""
+    from inhand_tracker.service.bench.push_motions import make_push_motion
+    from inhand_tracker.sim_backend import HEALTH_AWAY, HEALTH_OK, Population, PopulationConfig
+
+    obj = catalog_object("block")
+    demo = make_push_motion(hand, obj, "push", seconds=6.0)
+    pop = Population(robot_spec("allegro_palm"), obj, PopulationConfig(worlds=4, device="cpu"))
+    poses = np.tile(demo.object_pose, (1, 4, 1))
+    poses[0, 1, [0, 2]] = poses[0, 1, 0] + 0.15, 0.025  # on the table beside the hand
+    poses[0, 2, 2] += 0.03  # in the air above the palm
+    poses[0, 3, [0, 2]] = poses[0, 3, 0] + 0.15, 0.10  # falling beside the hand
+    pop.reset_state(poses, demo.q)
+    pop.set_targets(demo.q[None])
+    pop.step()
+    assert pop.obs.health[0].tolist() == [HEALTH_OK, HEALTH_AWAY, HEALTH_OK, HEALTH_OK]
+    assert pop.config.lost_distance > 0.15

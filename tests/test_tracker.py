@@ -429,6 +429,30 @@ def test_hypotheses_drawn_around_an_object_lying_on_a_palm_stay_on_the_hand():
     assert float(away.max()) < 0.03, f"objects {away.tolist()} m from where they lay"
 
 
+def test_on_a_palm_that_cannot_feel_an_object_resting_on_the_table_beside_it_is_lost():
+    """The Shadow Hand's palm carries the can and has no touch sensor: with the fingertips feeling
+    nothing the palm is taken to hold it, so worlds whose can rests on the table and touches no link
+    (15 cm from the palm: not far enough to be "away" by distance) are lost; those whose can lies
+    on the palm are not."""
+    from inhand_tracker.service.bench.palm_motions import palm_rest_pose
+    from inhand_tracker.service.bench.suites import robot_spec
+
+    obj = catalog_object("spam_can")
+    pop = Population(robot_spec("shadow_hand"), obj, PopulationConfig(worlds=4, device="cpu"))
+    tracker = Tracker(pop, TrackerConfig(optimizer=OptimizerConfig(method="EYE"), seed=0))
+    start = palm_rest_pose(obj, np.zeros(3))
+    q = pop.layout.default_q[None].astype(np.float32)
+    tracker.start(start[None], q)
+    numb = Frame(controls=q, q=q, force=np.zeros((1, pop.L, 3), np.float32))
+    tracker.step(numb)
+    pose = np.tile(start, (1, 4, 1))
+    pose[0, 2:, 0] += 0.15
+    pose[0, 2:, 2] = 0.001 - obj.mesh.bounds[0, 2]  # on the table
+    pop.reset_state(pose, q[0])
+    est = tracker.step(numb)
+    assert est.lost[0] == pytest.approx(0.5), pop.obs.object_pose[0, :, :3].tolist()
+
+
 def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(hand, recording):
     """Gated, the worlds keep the model's contacts while their lowest cost stays under the gate;
     with the gate under that cost they open after the set number of updates in a row, draw their

@@ -305,9 +305,8 @@ class Tracker:
             log.warning(
                 "contacts: worlds of groups %s made more contacts than the %d a world holds (or more than its %d"
                 " constraint rows); the excess was dropped from their physics: raise the population's"
-                " contacts_per_world (and constraints_per_world)",
-                groups.tolist(), cfg.contacts_per_world, cfg.constraints_per_world,
-            )  # fmt: skip
+                " contacts_per_world (and constraints_per_world)", groups.tolist(), cfg.contacts_per_world,
+                cfg.constraints_per_world)  # fmt: skip
 
     def _frame_ops(self) -> None:
         """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
@@ -333,13 +332,14 @@ class Tracker:
         self._packed[:, ESTIMATE.width :].copy_(self.joints.rms())
 
     def _lost(self) -> torch.Tensor:
-        """Which worlds lost their object, (G, K) bool. An object far from the hand is lost only
-        while the real hand feels the object (or cannot say, without force or touch sensing): once the
-        real fingers touch nothing it may lie anywhere on the table, put down or dropped, and
-        counting it lost there re-seeded every frame after a drop, as soon as the hand moved on."""
+        """Which worlds lost their object, (G, K) bool. An object away from the hand is lost only while the
+        real hand feels it, or cannot say (no force or touch sensing; a palm that carries objects and has no
+        touch zones): once the real fingers touch nothing it may lie on the table, put down or dropped,
+        and counting it lost there re-seeded every frame after a drop, as soon as the hand moved on."""
         health, real, threshold = self.pop.obs.health, self.real, self.config.cost.contact_threshold
         feels = (torch.linalg.vector_norm(real.force, dim=-1) > threshold).any(-1) | (real.touch > threshold).any(-1)
-        holds = feels | ((real.has_force < 0.5) & (real.has_touch < 0.5))  # (G,)
+        unsensed = (real.has_force < 0.5) | self.pop.layout.carries_on_palm
+        holds = feels | ((real.has_touch < 0.5) & unsensed)  # (G,)
         return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
 
     def weights(self) -> torch.Tensor:
