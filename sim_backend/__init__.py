@@ -7,9 +7,10 @@ forward_only_kernels()  # before anything below imports newton: Warp reads the s
 # isort: split
 from .build import BuiltModel, Physics, build_model, make_physics  # noqa: E402
 from .grasp import Grasp, plan_pinch  # noqa: E402
+from .health import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK  # noqa: E402
 from .kinematics import Kinematics, SensorFK  # noqa: E402
 from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana  # noqa: E402
-from .observe import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK, Observation, add_sensor_noise  # noqa: E402
+from .observe import Observation, add_sensor_noise  # noqa: E402
 from .params import ObjectParams  # noqa: E402
 from .population import Population  # noqa: E402
 from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot  # noqa: E402

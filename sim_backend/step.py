@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
-from . import observe
+from . import health, observe
 from .build import contact_points
 from .zones import zone_arrays
 
@@ -136,7 +136,7 @@ def observe_frame(pop: Population) -> None:
     )
     observe.launch_finish(b, cfg.slip_speed, cfg.spin_speed)
     wp.launch(
-        observe.object_health,
+        health.object_health,
         dim=pop.W,
         inputs=[
             st.body_q,

@@ -22,6 +22,7 @@ from inhand_tracker.service.tracker.optimizers import (
     wrs_pmf,
 )
 from inhand_tracker.service.tracker.sampling import (
+    recentre,
     roughening_sigma,
     sample_poses,
     shrink_toward_mean,
@@ -338,6 +339,23 @@ def test_shrinking_toward_the_mean_before_roughening_keeps_the_spread():
     assert spread(rough).tolist() == pytest.approx((before * math.sqrt(1.0 + h * h)).tolist(), rel=0.03)
     assert spread(kept).tolist() == pytest.approx(before.tolist(), rel=0.03)
     assert kept[0, :, :3].mean(0).tolist() == pytest.approx(poses[0, :, :3].mean(0).tolist(), abs=1e-4)
+
+
+def test_recentring_moves_only_the_copies_and_brings_the_mean_to_the_estimate_s():
+    gen = torch.Generator().manual_seed(7)
+    mean = torch.tensor([[0.1, 0.0, 0.05, 0.0, 0.0, math.sin(0.3), math.cos(0.3)]]).repeat(2, 1)
+    poses = sample_poses(mean, torch.tensor([0.004, 0.004]), torch.tensor([0.1, 0.1]), 40, gen)  # (2, 40, 7)
+    target = sample_poses(mean, 0.003, 0.05, 1, gen)[:, 0]
+    moved = torch.zeros(2, 40, dtype=torch.bool)
+    moved[0, 25:] = True  # group 1 had no copies to move
+    shift = recentre(poses, target, moved)
+    assert (shift[~moved] == 0).all() and (shift[0, 25:] == shift[0, 25]).all()
+    rot = quat_multiply(poses[..., 3:], quat_exp(shift[..., 3:]))
+    after = torch.cat([poses[..., :3] + shift[..., :3], rot], -1)
+    assert after[0, :, :3].mean(0).tolist() == pytest.approx(target[0, :3].tolist(), abs=1e-6)
+    turn = quat_log(quat_multiply(quat_conjugate(target[0, 3:]), torch.nn.functional.normalize(rot[0].sum(0), dim=0)))
+    assert float(turn.norm()) < 2e-3  # the mean turn, to first order in the worlds' spread
+    assert torch.equal(after[1], poses[1])
 
 
 def test_two_pose_modes_of_a_turned_brick_are_found_and_weighed():

@@ -94,6 +94,11 @@ class Exploration:
     instead of adding to it at every update. Without it, where the sensing cannot tell the worlds
     apart (an object resting on a palm), each update widens a small group and its mean wanders
     with it. 0: never."""
+    keep_mean: bool = False
+    """After every update the displaced copies move together so that the group's mean pose is the
+    estimate's mean over all worlds just before it: resampling redistributes the worlds without
+    moving the belief's mean, which its random draws otherwise walk where the costs rank the worlds
+    by their physics rather than their poses (an object resting on a palm)."""
 
     def __post_init__(self) -> None:
         _check(

@@ -12,6 +12,7 @@ from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_
 
 __all__ = [
     "clipped_normal",
+    "recentre",
     "roughening_sigma",
     "sample_poses",
     "sample_wrenches",
@@ -75,6 +76,20 @@ def roughening_sigma(pose: torch.Tensor, bandwidth: float, floor: torch.Tensor, 
     )  # (G, 2)
     wide = torch.minimum(bandwidth * spread, ceiling)[..., None].expand(g, 2, 3).reshape(g, 1, 6)
     return torch.maximum(floor, wide)
+
+
+def recentre(pose: torch.Tensor, target: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
+    """Displacements (G, K, 6) of the ``moved`` (G, K) worlds, alike within a group, that bring the
+    group's mean of ``pose`` (G, K, 7) to ``target`` (G, 7), as :meth:`Population.displace_object`
+    takes them; zero in a group where none moved. Torch ops only: it runs inside the captured update."""
+    k = pose.shape[1]
+    quat = pose[..., 3:]
+    quat = torch.where((quat * quat[:, :1]).sum(-1, keepdim=True) < 0, -quat, quat)
+    mean_q = torch.nn.functional.normalize(quat.sum(1), dim=-1)
+    goal_q = torch.where((target[:, 3:] * mean_q).sum(-1, keepdim=True) < 0, -target[:, 3:], target[:, 3:])
+    turn = quat_log(quat_multiply(quat_conjugate(mean_q), goal_q))
+    gap = torch.cat([target[:, :3] - pose[..., :3].mean(1), turn], dim=-1)  # (G, 6)
+    return (gap * (k / moved.sum(-1, keepdim=True).clamp_min(1)))[:, None] * moved[..., None]
 
 
 def shrink_toward_mean(pose: torch.Tensor, factor: float) -> torch.Tensor:

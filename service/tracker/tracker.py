@@ -38,6 +38,7 @@ from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_row
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
+    recentre,
     roughening_sigma,
     sample_poses,
     sample_wrenches,
@@ -409,40 +410,38 @@ class Tracker:
             self._sharpness.copy_(posed.all(-1, keepdim=True))
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
-            explore, scale = upd.explore, self._exploration[:, None]
-            mass = self._explore(self.pop.mass, cfg.exploration.mass_sigma * scale, self._mass_range, explore)
-            friction = self._explore(
-                self.pop.friction, cfg.exploration.friction_sigma * scale, self._friction_range, explore
-            )
+            explore, scale, ex = upd.explore, self._exploration[:, None], cfg.exploration
+            mass = self._explore(self.pop.mass, ex.mass_sigma * scale, self._mass_range, explore)
+            friction = self._explore(self.pop.friction, ex.friction_sigma * scale, self._friction_range, explore)
             contacts = () if opens is None else self.contacts.explored(explore, scale, opens)
             self.pop.write_params(mass, friction, *contacts)
             if servo_opens is not None:
                 self.servos.explored(upd.index, explore, scale, servo_opens)
-            wrench = sample_wrenches(
-                (self.G, self.K), cfg.exploration.wrench_force, cfg.exploration.wrench_torque, self.gen, self.device
-            )
+            wrench = sample_wrenches((self.G, self.K), ex.wrench_force, ex.wrench_torque, self.gen, self.device)
             # The wrench and the roughening explore the poses: only where the poses were resampled.
             self.pop.set_wrench(wrench * ((explore & posed)[..., None] * scale[..., None]))
-            if cfg.exploration.jitter_t > 0 or cfg.exploration.jitter_r > 0 or self._bandwidth > 0:
-                unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
-                pose = self.pop.obs.object_pose.gather(1, state[..., None].expand(-1, -1, 7))  # resampled
-                shift = unit * self._jitter_sigma(pose)
-                if self._shrink > 0:
-                    shift = shift + shrink_toward_mean(pose, self._shrink)
-                # Only extra copies move: each surviving world keeps one copy where it was, so the
-                # estimate does not jitter with the spread it buys.
-                moved = explore & duplicates(state)
-                self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
+            self._move_copies(state, explore & posed, scale)
         self.window.zero_()
         self.scatter.zero_()
         self.evidence.zero_()
         self._window_frames.zero_()
 
-    def _jitter_sigma(self, pose: torch.Tensor) -> torch.Tensor:
-        """Standard deviations of the roughening of the resampled worlds' object poses (G, K, 7), (G, 1, 6)."""
-        if self._bandwidth <= 0:
-            return self._jitter_floor.expand(self.G, 1, 6)
-        return roughening_sigma(pose, self._bandwidth, self._jitter_floor, self._jitter_ceiling)
+    def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor) -> None:
+        """Roughen the object poses of the resampled worlds' extra copies (of ``state`` (G, K), where
+        ``explore``), then move them together to keep the estimate's mean (``keep_mean``). Only extra
+        copies move: each surviving world keeps one copy where it was, so the estimate does not jitter
+        with the spread it buys."""
+        cfg, moved = self.config.exploration, explore & duplicates(state)
+        if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
+            unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
+            pose = self.pop.obs.object_pose.gather(1, state[..., None].expand(-1, -1, 7))  # resampled
+            sigma = self._jitter_floor.expand(self.G, 1, 6)
+            if self._bandwidth > 0:
+                sigma = roughening_sigma(pose, self._bandwidth, self._jitter_floor, self._jitter_ceiling)
+            shift = unit * sigma + (shrink_toward_mean(pose, self._shrink) if self._shrink > 0 else 0.0)
+            self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
+        if cfg.keep_mean:  # the frame before packed the estimate's mean over all worlds
+            self.pop.displace_object(recentre(self.pop.object_coords, ESTIMATE.view(self._packed, "mean_pose"), moved))
 
     def _explore(self, value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor):
         """theta ~ N(theta, Sigma_theta) clipped to its range, where ``mask``; ``sigma`` is a fraction of the range."""
