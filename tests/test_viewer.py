@@ -37,25 +37,37 @@ def _browser():
     return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=DRIVER))
 
 
-def _screenshot(browser, url: str, path, wait: float = 8.0, attempts: int = 3) -> np.ndarray:
-    """The page ``wait`` seconds after it opened, as RGB pixels. ChromeDriver gives the renderer a
-    fixed 10 s to answer a screenshot; on a loaded 2-core machine software WebGL can hold it longer,
-    so a screenshot the renderer did not answer is asked for again (the page is live: a later one
-    shows the same scene)."""
+SCENE = (slice(160, 540), slice(320, 660))  # around the object, left of the control panel
+
+
+def _coloured(pixels: np.ndarray) -> float:
+    """The share of the scene drawn in colour: the hand's links and the object's hypotheses are
+    coloured; the empty scene is white and grey."""
+    scene = pixels[SCENE]
+    return float(((scene.max(-1) - scene.min(-1)) > 60).mean())
+
+
+def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout: float = 120.0) -> np.ndarray:
+    """The page ``wait`` seconds after it opened, as RGB pixels; with ``until``, the first screenshot
+    for which it holds, or the last one after ``timeout`` s. A loaded 2-core machine's software WebGL
+    can take longer than ChromeDriver's fixed 10 s to answer a screenshot, and longer than ``wait`` to
+    draw the scene the viewer sends on connect: the page is live, so a later screenshot is asked for."""
     import imageio.v3 as iio
     from selenium.common.exceptions import TimeoutException
 
     browser.get(url)
-    time.sleep(wait)
-    for attempt in range(attempts):
+    deadline = time.monotonic() + timeout
+    while True:
+        time.sleep(wait)
         try:
             browser.save_screenshot(str(path))
-            break
         except TimeoutException:
-            if attempt == attempts - 1:
+            if time.monotonic() > deadline:
                 raise
-            time.sleep(wait)
-    return iio.imread(path)[..., :3].astype(np.int16)
+            continue
+        pixels = iio.imread(path)[..., :3].astype(np.int16)
+        if until is None or until(pixels) or time.monotonic() > deadline:
+            return pixels
 
 
 @pytest.mark.skipif(
@@ -80,7 +92,7 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
             for i in range(40):  # the hand closes on the object
                 robot.send(traj.frame(i, info.session))
                 robot.latest_pose(timeout=60, after_seq=i)
-            drawn = _screenshot(browser, url, tmp_path / "drawn.png")
+            drawn = _screenshot(browser, url, tmp_path / "drawn.png", until=lambda pixels: _coloured(pixels) > 0.05)
             page = browser.page_source
             robot.close_session()
     finally:
@@ -90,12 +102,9 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
     for figure in ("left", "K=8", " Hz", "latency", " ms", "cost", "mass", "friction"):
         assert figure in page, (figure, page[-3000:])
     assert "95 %" in page, "the uncertainty's size is not written"
-    scene = (slice(160, 540), slice(320, 660))  # around the object, left of the control panel
-    changed = np.abs(drawn[scene] - empty[scene]).sum(-1) > 60
+    changed = np.abs(drawn[SCENE] - empty[SCENE]).sum(-1) > 60
     assert changed.mean() > 0.05, f"only {changed.mean():.2%} of the scene changed when the session tracked"
-    # The hand's links and the object's hypotheses are coloured; the empty scene is white and grey.
-    saturation = drawn[scene].max(-1) - drawn[scene].min(-1)
-    assert (saturation > 60).mean() > 0.05, f"{(saturation > 60).mean():.2%} of the scene is coloured"
+    assert _coloured(drawn) > 0.05, f"{_coloured(drawn):.2%} of the scene is coloured"
 
 
 def _latencies(robot, traj: Trajectory) -> np.ndarray:
