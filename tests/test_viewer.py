@@ -48,10 +48,11 @@ def _coloured(pixels: np.ndarray) -> float:
 
 
 def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout: float = 120.0) -> np.ndarray:
-    """The page ``wait`` seconds after it opened, as RGB pixels; with ``until``, the first screenshot
-    for which it holds, or the last one after ``timeout`` s. A loaded 2-core machine's software WebGL
-    can take longer than ChromeDriver's fixed 10 s to answer a screenshot, and longer than ``wait`` to
-    draw the scene the viewer sends on connect: the page is live, so a later screenshot is asked for."""
+    """The page ``wait`` seconds after it opened, as RGB pixels; with ``until(pixels, page source)``,
+    the first screenshot for which it holds, or the last one after ``timeout`` s. On a loaded 2-core
+    machine the viewer can take longer than ``wait`` to send the page its panel and scene, and software
+    WebGL longer than ChromeDriver's fixed 10 s to answer a screenshot: the page is live, so a later
+    screenshot is asked for."""
     import imageio.v3 as iio
     from selenium.common.exceptions import TimeoutException
 
@@ -66,7 +67,7 @@ def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout:
                 raise
             continue
         pixels = iio.imread(path)[..., :3].astype(np.int16)
-        if until is None or until(pixels) or time.monotonic() > deadline:
+        if until is None or until(pixels, browser.page_source) or time.monotonic() > deadline:
             return pixels
 
 
@@ -75,13 +76,14 @@ def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout:
 )
 def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
     view = free_port()
-    svc = ServiceProcess(free_port(), view_port=str(view))
+    # The session sends no frame while the browser is waited for (up to minutes on a loaded runner).
+    svc = ServiceProcess(free_port(), view_port=str(view), idle_timeout_s="600")
     browser = _browser()
     try:
         with TrackerClient(connect=[svc.endpoint]) as robot:
             svc.wait_ready(robot)
             url = f"http://127.0.0.1:{view}"
-            empty = _screenshot(browser, url, tmp_path / "empty.png")
+            empty = _screenshot(browser, url, tmp_path / "empty.png", until=lambda _, page: "No session is" in page)
             assert browser.title == "Viser", browser.title  # the viewer's page loaded
             assert "No session is tracking" in browser.page_source
             assert "Show Cloth" not in browser.page_source, "a simulator's controls are offered"
@@ -92,7 +94,12 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
             for i in range(40):  # the hand closes on the object
                 robot.send(traj.frame(i, info.session))
                 robot.latest_pose(timeout=60, after_seq=i)
-            drawn = _screenshot(browser, url, tmp_path / "drawn.png", until=lambda pixels: _coloured(pixels) > 0.05)
+            drawn = _screenshot(
+                browser,
+                url,
+                tmp_path / "drawn.png",
+                until=lambda pixels, page: _coloured(pixels) > 0.05 and "95 %" in page,
+            )
             page = browser.page_source
             robot.close_session()
     finally:
