@@ -62,12 +62,13 @@ def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout:
         time.sleep(wait)
         try:
             browser.save_screenshot(str(path))
+            page = browser.page_source
         except TimeoutException:
             if time.monotonic() > deadline:
                 raise
             continue
         pixels = iio.imread(path)[..., :3].astype(np.int16)
-        if until is None or until(pixels, browser.page_source) or time.monotonic() > deadline:
+        if until is None or until(pixels, page) or time.monotonic() > deadline:
             return pixels
 
 
