@@ -98,7 +98,9 @@ class Exploration:
     """After every update the displaced copies move together so that the group's mean pose is the
     estimate's mean over all worlds just before it: resampling redistributes the worlds without
     moving the belief's mean, which its random draws otherwise walk where the costs rank the worlds
-    by their physics rather than their poses (an object resting on a palm)."""
+    by their physics rather than their poses (an object resting on a palm). Where the costs do rank
+    the poses it undoes what the update learned, and where the worlds split into modes it moves the
+    copies between them: off."""
 
     def __post_init__(self) -> None:
         _check(
