@@ -4,6 +4,7 @@ drawn the hand and its hypotheses and show the session's figures and only the tr
 
 from __future__ import annotations
 
+import base64
 import select
 import shutil
 import subprocess
@@ -47,12 +48,14 @@ def _coloured(pixels: np.ndarray) -> float:
     return float(((scene.max(-1) - scene.min(-1)) > 60).mean())
 
 
-def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout: float = 120.0) -> np.ndarray:
-    """The page ``wait`` seconds after it opened, as RGB pixels; with ``until(pixels, page source)``,
-    the first screenshot for which it holds, or the last one after ``timeout`` s. On a loaded 2-core
-    machine the viewer can take longer than ``wait`` to send the page its panel and scene, and software
-    WebGL longer than ChromeDriver's fixed 10 s to answer a screenshot: the page is live, so a later
-    screenshot is asked for."""
+def _screenshot(
+    browser, url: str, path, wait: float = 8.0, until=None, timeout: float = 120.0
+) -> tuple[np.ndarray, str]:
+    """The page ``wait`` seconds after it opened, as RGB pixels and its HTML; with ``until(pixels,
+    html)``, the first screenshot for which it holds, or the last one after ``timeout`` s. On a loaded
+    2-core machine the viewer can take longer than ``wait`` to send the page its panel and scene: the
+    page is live, so a later screenshot is taken. Both are asked for through the DevTools protocol:
+    ChromeDriver's own commands give the renderer 10 s, which software WebGL on a busy core outlasts."""
     import imageio.v3 as iio
     from selenium.common.exceptions import TimeoutException
 
@@ -61,15 +64,17 @@ def _screenshot(browser, url: str, path, wait: float = 8.0, until=None, timeout:
     while True:
         time.sleep(wait)
         try:
-            browser.save_screenshot(str(path))
-            page = browser.page_source
+            shot = browser.execute_cdp_cmd("Page.captureScreenshot", {"format": "png"})
+            Path(path).write_bytes(base64.b64decode(shot["data"]))
+            html = browser.execute_cdp_cmd("Runtime.evaluate", {"expression": "document.documentElement.outerHTML"})
+            page = html["result"]["value"]
         except TimeoutException:
             if time.monotonic() > deadline:
                 raise
             continue
         pixels = iio.imread(path)[..., :3].astype(np.int16)
         if until is None or until(pixels, page) or time.monotonic() > deadline:
-            return pixels
+            return pixels, page
 
 
 @pytest.mark.skipif(
@@ -84,10 +89,10 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
         with TrackerClient(connect=[svc.endpoint]) as robot:
             svc.wait_ready(robot)
             url = f"http://127.0.0.1:{view}"
-            empty = _screenshot(browser, url, tmp_path / "empty.png", until=lambda _, page: "No session is" in page)
-            assert browser.title == "Viser", browser.title  # the viewer's page loaded
-            assert "No session is tracking" in browser.page_source
-            assert "Show Cloth" not in browser.page_source, "a simulator's controls are offered"
+            empty, page = _screenshot(browser, url, tmp_path / "empty.png", until=lambda _, html: "No session" in html)
+            assert "<title>Viser</title>" in page, page[:500]  # the viewer's page loaded
+            assert "No session is tracking" in page
+            assert "Show Cloth" not in page, "a simulator's controls are offered"
             traj = Trajectory.load(TRAJECTORY)
             info = robot.open_session(
                 traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q, worlds=8, name="left"
@@ -95,13 +100,12 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
             for i in range(40):  # the hand closes on the object
                 robot.send(traj.frame(i, info.session))
                 robot.latest_pose(timeout=60, after_seq=i)
-            drawn = _screenshot(
+            drawn, page = _screenshot(
                 browser,
                 url,
                 tmp_path / "drawn.png",
                 until=lambda pixels, page: _coloured(pixels) > 0.05 and "95 %" in page,
             )
-            page = browser.page_source
             robot.close_session()
     finally:
         browser.quit()
