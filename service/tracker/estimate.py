@@ -11,6 +11,7 @@ from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_
 
 from .config import EstimateConfig
 from .optimizers import estimate_pmf
+from .sampling import weighted_mean
 
 __all__ = ["pose_modes", "pose_statistics", "unresolved_variance"]
 
@@ -41,13 +42,6 @@ def pose_modes(
     return torch.stack([best, second_seed], 1), shares, first
 
 
-def _weighted_mean(weights: torch.Tensor, position: torch.Tensor, quat: torch.Tensor) -> torch.Tensor:
-    """The pose (G, 7) of ``weights`` (G, K, summing to 1) over ``position`` (G, K, 3) and ``quat``
-    (G, K, 4), the quaternions already in one hemisphere (fine for spreads << 1 rad)."""
-    mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
-    return torch.cat([(weights[..., None] * position).sum(1), mean_q], dim=-1)
-
-
 def pose_statistics(
     object_pose: torch.Tensor,
     window: torch.Tensor,
@@ -70,7 +64,7 @@ def pose_statistics(
     quat = poses[..., 3:]
     # Align every quaternion with the best one's hemisphere, then average (fine for spreads << 1 rad).
     quat = torch.where((quat * pose[:, None, 3:]).sum(-1, keepdim=True) < 0, -quat, quat)
-    mean_pose = _weighted_mean(weights, position, quat)
+    mean_pose = weighted_mean(weights, position, quat)
     mean_p, mean_q = mean_pose[:, :3], mean_pose[:, 3:]
     delta = torch.cat(
         [position - mean_p[:, None], quat_log(quat_multiply(quat_conjugate(mean_q)[:, None].expand_as(quat), quat))],
@@ -83,7 +77,7 @@ def pose_statistics(
         # neither is: the report takes the lowest-cost world's mode, all the worlds where they agree.
         # Where the costs say nothing of the poses (sharpness 0) the lowest is no mode's: all count.
         mode = first if sharpness is None else first | (sharpness <= 0)
-        reported = _weighted_mean(weights * mode / (weights * mode).sum(-1, keepdim=True), position, quat)
+        reported = weighted_mean(weights * mode / (weights * mode).sum(-1, keepdim=True), position, quat)
     return best, {
         "pose": reported if config.mean_estimate else pose,
         "best_pose": pose,

@@ -18,6 +18,7 @@ __all__ = [
     "sample_wrenches",
     "shrink_toward_mean",
     "silverman_bandwidth",
+    "weighted_mean",
 ]
 
 
@@ -78,17 +79,24 @@ def roughening_sigma(pose: torch.Tensor, bandwidth: float, floor: torch.Tensor, 
     return torch.maximum(floor, wide)
 
 
+def weighted_mean(weights: torch.Tensor, position: torch.Tensor, quat: torch.Tensor) -> torch.Tensor:
+    """The pose (G, 7) of ``weights`` (G, K, summing to 1) over ``position`` (G, K, 3) and ``quat``
+    (G, K, 4), the quaternions already in one hemisphere (fine for spreads << 1 rad)."""
+    mean_q = torch.nn.functional.normalize((weights[..., None] * quat).sum(1), dim=-1)
+    return torch.cat([(weights[..., None] * position).sum(1), mean_q], dim=-1)
+
+
 def recentre(pose: torch.Tensor, target: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
     """Displacements (G, K, 6) of the ``moved`` (G, K) worlds, alike within a group, that bring the
     group's mean of ``pose`` (G, K, 7) to ``target`` (G, 7), as :meth:`Population.displace_object`
     takes them; zero in a group where none moved. Torch ops only: it runs inside the captured update."""
-    k = pose.shape[1]
+    g, k = pose.shape[:2]
     quat = pose[..., 3:]
     quat = torch.where((quat * quat[:, :1]).sum(-1, keepdim=True) < 0, -quat, quat)
-    mean_q = torch.nn.functional.normalize(quat.sum(1), dim=-1)
-    goal_q = torch.where((target[:, 3:] * mean_q).sum(-1, keepdim=True) < 0, -target[:, 3:], target[:, 3:])
-    turn = quat_log(quat_multiply(quat_conjugate(mean_q), goal_q))
-    gap = torch.cat([target[:, :3] - pose[..., :3].mean(1), turn], dim=-1)  # (G, 6)
+    mean = weighted_mean(torch.full((g, k), 1.0 / k, device=pose.device), pose[..., :3], quat)
+    goal_q = torch.where((target[:, 3:] * mean[:, 3:]).sum(-1, keepdim=True) < 0, -target[:, 3:], target[:, 3:])
+    turn = quat_log(quat_multiply(quat_conjugate(mean[:, 3:]), goal_q))
+    gap = torch.cat([target[:, :3] - mean[:, :3], turn], dim=-1)  # (G, 6)
     return (gap * (k / moved.sum(-1, keepdim=True).clamp_min(1)))[:, None] * moved[..., None]
 
 
