@@ -3,6 +3,23 @@ import pytest
 import inhand_tracker.sim_backend  # noqa: F401  (before collection imports newton: it switches Warp's adjoints off)
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    # An option rather than `-m "not alone"`: a user's own `-m` replaces an earlier one.
+    parser.addoption(
+        "--alone", choices=("with", "skip", "only"), default="with",
+        help="the tests marked alone (they need an idle core): with the others, skipped, or only them",
+    )  # fmt: skip
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    mode = config.getoption("--alone")
+    if mode == "with":
+        return
+    keep = [item for item in items if (item.get_closest_marker("alone") is not None) == (mode == "only")]
+    config.hook.pytest_deselected(items=[item for item in items if item not in keep])
+    items[:] = keep
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _quiet_warp():
     import warp as wp

@@ -80,6 +80,7 @@ def _screenshot(
 @pytest.mark.skipif(
     CHROMIUM is None or DRIVER is None, reason="no Chromium: scripts/test installs Debian's where it may (as root)"
 )
+@pytest.mark.alone
 def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
     view = free_port()
     # The session sends no frame while the browser is waited for (up to minutes on a loaded runner).
@@ -139,48 +140,62 @@ def _connected(wire: list[str]) -> subprocess.Popen:
     return browser
 
 
-def _received(browser: subprocess.Popen) -> int:
-    """How many messages the stand-in read, all it was sent included."""
+def _draws(browser: subprocess.Popen) -> int:
+    """How many times the view drew to the stand-in, what was still on its way included."""
     browser.terminate()
     return int(browser.communicate(timeout=60)[0])
 
 
+_DRAWN = 3
+"""The fewest draws a watched run must have had to say what watching costs."""
+
+
+@pytest.mark.alone  # beside other tests every core is busy, and the view draws only on an idle one
 def test_a_watching_browser_adds_no_late_frame():
-    """The same session five times, in turn alone and watched by a browser's side of the wire
-    (another process that reads every message the view sends, as a browser on another machine
-    does). A frame is late when its latency is over 1.5 x the same frame's median in the other
-    unwatched runs (frames differ: the grasp's contacts cost more); the watched runs have at most
-    one frame in ten late beyond what the unwatched ones have among themselves."""
+    """The same session in turn alone and watched by a browser's side of the wire (another process
+    that reads every message the view sends, as a browser on another machine does), until three runs
+    alone and two watched ones that the view drew to. A frame is late when its latency is over 1.5 x
+    the same frame's median in the other runs alone (frames differ: the grasp's contacts cost
+    more); the watched runs have at most one frame in ten late beyond what the runs alone have
+    among themselves."""
     view = free_port()
     svc = ServiceProcess(free_port(), view_port=str(view))
     wire = [sys.executable, str(Path(__file__).with_name("viser_wire.py")), f"ws://127.0.0.1:{view}"]
-    runs, messages = {False: [], True: []}, []
+    alone, watched, draws = [], [], []
     try:
         with TrackerClient(connect=[svc.endpoint]) as robot:
             svc.wait_ready(robot)
             traj = Trajectory.load(TRAJECTORY)
-            for watched in (False, True, False, True, False):
-                browser = _connected(wire) if watched else None
+            # The view draws only on a core the service leaves idle: should something else keep the
+            # machine busy, a watched run can pass undrawn and says nothing; it is run again.
+            for turn in range(9):
+                if len(alone) >= 3 and len(watched) >= 2:
+                    break
+                if turn % 2 == 0:
+                    alone.append(_latencies(robot, traj))
+                    continue
+                browser = _connected(wire)
                 start = time.monotonic()
-                runs[watched].append(_latencies(robot, traj))
-                if browser is not None:
-                    messages.append(_received(browser))
-            seconds = time.monotonic() - start
+                latencies = _latencies(robot, traj)
+                seconds = time.monotonic() - start
+                draws.append(_draws(browser))
+                if draws[-1] >= _DRAWN:
+                    watched.append(latencies)
             idle = _connected(wire)  # as long as a run, with nothing to draw
             time.sleep(seconds)
-            messages.append(_received(idle))
+            nothing = _draws(idle)
     finally:
         svc.stop()
-    alone, watched = np.stack(runs[False]), np.stack(runs[True])
+    # It was drawn to: on a busy runner the view draws less often than its 10 Hz, but it draws, and
+    # only while a session tracks.
+    assert len(watched) >= 2 and nothing == 0, (draws, nothing)
+    alone, watched = np.stack(alone), np.stack(watched)
     late = lambda run, others: int((run > 1.5 * np.median(others, axis=0)).sum())  # noqa: E731
     late_alone = np.mean([late(run, np.delete(alone, i, axis=0)) for i, run in enumerate(alone)])
     late_watched = np.mean([late(run, alone) for run in watched])
     # A view drawn in the loop at 10 Hz would make about one frame in three late; on 2 busy cores
     # a watched run's late frames vary by a few percent of the frames from run to run.
     assert late_watched <= late_alone + 0.1 * len(alone[0]), (late_alone, late_watched, len(alone[0]))
-    # It was drawn to: on a busy runner the view draws less often than its 10 Hz, but it draws.
-    *watching, nothing = messages
-    assert min(watching) >= nothing + 3, messages
 
 
 def test_the_view_compiles_what_it_draws_at_warm_up():

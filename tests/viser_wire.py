@@ -1,8 +1,9 @@
 """A browser's side of the live view's wire, without its rendering: it connects with viser's
 subprotocol, reports a camera (viser counts a client once it has one) and reads every message the
-view sends, until SIGTERM; then it reads what is still on its way and prints how many came. It
-prints "connected" once the view counts it as a client. It stands for a browser on another
-machine, where the rendering's cost falls."""
+view sends, until SIGTERM; then it reads what is still on its way and prints how many draws came:
+the view's updates after the scene it had when the stand-in connected, each carrying the real
+fingertips. It prints "connected" once the view counts it as a client. It stands for a browser on
+another machine, where the rendering's cost falls."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import time
 
 import msgspec
 import viser
+import zstandard
 from viser._messages import ViewerCameraMessage
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
@@ -24,7 +26,7 @@ _DRAIN_S = 15.0
 
 
 def watch(url: str) -> None:
-    received, stopping = 0, []
+    draws, replayed, stopping = 0, False, []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(time.monotonic()))
     try:
         with connect(url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None) as ws:
@@ -37,18 +39,28 @@ def watch(url: str) -> None:
             _step_aside()
             while True:
                 try:
-                    ws.recv(timeout=_QUIET_S)
+                    data = ws.recv(timeout=_QUIET_S)
                 except TimeoutError:
                     if stopping:  # drained: at idle priority on a busy runner, reading falls behind
                         break
                     continue
-                received += 1
+                kinds = _kinds(data)
+                draws += replayed and "PointCloudMessage" in kinds
+                replayed = replayed or "ReplayDoneMessage" in kinds
                 if stopping and time.monotonic() - stopping[0] > _DRAIN_S:
                     break
     except ConnectionClosed:
         pass
     finally:
-        print(received, flush=True)
+        print(draws, flush=True)
+
+
+def _kinds(data: bytes) -> set[str]:
+    """The types of the messages in one of viser's windows: two sizes (8 bytes each), then the
+    zstd-compressed msgpack of the messages, then their binary arrays."""
+    size, compressed = int.from_bytes(data[:8], "little"), int.from_bytes(data[8:16], "little")
+    inner = zstandard.ZstdDecompressor().decompress(data[16 : 16 + compressed], max_output_size=size)
+    return {message["type"] for message in msgspec.msgpack.decode(inner)["messages"]}
 
 
 def _step_aside() -> None:
