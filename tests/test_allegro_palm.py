@@ -4,6 +4,8 @@ in which the fingers push and the thumb slides the block lying on the palm."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -151,6 +153,16 @@ def test_the_short_suite_runs_on_a_cpu(tmp_path):
     assert result.exit_code == 0, result.output
     report = (out / "report.md").read_text()
     assert "allegro-palm-short" in report and "| PBO |" in report
+
+
+def test_the_cost_ranking_runs_the_suite_s_own_hand_and_ranks_its_touch_zones(tmp_path):
+    args = ["bench", "cost-ranking", "--suite", "allegro-palm", "--short", "--method", "REPS", "--worlds", "4"]
+    result = CliRunner().invoke(app, [*args, "--device", "cpu", "--cache", str(tmp_path), "--json"])
+    assert result.exit_code == 0, result.output
+    ranked = json.loads(result.stdout)["objects"]["block"]
+    # The suite sends joints and touch zones, no fingertip forces: those terms never vary.
+    assert ranked["zone_force"]["defined"] > 0.5 and ranked["force_magnitude"]["rho"] is None, ranked
+    assert all(-1 <= r["rho"] <= 1 for r in ranked.values() if r["rho"] is not None), ranked
 
 
 def test_a_block_resting_on_the_table_beside_the_palm_is_away_and_one_in_the_air_is_not(hand):

@@ -70,6 +70,14 @@ def test_settings_split_into_the_tracker_and_its_physics():
     assert config.optimizer.pbo_keep == 0.5 and physics == {"impratio": 30.0, "contact_gap": 0.004}
     assert parse_settings(["optimizer.keep_best=no"])[0].optimizer.keep_best is False
     assert parse_settings([])[1] == {}
+    # A cost term's weight by the term's name; the others keep theirs.
+    from inhand_tracker.service.tracker import TERM_NAMES, WEIGHTS
+
+    weights = parse_settings(["cost.zone_force=0", "cost.joints=25"])[0].cost.weights
+    changed = {name: (w, w0) for name, w, w0 in zip(TERM_NAMES, weights, WEIGHTS, strict=True) if w != w0}
+    assert changed == {"joints": (25.0, 50.0), "zone_force": (0.0, 1.7)}
+    with pytest.raises(ValueError, match=r"cost\.zone_force: expected a value of type float, got 'x'"):
+        parse_settings(["cost.zone_force=x"])
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():

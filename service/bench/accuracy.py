@@ -20,7 +20,15 @@ import numpy as np
 
 from inhand_tracker.protocol import DEFAULT_WORLDS, Trajectory
 from inhand_tracker.service.paths import CACHE_DIR
-from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig, setting_types
+from inhand_tracker.service.tracker import (
+    METHODS,
+    TERM_NAMES,
+    WEIGHTS,
+    CostConfig,
+    OptimizerConfig,
+    TrackerConfig,
+    setting_types,
+)
 from inhand_tracker.service.tracker.config import TRACKER_GROUPS
 from inhand_tracker.sim_backend import PopulationConfig
 
@@ -131,8 +139,9 @@ def files_suite(trajectories: Sequence[Trajectory]) -> Suite:
 
 def parse_settings(settings: Sequence[str]) -> tuple[TrackerConfig, dict]:
     """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
-    tracker's number and flag settings by their own names, its optimizer's as optimizer.NAME, and
-    the population's physics numbers (impratio, tolerance, ...) as population.NAME. Values are
+    tracker's number and flag settings by their own names, its optimizer's as optimizer.NAME, a
+    cost term's weight as cost.TERM (cost.zone_share=0 drops that term), and the population's
+    physics numbers (impratio, tolerance, ...) as population.NAME. Values are
     parsed by pydantic, as the service's settings are; a bad one is a ValueError naming it."""
     from pydantic import TypeAdapter, ValidationError
 
@@ -142,7 +151,8 @@ def parse_settings(settings: Sequence[str]) -> tuple[TrackerConfig, dict]:
     top = {k: t for k, t in setting_types(TrackerConfig, kinds).items() if k not in own}
     nested = {f"optimizer.{k}": t for k, t in setting_types(OptimizerConfig, kinds).items()}
     nested |= {f"population.{k}": t for k, t in setting_types(PopulationConfig, kinds).items() if k not in own}
-    values: dict[str, dict] = {"": {}, "optimizer": {}, "population": {}}
+    nested |= {f"cost.{k}": float for k in TERM_NAMES}
+    values: dict[str, dict] = {"": {}, "optimizer": {}, "population": {}, "cost": {}}
     for item in settings:
         name, sep, text = item.partition("=")
         kind = top.get(name) or nested.get(name)
@@ -155,7 +165,9 @@ def parse_settings(settings: Sequence[str]) -> tuple[TrackerConfig, dict]:
         outer, _, inner = name.rpartition(".")
         values[outer][inner] = value
     PopulationConfig(**values["population"])  # out-of-range physics fails here, with the field named
-    return TrackerConfig.of(optimizer=OptimizerConfig(**values["optimizer"]), **values[""]), values["population"]
+    weights = [values["cost"].get(name, w) for name, w in zip(TERM_NAMES, WEIGHTS, strict=True)]
+    optimizer, cost = OptimizerConfig(**values["optimizer"]), CostConfig(weights=tuple(weights))
+    return TrackerConfig.of(optimizer=optimizer, cost=cost, **values[""]), values["population"]
 
 
 def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None) -> dict:

@@ -19,10 +19,10 @@ from inhand_tracker.service.evaluation import add_error
 from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
 from inhand_tracker.service.tracker.cost import TERM_NAMES
 from inhand_tracker.service.tracker.sampling import sample_poses
-from inhand_tracker.sim_backend import HandSpec, Population, PopulationConfig, catalog_object
+from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
 
 from .recorder import Recording
-from .suites import NOISE_LEVELS
+from .suites import NOISE_LEVELS, robot_spec
 
 __all__ = ["cost_ranking", "format_table", "rank_correlation"]
 
@@ -58,7 +58,7 @@ def cost_ranking(
     obj = catalog_object(trajectories[0].object)
     rec = Recording.stack(trajectories)
     G = len(trajectories)
-    pop = Population(HandSpec(), obj, PopulationConfig(groups=G, worlds=worlds, device=device))
+    pop = Population(robot_spec(trajectories[0].robot), obj, PopulationConfig(groups=G, worlds=worlds, device=device))
     tracker = Tracker(pop, config or TrackerConfig(seed=seed), methods=[method] * G)
     gen = torch.Generator().manual_seed(seed)
     sigma_t, sigma_r = NOISE_LEVELS[noise]
