@@ -185,6 +185,15 @@ def test_settings_out_of_their_range_are_refused_naming_them(traj, overrides, wo
         _manager().open(_request(traj, overrides=overrides))
 
 
+def test_the_optimizer_s_settings_are_overridden_by_their_own_names(traj):
+    manager = _manager()
+    info = manager.open(_request(traj, method="REPS", overrides={"min_separation": 4, "reps_epsilon": 0.25}))
+    optimizer = manager.sessions[info.session].pool.tracker.config.optimizer
+    assert (optimizer.method, optimizer.min_separation, optimizer.reps_epsilon) == ("REPS", 4.0, 0.25)
+    with pytest.raises(ServiceError, match=re.escape("overrides: optimizer min_separation: expected >= 0, got -1.0")):
+        manager.open(_request(traj, overrides={"min_separation": -1}))
+
+
 def test_a_peer_sharing_the_population_cannot_poison_it(traj):
     """An attacker opens with the victim's robot, object and K (so it joins the victim's population)
     and sends joints of 1e20 rad: refused at the boundary, naming the joint; the victim's estimates

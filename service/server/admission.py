@@ -21,8 +21,10 @@ from .pools import MEASURED_STEPS, Pool, PoolKey
 
 __all__ = ["Admission", "Gate", "ServiceError"]
 
-_TUNABLE = setting_types(TrackerConfig)
-"""Tracker settings a session may override, by name, with their types."""
+_OPTIMIZER = setting_types(OptimizerConfig)
+_TUNABLE = setting_types(TrackerConfig) | _OPTIMIZER
+"""Tracker settings a session may override, by name, with their types; the optimizer's numbers by
+their own names too (every name is unique)."""
 
 
 class ServiceError(Exception):
@@ -293,7 +295,8 @@ class Gate:
         """The session's tracker settings, refused with the field and the numbers before anything is built."""
         try:
             overrides = {k: _TUNABLE[k](v) for k, v in request.overrides.items()}
-            return TrackerConfig.of(optimizer=OptimizerConfig(method=request.method), **overrides)
+            optimizer = {k: overrides.pop(k) for k in list(overrides) if k in _OPTIMIZER}
+            return TrackerConfig.of(optimizer=OptimizerConfig(method=request.method, **optimizer), **overrides)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
 
