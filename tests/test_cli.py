@@ -78,6 +78,14 @@ def test_settings_split_into_the_tracker_and_its_physics():
     assert changed == {"joints": (25.0, 50.0), "zone_force": (0.0, 1.7)}
     with pytest.raises(ValueError, match=r"cost\.zone_force: expected a value of type float, got 'x'"):
         parse_settings(["cost.zone_force=x"])
+    # A run's results name the changed weights as --set does.
+    from dataclasses import asdict
+
+    from inhand_tracker.service.bench.accuracy import _changed
+    from inhand_tracker.service.tracker import TrackerConfig
+
+    config = parse_settings(["cost.joints=25", "optimizer.min_separation=4"])[0]
+    assert _changed(asdict(config), asdict(TrackerConfig())) == {"cost.joints": 25.0, "optimizer.min_separation": 4.0}
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():

@@ -140,7 +140,7 @@ def files_suite(trajectories: Sequence[Trajectory]) -> Suite:
 def parse_settings(settings: Sequence[str]) -> tuple[TrackerConfig, dict]:
     """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
     tracker's number and flag settings by their own names, its optimizer's as optimizer.NAME, a
-    cost term's weight as cost.TERM (cost.zone_share=0 drops that term), and the population's
+    cost term's weight as cost.TERM (cost.zone_force=0 drops that term), and the population's
     physics numbers (impratio, tolerance, ...) as population.NAME. Values are
     parsed by pydantic, as the service's settings are; a bad one is a ValueError naming it."""
     from pydantic import TypeAdapter, ValidationError
@@ -310,4 +310,7 @@ def _changed(config: dict, default: dict) -> dict:
             out |= inner if key in TRACKER_GROUPS else {f"{key}.{k}": v for k, v in inner.items()}
         elif key != "seed" and value != default[key]:
             out[key] = value
+    if isinstance(weights := out.get("cost.weights"), (list, tuple)):  # per term, as --set names them
+        del out["cost.weights"]
+        out |= {f"cost.{n}": w for n, w, w0 in zip(TERM_NAMES, weights, WEIGHTS, strict=True) if w != w0}
     return out
