@@ -16,7 +16,7 @@ from inhand_tracker.service.evaluation import add_error
 from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
 from inhand_tracker.service.tracker.cost import CostConfig
 from inhand_tracker.service.tracker.estimate import unresolved_variance
-from inhand_tracker.service.tracker.optimizers import OptimizerConfig
+from inhand_tracker.service.tracker.optimizers import HELD_COST, OptimizerConfig
 from inhand_tracker.service.tracker.sampling import sample_poses
 from inhand_tracker.service.tracker.tracker import _lowest_point
 from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
@@ -501,3 +501,24 @@ def test_a_group_whose_poses_explain_nothing_trades_parameters_and_keeps_its_wor
         position = tr.pop.obs.object_pose[..., :3].mean(1).numpy()
         assert np.allclose(est.pose[:, :3], position, atol=1e-6) == (evidence > 0), (est.pose[:, :3], position)
     assert moved == {0.0: True, 1e9: False}
+
+
+def test_a_group_held_back_for_want_of_separation_keeps_gathering_its_window(hand, recording):
+    """Where ``min_separation`` holds an update back, the worlds keep their states and their window
+    goes on over the next (so weak, steady evidence adds up until it separates them); a world that
+    lost its object is still replaced, and takes its source's window with its state. Without the
+    setting every update starts the window again."""
+    frames = {}
+    for separation in (0.0, 1e9):
+        optimizer = OptimizerConfig(method="REPS", min_separation=separation)
+        tr = _tracker(hand, worlds=12, optimizer=optimizer, seed=2, update_every=5)
+        tr.start(_noisy_start(recording), recording.initial_q)
+        for f in range(recording.frames):
+            tr.step(_frame(recording, f))
+        frames[separation] = tr.windows.frames[:, 0].tolist()
+    assert max(frames[0.0]) <= 5 and min(frames[1e9]) > 10, frames
+    before = tr.windows.sum.clone()
+    tr.windows.sum[0, 3] = 1e9 * tr.windows.frames[0, 0]  # world 3 of group 0 lost its object
+    tr._update_ops()
+    assert tr.windows.sum[0, 3] < HELD_COST and tr.windows.sum[0, 3] in before[0, [0, 1, 2, *range(4, 12)]]
+    assert torch.equal(tr.windows.sum[1], before[1]) and tr.windows.frames.min() > 10

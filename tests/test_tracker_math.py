@@ -28,6 +28,7 @@ from inhand_tracker.service.tracker.sampling import (
     shrink_toward_mean,
     silverman_bandwidth,
 )
+from inhand_tracker.service.tracker.window import CostWindow
 from inhand_tracker.sim_backend import Observation
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
 
@@ -213,12 +214,28 @@ def test_separation_is_about_one_on_noise_and_large_where_a_world_stays_better()
     # A group held back keeps its worlds, but for the lost one: it becomes a copy of a held world.
     back = torch.cat([f[:100] <= 2.5, torch.zeros(100, dtype=torch.bool)])
     kept = torch.cat([upd.index[back][:, :1], upd.index[back][:, 2:]], -1)
+    assert torch.equal(upd.held_back, back)
     assert back.sum() > 50 and torch.equal(kept, torch.cat([torch.tensor([0]), torch.arange(2, k)]).expand_as(kept))
     assert (upd.index[back][:, 1] != 1).all() and torch.equal(
         upd.explore[back].nonzero()[:, 1].unique(), torch.tensor([1])
     )
     with pytest.raises(ValueError, match="min_separation: expected >= 0, got -1"):
         OptimizerConfig(min_separation=-1.0)
+
+
+def test_a_held_back_group_keeps_its_cost_window_through_a_restart():
+    """:meth:`CostWindow.restart`: the groups whose update was held back keep their window (sums and
+    frame counts), the others start again."""
+    gen = torch.Generator().manual_seed(1)
+    g, k = 6, 5
+    window = CostWindow(g, k, torch.device("cpu"), scatters=True)
+    for _ in range(30):
+        window.add(torch.randn(g, k, generator=gen) + 5.0)
+    keep = torch.arange(g) < 3
+    before = window.sum.clone()
+    window.restart(keep, torch.arange(k).expand(g, k))
+    assert torch.equal(window.sum[:3], before[:3]) and not window.sum[3:].any()
+    assert window.frames[:3].eq(30).all() and not window.frames[3:].any() and not window.scatter[3:].any()
 
 
 def test_pose_evidence_tells_costs_the_poses_explain_from_costs_the_mass_explains():

@@ -73,7 +73,7 @@ def cost_ranking(
         tracker.step(Frame(**{name: None if v is None else v[f] for name, v in rec.sensing.items()}))
         terms = tracker.cost.last_terms.double().cpu().numpy()  # (G, K, terms)
         # The window restarts at an update: right after one it holds nothing to rank.
-        window = (tracker.window / max(tracker.window_frames, 1)).double().cpu().numpy()
+        window = tracker.windows.means()[0].double().cpu().numpy()
         stacked = np.concatenate([terms, (terms * weights).sum(-1, keepdims=True), window[..., None]], axis=-1)
         error = add_error(points, rec.object_pose[f][:, None], pop.obs.object_pose.cpu().numpy())  # (G, K)
         live = f < rec.lengths

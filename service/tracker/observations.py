@@ -64,7 +64,7 @@ class PoseObserver:
         if confident and may_draw and nearest > cfg.inject_gate:
             self._inject(group, observed, position_sigma, rotation_sigma)
             d2 = self._distance(group, observed, chol)
-        t.evidence[group] += (cfg.observation_weight / CHI2_6_95) * d2.float()
+        t.windows.evidence[group] += (cfg.observation_weight / CHI2_6_95) * d2.float()
         return False
 
     def _inject(self, group: int, observed: torch.Tensor, sigma_t: float, sigma_r: float) -> None:
@@ -78,8 +78,9 @@ class PoseObserver:
         worst = scored.topk(count).indices
         index = torch.arange(t.K, device=t.device).expand(t.G, t.K).clone()
         index[group, worst] = scored.argmin()
-        held = t.window[group] < HELD_COST
-        typical = t.window[group][held].median() if bool(held.any()) else t.window.new_tensor(0.0)
+        window = t.windows.sum
+        held = window[group] < HELD_COST
+        typical = window[group][held].median() if bool(held.any()) else window.new_tensor(0.0)
         t.pop.resample(index)
         poses = sample_poses(observed[None], sigma_t, sigma_r, count, t.gen)[0]
         coords = t.pop.object_coords
@@ -89,8 +90,8 @@ class PoseObserver:
         t.pop.separate_object(drawn)
         # The new worlds join the window at its typical cost: their source's would make them the
         # best before they scored a frame.
-        t.window[group, worst] = typical
-        t.evidence[group, worst] = 0.0
+        window[group, worst] = typical
+        t.windows.evidence[group, worst] = 0.0
 
     def _distance(self, group: int, observed: torch.Tensor, chol: torch.Tensor) -> torch.Tensor:
         """Each of ``group``'s worlds' Mahalanobis distance squared from an observed pose (7,)

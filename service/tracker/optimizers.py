@@ -95,6 +95,9 @@ class Update:
     """Source world of every world after the update, (G, K) int64."""
     explore: torch.Tensor
     """Worlds to perturb (parameters and wrench), (G, K) bool."""
+    held_back: torch.Tensor | None = None
+    """Groups whose costs spread but did not separate their worlds beyond noise (``min_separation``),
+    (G,) bool: they keep their worlds, and their window goes on gathering evidence."""
 
 
 def wrs_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
@@ -261,17 +264,20 @@ def update(
 
     ``separated`` (G,) is each group's :func:`separation`; a group below ``config.min_separation``
     keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``,
-    but for those that lost their object.
+    but for those that lost their object, and is named in :attr:`Update.held_back`.
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
     ``rows`` maps each method present to its groups, a (G,) bool tensor on the device; a caller
     that captures the update passes it, since building it from ``methods`` copies from the host."""
     informative = cost.amax(-1) - cost.amin(-1) > config.min_spread
+    held_back = torch.zeros_like(informative)
     if separated is not None and config.min_separation > 0:
-        informative = informative & (separated > config.min_separation)
+        held_back = informative & (separated <= config.min_separation)
+        informative = informative & ~held_back
     if methods is None or len(set(methods)) == 1:
-        return _update(cost, config.method if methods is None else methods[0], config, gen, informative)
+        part = _update(cost, config.method if methods is None else methods[0], config, gen, informative)
+        return Update(index=part.index, explore=part.explore, held_back=held_back)
     if rows is None:
         rows = method_rows(methods, cost.device)
     index = explore = None
@@ -280,7 +286,7 @@ def update(
         mine = rows[method][:, None]
         index = part.index if index is None else torch.where(mine, part.index, index)
         explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
-    return Update(index=index, explore=explore)
+    return Update(index=index, explore=explore, held_back=held_back)
 
 
 def method_rows(methods: tuple[str, ...], device: torch.device) -> dict[str, torch.Tensor]:

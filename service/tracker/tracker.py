@@ -34,7 +34,14 @@ from .estimate import pose_statistics, unresolved_variance
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
-from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, pose_sources, separation, update
+from .optimizers import (
+    METHODS,
+    duplicates,
+    estimate_pmf,
+    method_rows,
+    pose_sources,
+    update,
+)
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
@@ -46,6 +53,7 @@ from .sampling import (
     silverman_bandwidth,
 )
 from .servos import ServoExplorer
+from .window import CostWindow
 
 __all__ = ["Tracker"]
 
@@ -97,19 +105,10 @@ class Tracker:
         self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
         self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
         self._allocate_io()
-        self.window = torch.zeros(self.G, self.K, device=dev)
-        """Sum of each world's cost since the last update, (G, K)."""
-        self.scatter = torch.zeros(self.G, self.K, device=dev)
-        """Sum of each world's squared deviation from its group's mean cost of the frame since the
-        last update, (G, K), over the worlds that hold the object; kept where ``min_separation`` > 0."""
         self._separates = cfg.optimizer.min_separation > 0
-        self._window_frames = torch.zeros((), device=dev)
-        """Frames in the window, on the device (the captured frame counts them)."""
-        self.evidence = torch.zeros(self.G, self.K, device=dev)
-        """Each world's disagreement with the pose observations of this window, (G, K), in units of
-        the spread of the group's contact costs (:mod:`.observations`)."""
+        self.windows = CostWindow(self.G, self.K, dev, scatters=self._separates)
         self.window_frames = 0
-        """The same count on the host, which schedules the update."""
+        """Frames since the last update, on the host, which schedules the next."""
         self.frame = 0
         self._rows = method_rows(self.methods, dev)
         # Made here, not in the captured update: a tensor from host numbers is a copy a graph cannot hold.
@@ -159,7 +158,7 @@ class Tracker:
         self.recovery.start(p0, mask)
         if groups is None:
             self.frame = self.window_frames = 0
-            self._window_frames.zero_()
+            self.windows.restart()
         started = torch.as_tensor(mask, device=self.device)
         self.cost.reset(started)
         self.joints.start(started)
@@ -230,9 +229,8 @@ class Tracker:
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
         self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
         self.pop.write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
-        self.window.masked_fill_(sel, 0.0)
-        self.scatter.masked_fill_(sel, 0.0)
-        self.evidence.masked_fill_(sel, 0.0)
+        # With min_separation a window may span several updates: its count starts again with it.
+        self.windows.clear(sel, frames=self._separates)
 
     def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
         """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``
@@ -322,12 +320,7 @@ class Tracker:
         # world has lost the object, the argmin must not pick a NaN pose.
         cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(lost, 1e9)
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
-        self.window += cost
-        if self._separates:
-            held = cost < HELD_COST
-            centre = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)
-            self.scatter += torch.where(held, cost - centre, 0.0).square()
-        self._window_frames += 1
+        self.windows.add(cost)
         self.joints.update(pop.obs.q, self.real.q)
         self._packed[:, : ESTIMATE.width].copy_(self._summary(self.scored(), lost))
         self._packed[:, ESTIMATE.width :].copy_(self.joints.rms())
@@ -348,15 +341,6 @@ class Tracker:
         (uniform right after an update, before any frame was scored)."""
         return estimate_pmf(torch.nan_to_num(self.scored(), nan=0.0), self.config.estimate.estimate_lambda)
 
-    def _window(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The window's mean cost per world, (G, K), and its highest and lowest among the worlds
-        that still hold the object, (G, 1) each (-inf and inf where none does)."""
-        window = self.window / self._window_frames
-        held = window < HELD_COST
-        top = torch.where(held, window, -torch.inf).amax(-1, keepdim=True)
-        bottom = torch.where(held, window, torch.inf).amin(-1, keepdim=True)
-        return window, top, bottom
-
     def scored(self) -> torch.Tensor:
         """The window's mean cost per world with the pose observations' evidence added, (G, K).
         The evidence is scaled by the spread of the contact costs of the worlds that still hold
@@ -364,12 +348,12 @@ class Tracker:
         spread, so an observation weighs the same whatever the cost's units; where the contact
         costs do not separate the worlds (before the grasp), it weighs as the optimizers' least
         meaningful spread, and the observation decides."""
-        window, top, bottom = self._window()
+        window, top, bottom = self.windows.means()
         # At least the spread below which the optimizers see only noise and skip the update: where
         # contact does not separate the worlds (before the grasp, or with the object left on the
         # table) the observation alone must be able to move them.
         spread = torch.nan_to_num(top - bottom, nan=0.0, posinf=0.0, neginf=0.0)
-        return window + self.evidence * spread.clamp_min(self.config.optimizer.min_spread)
+        return window + self.windows.evidence * spread.clamp_min(self.config.optimizer.min_spread)
 
     def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
@@ -396,11 +380,11 @@ class Tracker:
         cfg = self.config
         separated = None
         if self._separates:  # worlds apart from noise: the window's mean scatter against its means
-            separated = separation(self._window()[0], self.scatter / self._window_frames, self._window_frames)
+            separated = self.windows.separation()
         cost = self.scored()
         upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
-        opens = self.contacts.gate(self._window()[2][:, 0], explores) if self.contacts.enabled else None
+        opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
         state, posed = upd.index, torch.ones_like(upd.explore)
         if cfg.optimizer.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
@@ -421,10 +405,7 @@ class Tracker:
             # The wrench and the roughening explore the poses: only where the poses were resampled.
             self.pop.set_wrench(wrench * ((explore & posed)[..., None] * scale[..., None]))
             self._move_copies(state, explore & posed, scale)
-        self.window.zero_()
-        self.scatter.zero_()
-        self.evidence.zero_()
-        self._window_frames.zero_()
+        self.windows.restart(upd.held_back if self._separates else None, upd.index)
 
     def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor) -> None:
         """Roughen the object poses of the resampled worlds' extra copies (of ``state`` (G, K), where
