@@ -34,14 +34,7 @@ from .estimate import pose_statistics, unresolved_variance
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver
-from .optimizers import (
-    METHODS,
-    duplicates,
-    estimate_pmf,
-    method_rows,
-    pose_sources,
-    update,
-)
+from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, pose_sources, update
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
