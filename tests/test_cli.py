@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import asdict
 
 import pytest
 from typer.testing import CliRunner
@@ -63,6 +64,8 @@ def test_bad_suite_options_are_refused_before_anything_runs():
 
 def test_settings_split_into_the_tracker_and_its_physics():
     from inhand_tracker.service.bench import parse_settings
+    from inhand_tracker.service.bench.accuracy import _changed
+    from inhand_tracker.service.tracker import TERM_NAMES, WEIGHTS, TrackerConfig
 
     config, physics = parse_settings(
         ["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"]
@@ -71,19 +74,12 @@ def test_settings_split_into_the_tracker_and_its_physics():
     assert parse_settings(["optimizer.keep_best=no"])[0].optimizer.keep_best is False
     assert parse_settings([])[1] == {}
     # A cost term's weight by the term's name; the others keep theirs.
-    from inhand_tracker.service.tracker import TERM_NAMES, WEIGHTS
-
     weights = parse_settings(["cost.zone_force=0", "cost.joints=25"])[0].cost.weights
     changed = {name: (w, w0) for name, w, w0 in zip(TERM_NAMES, weights, WEIGHTS, strict=True) if w != w0}
     assert changed == {"joints": (25.0, 50.0), "zone_force": (0.0, 1.7)}
     with pytest.raises(ValueError, match=r"cost\.zone_force: expected a value of type float, got 'x'"):
         parse_settings(["cost.zone_force=x"])
     # A run's results name the changed weights as --set does.
-    from dataclasses import asdict
-
-    from inhand_tracker.service.bench.accuracy import _changed
-    from inhand_tracker.service.tracker import TrackerConfig
-
     config = parse_settings(["cost.joints=25", "optimizer.min_separation=4"])[0]
     assert _changed(asdict(config), asdict(TrackerConfig())) == {"cost.joints": 25.0, "optimizer.min_separation": 4.0}
 
