@@ -4,6 +4,7 @@ files or the cache when they are there."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import tempfile
 import time
@@ -11,6 +12,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+from filelock import FileLock
 
 from inhand_tracker.protocol import Trajectory
 from inhand_tracker.service.evaluation import add_error
@@ -80,47 +82,74 @@ def ground_truth(suite: Suite, device: str = "auto", cache: Path | None = CACHE_
                 for v in range(suite.variants)
             ]
         names = [f"{suite.name}-{d.name}.traj" for d in demos]
-        for folder in (DATA_DIR, cache):
-            if folder is not None and all((folder / n).exists() for n in names):
-                break
-        else:
-            folder = None
-        if folder is not None:
-            out += [Trajectory.load(folder / n) for n in names]
-            continue
-        log.info(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
-        t0 = time.perf_counter()
-        rng = np.random.default_rng([suite.seed, o])
-        if suite.engine in ("mujoco", "scene"):
-            with tempfile.TemporaryDirectory() as tmp:
-                xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
-                scene = (
-                    load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale)
-                    if suite.scene is not None
-                    else export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
-                )
-                recordings, rounds = _held_mujoco(scene, obj, demos, rng, margin)
-            tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
-        else:
-            held, rounds = _held_newton(suite, spec, obj, demos, rng, device, margin)
-            if suite.drop:
-                held, drops = _dropped(suite, spec, obj, demos, held, device)
-            held = _add_sensor_noise(held, suite.sensors, rng)
-            tracks = [(held, g) for g in range(len(demos))]
-        seconds = time.perf_counter() - t0
-        log.info(f"recorded {name} with {suite.engine}: {rounds} round(s) of physics draws in {seconds:.0f} s")
-        meta = {
-            "suite": suite.name,
-            "engine": suite.engine,
-            "gap": str(asdict(suite.gap)),
-            "sensors": str(asdict(suite.sensors)),
-        }
-        for i, ((rec, g), d, file) in enumerate(zip(tracks, demos, names, strict=True)):
-            event = {"drop_frame": int(drops[i])} if suite.drop and suite.engine == "newton" else {}
-            traj = rec.trajectory(g, suite.robot, name, meta | {"demo": d.name} | event)
-            if cache is not None:
-                traj.save(cache / file)
-            out.append(traj)
+        # Runs started side by side on one machine (a paired comparison) must score one truth, and
+        # a GPU's float atomics make every recording differ: the first records, the others wait and read it.
+        with _locked(cache, f"{suite.name}-{name}"):
+            found = (f for f in (DATA_DIR, cache) if f is not None and all((f / n).exists() for n in names))
+            folder = next(found, None)
+            if folder is not None:
+                out += [Trajectory.load(folder / n) for n in names]
+            else:
+                rng = np.random.default_rng([suite.seed, o])
+                out += _record(suite, kin, spec, obj, demos, names, rng, device, cache, margin)
+    return out
+
+
+def _locked(cache: Path | None, name: str) -> contextlib.AbstractContextManager:
+    """The cache's lock on one object's truth (none without a cache)."""
+    if cache is None:
+        return contextlib.nullcontext()
+    cache.mkdir(parents=True, exist_ok=True)
+    return FileLock(cache / f"{name}.lock")
+
+
+def _record(
+    suite: Suite,
+    kin: Kinematics,
+    spec: RobotSpec,
+    obj: ObjectSpec,
+    demos: list[Demo],
+    names: list[str],
+    rng: np.random.Generator,
+    device: str,
+    cache: Path | None,
+    margin: float,
+) -> list[Trajectory]:
+    """``obj``'s demos recorded by the suite's truth, with its sensors' noise; written to ``cache``."""
+    name = obj.name
+    out: list[Trajectory] = []
+    log.info(f"recording ground truth: {name}, {len(demos)} demos of up to {max(d.frames for d in demos)} frames")
+    t0 = time.perf_counter()
+    if suite.engine in ("mujoco", "scene"):
+        with tempfile.TemporaryDirectory() as tmp:
+            xml = (cache or Path(tmp)) / f"{suite.name}-{name}.xml"
+            scene = (
+                load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale)
+                if suite.scene is not None
+                else export_scene(spec, obj.scaled(suite.gap.object_scale), xml)
+            )
+            recordings, rounds = _held_mujoco(scene, obj, demos, rng, margin)
+        tracks = [(_add_sensor_noise(r, suite.sensors, rng), 0) for r in recordings]
+    else:
+        held, rounds = _held_newton(suite, spec, obj, demos, rng, device, margin)
+        if suite.drop:
+            held, drops = _dropped(suite, spec, obj, demos, held, device)
+        held = _add_sensor_noise(held, suite.sensors, rng)
+        tracks = [(held, g) for g in range(len(demos))]
+    seconds = time.perf_counter() - t0
+    log.info(f"recorded {name} with {suite.engine}: {rounds} round(s) of physics draws in {seconds:.0f} s")
+    meta = {
+        "suite": suite.name,
+        "engine": suite.engine,
+        "gap": str(asdict(suite.gap)),
+        "sensors": str(asdict(suite.sensors)),
+    }
+    for i, ((rec, g), d, file) in enumerate(zip(tracks, demos, names, strict=True)):
+        event = {"drop_frame": int(drops[i])} if suite.drop and suite.engine == "newton" else {}
+        traj = rec.trajectory(g, suite.robot, name, meta | {"demo": d.name} | event)
+        if cache is not None:
+            traj.save(cache / file)
+        out.append(traj)
     return out
 
 
