@@ -93,7 +93,7 @@ def _chart(path: Path, title: str, chart: dict, note: str) -> Path:
     )
 
 
-_PAGES = {"hands": "Benchmarks on other hands"}
+_PAGES = {"hands": "Benchmarks on other hands", "settings": "Benchmarks of the tracker's settings"}
 """Pages of their own beside the main one, by the name a result file gives as its ``page``."""
 
 
