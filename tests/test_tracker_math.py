@@ -225,7 +225,7 @@ def test_separation_is_about_one_on_noise_and_large_where_a_world_stays_better()
 
 def test_a_held_back_group_keeps_its_cost_window_through_a_restart():
     """:meth:`CostWindow.restart`: the groups whose update was held back keep their window (sums and
-    frame counts), the others start again."""
+    frame counts), the others start again; :meth:`CostWindow.clear` empties a re-seeded group's."""
     gen = torch.Generator().manual_seed(1)
     g, k = 6, 5
     window = CostWindow(g, k, torch.device("cpu"), scatters=True)
@@ -236,6 +236,10 @@ def test_a_held_back_group_keeps_its_cost_window_through_a_restart():
     window.restart(keep, torch.arange(k).expand(g, k))
     assert torch.equal(window.sum[:3], before[:3]) and not window.sum[3:].any()
     assert window.frames[:3].eq(30).all() and not window.frames[3:].any() and not window.scatter[3:].any()
+    window.add(torch.ones(g, k))
+    window.clear(torch.arange(g)[:, None] == 0)
+    assert window.frames[0].eq(0) and window.frames[1:3].eq(31).all() and window.frames[3:].eq(1).all()
+    assert not window.sum[0].any() and window.means()[0][0].eq(0).all()
 
 
 def test_pose_evidence_tells_costs_the_poses_explain_from_costs_the_mass_explains():

@@ -222,8 +222,7 @@ class Tracker:
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
         self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
         self.pop.write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
-        # With min_separation a window may span several updates: its count starts again with it.
-        self.windows.clear(sel, frames=self._separates)
+        self.windows.clear(sel)
 
     def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
         """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``

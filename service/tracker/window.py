@@ -67,9 +67,8 @@ class CostWindow:
             t.copy_(torch.where(keep, t.gather(1, index), 0.0))
         self.frames.masked_fill_(~keep, 0.0)
 
-    def clear(self, groups: torch.Tensor, frames: bool) -> None:
-        """Empty the windows of the re-seeded ``groups`` (G, 1) bool, and their frame counts if ``frames``."""
-        for t in (self.sum, self.scatter, self.evidence):
+    def clear(self, groups: torch.Tensor) -> None:
+        """Empty the windows of the re-seeded ``groups`` (G, 1) bool, frame counts too: a re-seeded
+        group's mean costs are its new worlds' alone."""
+        for t in (self.sum, self.scatter, self.evidence, self.frames):
             t.masked_fill_(groups, 0.0)
-        if frames:
-            self.frames.masked_fill_(groups, 0.0)
