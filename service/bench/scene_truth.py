@@ -23,7 +23,7 @@ from inhand_tracker.sim_backend.robot_specs import RobotLayout
 
 from .mujoco_truth import MujocoScene
 
-__all__ = ["ALLEGRO_PALM_BLOCK", "MANIPULATE_BLOCK", "SceneFile", "load_scene"]
+__all__ = ["ALLEGRO_PALM_BLOCK", "ALLEGRO_PALM_GRID_BLOCK", "MANIPULATE_BLOCK", "SceneFile", "load_scene"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,10 @@ package's egg and pen scenes are left alone: an independent check.)"""
 ALLEGRO_PALM_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_scene.xml"), "object")
 """The Allegro Hand palm up with the 5 cm block on its palm, MuJoCo's own contact model and a 2 ms
 step, and a touch sensor on each of the hand's 14 touch sites (``configs/robots/allegro_palm.toml``)."""
+
+ALLEGRO_PALM_GRID_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_grid_scene.xml"), "object")
+"""The same scene with a touch sensor on each taxel of a 4 x 4 grid over the palm
+(``configs/robots/allegro_palm_grid.toml``)."""
 
 
 def _scale_servos(model: mujoco.MjModel, joints: list[int], by: float) -> None:

@@ -15,7 +15,7 @@ from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS
 from .palm_motions import PALM_MOTION_KINDS
 from .push_motions import PUSH_MOTION_KINDS
-from .scene_truth import ALLEGRO_PALM_BLOCK, MANIPULATE_BLOCK, SceneFile
+from .scene_truth import ALLEGRO_PALM_BLOCK, ALLEGRO_PALM_GRID_BLOCK, MANIPULATE_BLOCK, SceneFile
 
 __all__ = [
     "EXPLORATION",
@@ -167,6 +167,17 @@ SUITES: dict[str, Suite] = {
         engine="scene",
         scene=ALLEGRO_PALM_BLOCK,
         robot="allegro_palm",
+    ),
+    "allegro-palm-grid": Suite(
+        "allegro-palm-grid",
+        ("block",),
+        PUSH_MOTION_KINDS,
+        1,
+        seconds=15.0,
+        sensors=_REAL_SENSORS,
+        engine="scene",
+        scene=ALLEGRO_PALM_GRID_BLOCK,
+        robot="allegro_palm_grid",
     ),
     "allegro-palm-weak": Suite(
         "allegro-palm-weak",
