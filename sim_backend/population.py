@@ -26,7 +26,8 @@ from .params import ObjectParams
 from .robots import SERVO_ARRAYS, RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 from .separate import separate_objects
-from .step import frame_arrays, no_collection, simulate
+from .step import no_collection, simulate
+from .worlds import Dims, Worlds, frame_index
 
 __all__ = ["Population"]
 
@@ -69,26 +70,36 @@ class Population:
         )  # fmt: skip
         """Per world: the object's body index, and its bodies, joint coordinates and DOFs in all."""
         self.D, self.L, self.Z = self.layout.dof_count, self.layout.sensor_count, self.layout.zone_count
+        self.dims = Dims(self.G, self.K, self.D, self.L, self.Z, self.bodies, self.coords, self._dofs, self.object_body)
         with turn:
             physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
-        self.observables = physics.observables
-        """The solver's contact forces, read by the observation kernels, and its overflow bitmask."""
         with turn, wp.ScopedDevice(self.device):
             self.state_0 = self.model.state()
             self.state_1 = self.model.state()
-            self.control = self.model.control()
-            self.buf = observe.allocate_buffers(self.W, self.D, self.L, self.Z)
-            """The observation kernels' arrays (:mod:`.observe`)."""
-            # With ramped targets the robot's command for the frame, and the last frame's, per world.
-            self.goal = wp.zeros((self.W, self.D), dtype=float)
-            self.last_goal = wp.zeros((self.W, self.D), dtype=float)
-            self.static = frame_arrays(self)
-            """Index arrays of the frame's kernels: joints' coordinates, sensors' bodies and offsets, ..."""
+            self.data = Worlds(
+                config=cfg,
+                dims=self.dims,
+                layout=self.layout,
+                model=self.model,
+                solver=physics.solver,
+                pipeline=physics.pipeline,
+                contacts=physics.contacts,
+                observables=physics.observables,
+                state_0=self.state_0,
+                state_1=self.state_1,
+                control=self.model.control(),
+                buf=observe.allocate_buffers(self.W, self.D, self.L, self.Z),
+                # With ramped targets the robot's command for the frame, and the last frame's, per world.
+                goal=wp.zeros((self.W, self.D), dtype=float),
+                last_goal=wp.zeros((self.W, self.D), dtype=float),
+                index=frame_index(self.layout, self.dims, self.model.body_count),
+            )
+            """What the frame's stages read and write (:class:`.Worlds`)."""
             self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
             """The object's mass and friction per world and the solver's constants they set."""
             self._views()
-            self.obs = observe.observation_views(self.buf, self.G, self.K)
+            self.obs = observe.observation_views(self.data.buf, self.G, self.K)
             self.reset_state()
             mass, friction = (torch.full((self.G, self.K), v) for v in (obj.mass, obj.friction))
             self.set_params(mass=mass, friction=friction)
@@ -111,20 +122,21 @@ class Population:
         self._warmstart = t(self.solver.mjw_data.qacc_warmstart).view(G, K, -1)
         # Position targets live in joint-coordinate layout, like joint_q.
         dof = self.layout.coord_indices
-        targets = t(self.control.joint_target_q).view(G, K, self.coords)
+        d = self.data
+        targets = t(d.control.joint_target_q).view(G, K, self.coords)
         contiguous = np.array_equal(dof, np.arange(dof[0], dof[0] + len(dof)))
         self._target_view = targets[..., dof[0] : dof[0] + len(dof)] if contiguous else None
         self._targets_all = targets
         self._target_index = torch.as_tensor(dof, device=self.torch_device)
         self._dof_index = torch.as_tensor(self.layout.dof_indices, device=self.torch_device)
         self._servo_views: dict[str, torch.Tensor] = {}
-        self._goal_view = t(self.goal).view(G, K, self.D)
-        self._last_goal_view = t(self.last_goal).view(G, K, self.D)
+        self._goal_view = t(d.goal).view(G, K, self.D)
+        self._last_goal_view = t(d.last_goal).view(G, K, self.D)
         self._target_stage = torch.zeros((G, self.D), dtype=torch.float32, device=self.torch_device)
         self._lower = torch.as_tensor(self.layout.lower, dtype=torch.float32, device=self.torch_device)
         self._upper = torch.as_tensor(self.layout.upper, dtype=torch.float32, device=self.torch_device)
-        self._wrench = t(self.buf.wrench).view(G, K, 6)
-        self.overflow = t(self.observables.overflow).view(G, K)
+        self._wrench = t(d.buf.wrench).view(G, K, 6)
+        self.overflow = t(d.observables.overflow).view(G, K)
         """What each world's last substep overflowed, (G, K) int32 bitmask
         (newton.solvers.SolverMuJoCo.OverflowBits): 0 when nothing did; :meth:`dropped` reads it."""
 
@@ -132,10 +144,10 @@ class Population:
         # Compile every kernel once outside capture, then record; the eager frame is undone.
         with turn, wp.ScopedDevice(self.device):
             saved = self.snapshot()
-            simulate(self)
+            simulate(self.data)
             self.restore(saved)
         with turn, wp.ScopedDevice(self.device), no_collection(), wp.ScopedCapture(device=self.device) as capture:
-            simulate(self)
+            simulate(self.data)
         self._graph = capture.graph
 
     def state_tensors(self) -> list[torch.Tensor]:
@@ -163,7 +175,7 @@ class Population:
             if self._graph is not None and not self.device.is_capturing:
                 wp.capture_launch(self._graph)
             else:
-                simulate(self)
+                simulate(self.data)
 
     def dropped(self) -> torch.Tensor:
         """Which worlds' last substep left contacts or constraint rows out for want of room, (G, K) bool."""
@@ -172,7 +184,7 @@ class Population:
     def step_eager(self) -> None:
         """The same frame launched kernel by kernel (for checking the graph)."""
         with wp.ScopedDevice(self.device):
-            simulate(self)
+            simulate(self.data)
 
     @contextlib.contextmanager
     def on_stream(self):
@@ -282,7 +294,8 @@ class Population:
         millimetres inside a palm would otherwise be pushed out by the solver at a speed that
         throws a light object off the hand. ``passes`` rounds of collision detection: a corner
         pushed out of the palm may meet a finger."""
-        separate_objects(self, worlds, passes)
+        with self.on_stream():
+            separate_objects(self.data, worlds, passes)
 
     def displace_object(self, displacement: torch.Tensor) -> None:
         """Move each world's object by a small rigid displacement, shape (G, K, 6): translation
@@ -312,8 +325,7 @@ class Population:
     @property
     def free_coords(self) -> slice:
         """Where the object's free joint lies among a world's joint coordinates."""
-        start = self.coords - 7  # the object's free joint is the last joint of a world
-        return slice(start, start + 7)
+        return self.dims.free_coords
 
     def _check(self, name: str, value, width: int) -> torch.Tensor:
         """Broadcast ``value`` to (G, K, width) on the CPU, with a clear error when it cannot."""

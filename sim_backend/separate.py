@@ -13,17 +13,13 @@ one kernel turns each world's into a push.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import newton
 import numpy as np
 import torch
 import warp as wp
 
 from .build import contact_points
-
-if TYPE_CHECKING:
-    from .population import Population
+from .worlds import Worlds
 
 __all__ = ["object_push", "separate_objects"]
 
@@ -81,28 +77,31 @@ def object_push(
     wp.atomic_add(depth_sum, w, depth)
 
 
-def separate_objects(pop: Population, worlds: torch.Tensor | np.ndarray, passes: int = 6) -> None:
+def separate_objects(d: Worlds, worlds: torch.Tensor | np.ndarray, passes: int = 6) -> None:
     """Move the object of each world in ``worlds`` (G, K) bool out of whatever it overlaps (the
     hand, the table) by a translation along the contacts' normals, as far as the overlaps go; the
     robot, the rotation and the velocities stay. ``passes`` rounds of collision detection: a
-    corner pushed out of the palm may meet a finger."""
+    corner pushed out of the palm may meet a finger. Torch work runs on the current stream: the
+    caller puts it on the worlds' own."""
+    n = d.dims
     worlds = worlds.cpu() if isinstance(worlds, torch.Tensor) else worlds
     sel = torch.as_tensor(np.asarray(worlds), dtype=torch.bool)
-    if sel.shape != (pop.G, pop.K):
-        raise ValueError(f"worlds: expected shape ({pop.G}, {pop.K}), got {tuple(sel.shape)}")
-    flags = sel.reshape(pop.W).numpy()
-    moving = sel.to(pop.torch_device)[..., None]
-    c, s = pop.contacts, pop.static
-    with pop.on_stream(), wp.ScopedDevice(pop.device):
-        articulations = wp.array(flags[pop.model.articulation_world.numpy()], dtype=bool)
-        push_sum = wp.zeros(pop.W, dtype=wp.vec3)
-        depth_sum = wp.zeros(pop.W, dtype=wp.float32)
-        push = wp.to_torch(push_sum).view(pop.G, pop.K, 3)
-        depth = wp.to_torch(depth_sum).view(pop.G, pop.K, 1)
-        st = pop.state_0
+    if sel.shape != (n.G, n.K):
+        raise ValueError(f"worlds: expected shape ({n.G}, {n.K}), got {tuple(sel.shape)}")
+    flags = sel.reshape(n.W).numpy()
+    device = d.model.device
+    moving = sel.to(wp.device_to_torch(device))[..., None]
+    c = d.contacts
+    with wp.ScopedDevice(device):
+        articulations = wp.array(flags[d.model.articulation_world.numpy()], dtype=bool)
+        push_sum = wp.zeros(n.W, dtype=wp.vec3)
+        depth_sum = wp.zeros(n.W, dtype=wp.float32)
+        push = wp.to_torch(push_sum).view(n.G, n.K, 3)
+        depth = wp.to_torch(depth_sum).view(n.G, n.K, 1)
+        st = d.state_0
         for _ in range(passes):
-            newton.eval_fk(pop.model, st.joint_q, st.joint_qd, st, mask=articulations)
-            pop.pipeline.collide(st, pop.contacts)
+            newton.eval_fk(d.model, st.joint_q, st.joint_qd, st, mask=articulations)
+            d.pipeline.collide(st, d.contacts)
             push_sum.zero_()
             depth_sum.zero_()
             wp.launch(
@@ -114,14 +113,14 @@ def separate_objects(pop: Population, worlds: torch.Tensor | np.ndarray, passes:
                     c.rigid_contact_normal,
                     c.rigid_contact_margin0,
                     c.rigid_contact_margin1,
-                    pop.model.shape_body,
+                    d.model.shape_body,
                     st.body_q,
-                    s["object_world"],
+                    d.index.object_world,
                 ],
                 outputs=[push_sum, depth_sum],
             )
             step = torch.where(moving, push / depth.clamp_min(1e-9), 0.0)
-            for state in (pop.state_0, pop.state_1):
-                pop.state_views["joint_q"](state)[..., pop.free_coords][..., :3] += step
-        for state in (pop.state_0, pop.state_1):
-            newton.eval_fk(pop.model, state.joint_q, state.joint_qd, state, mask=articulations)
+            for state in (d.state_0, d.state_1):
+                wp.to_torch(state.joint_q).view(n.G, n.K, n.coords)[..., n.free_coords][..., :3] += step
+        for state in (d.state_0, d.state_1):
+            newton.eval_fk(d.model, state.joint_q, state.joint_qd, state, mask=articulations)

@@ -5,13 +5,10 @@ kernel (:func:`.observe.accumulate_contacts`) in the captured frame."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import warp as wp
 
-if TYPE_CHECKING:
-    from .population import Population
+from .robot_specs import RobotLayout
 
 __all__ = ["ZONE_EDGE", "press_zones", "zone_arrays"]
 
@@ -77,12 +74,11 @@ def press_zones(
             wp.atomic_add(touch, w, zone_index[rim], pressed)
 
 
-def zone_arrays(pop: Population) -> dict[str, wp.array]:
+def zone_arrays(lay: RobotLayout, bodies: int) -> dict[str, wp.array]:
     """The touch zones by the local body that carries them (CSR: ``zone_first`` has one entry
-    per body and one more), with their place in the record and their boxes."""
-    lay = pop.layout
+    per body of a world's ``bodies`` and one more), with their place in the record and their boxes."""
     order = np.argsort(lay.zone_bodies, kind="stable")
-    first = np.searchsorted(lay.zone_bodies[order], np.arange(pop.bodies + 1)).astype(np.int32)
+    first = np.searchsorted(lay.zone_bodies[order], np.arange(bodies + 1)).astype(np.int32)
     boxes = lay.zone_boxes[order].reshape(-1, 6)
     return {
         "zone_first": wp.array(first, dtype=wp.int32),

@@ -3,10 +3,11 @@ the whole tracker against its physics, the physics alone, and their reports.
 
 Nothing outside this package imports it but the command line."""
 
-from .accuracy import AccuracyRun, parse_settings, run_suite
+from .accuracy import parse_settings, run_suite
 from .demos import DEMO_KINDS, Demo, make_demo
 from .recorder import Recording, record, sensitivity
 from .report import write_report
+from .run import AccuracyRun
 from .sim import SimBenchResult, bench_sim
 from .speed import SpeedResult, bench_speed
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, SUITES, PhysicsGap, SensorNoise, Suite

@@ -9,7 +9,6 @@ import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -22,17 +21,11 @@ from inhand_tracker.service.tracker.sampling import sample_poses
 from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
 
 from .recorder import Recording
+from .run import AccuracyRun
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, robot_spec
 
-if TYPE_CHECKING:
-    from .accuracy import AccuracyRun
+__all__ = ["TrackResult", "TrackSetting", "per_frame", "plan_tracks", "run_tracks", "save_frames"]
 
-__all__ = ["OBSERVATIONS", "TrackResult", "TrackSetting", "per_frame", "plan_tracks", "run_tracks", "save_frames"]
-
-OBSERVATIONS = ("none", "ends", "1hz", "visible")
-"""When a camera's pose estimate reaches the tracker: never (the paper), on the first and last
-frame (the paper's real-world protocol), once a second, or once a second while the fingers touch
-nothing (a closed hand hides the object)."""
 _ADDS_EVERY = 10
 """ADD-S is scored on every tenth frame (a nearest-point search per surface point)."""
 

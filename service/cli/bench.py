@@ -179,7 +179,7 @@ def bench_accuracy(
     """Tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A."""
     gpu_stack()
     from inhand_tracker.service.bench import K_ABLATION, AccuracyRun, parse_settings, run_suite, write_report
-    from inhand_tracker.service.bench.accuracy import ABLATIONS
+    from inhand_tracker.service.bench.run import ABLATIONS
     from inhand_tracker.service.paths import CACHE_DIR
 
     try:

@@ -20,7 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FrameTimes", "affordable_worlds", "calibrate", "device_name", "ladder"]
+from inhand_tracker.service.paths import DATA_DIR
+
+__all__ = ["STEP_TIME_MOTION", "FrameTimes", "affordable_worlds", "device_name", "ladder", "measure_step_times"]
+
+STEP_TIME_MOTION = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
+"""What the frame times are measured on: a pick and place, the hand in contact for most of it."""
 
 log = logging.getLogger(__name__)
 
@@ -129,11 +134,11 @@ def affordable_worlds(
     return max(fits, default=0)
 
 
-def calibrate(tracker, traj, q0: np.ndarray, rest: np.ndarray, frames: int = 120) -> float:
+def measure_step_times(tracker, traj, q0: np.ndarray, rest: np.ndarray, frames: int = 120) -> float:
     """The p99 of a tracker's steps [ms] over ``frames`` of the trajectory ``traj`` replayed in every
     group (the first third untimed: the hand reaches the object), or, with ``traj`` None, holding
     the joints ``q0`` (D,) with the object at ``rest`` (7,)."""
-    from inhand_tracker.service.tracker import Frame  # torch: only where a service calibrates
+    from inhand_tracker.service.tracker import Frame  # torch: only where a service measures
 
     g = tracker.G
     tile = lambda a: np.repeat(np.asarray(a, np.float32)[None], g, axis=0)  # noqa: E731

@@ -15,7 +15,7 @@ from inhand_tracker.protocol import SENSING, RobotFrame
 from inhand_tracker.sim_backend import RobotLayout
 
 if TYPE_CHECKING:
-    from .session import Session
+    from .pools import Session
 
 __all__ = ["frame_problem", "in_order"]
 

@@ -19,6 +19,7 @@ from dataclasses import replace
 import numpy as np
 
 from inhand_tracker.protocol import (
+    DEFAULT_WORLDS,
     CloseSession,
     ErrorCode,
     Estimate,
@@ -27,18 +28,19 @@ from inhand_tracker.protocol import (
     RobotFrame,
     SessionInfo,
     SessionStatus,
+    Trajectory,
     sensing_field,
 )
 from inhand_tracker.protocol.auth import verify, verify_query
-from inhand_tracker.service.tracker import Frame
+from inhand_tracker.service.tracker import Frame, TrackerConfig
 from inhand_tracker.sim_backend import ObjectSpec, RobotSpec, resolve_device
+from inhand_tracker.sim_backend.kinematics import Kinematics
 
 from .admission import Admission, Gate, ServiceError
-from .budget import FrameTimes, device_name
+from .budget import STEP_TIME_MOTION, FrameTimes, device_name, measure_step_times
 from .config import ServiceConfig
 from .frames import frame_problem, in_order
-from .pools import MEASURED_STEPS, Pool, PoolKey, Turn, build_pool, warm_up
-from .session import Session
+from .pools import MEASURED_STEPS, Pool, PoolKey, Session, Turn, build_pool, idle_pose
 
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
 
@@ -219,9 +221,37 @@ class SessionManager:
         return session
 
     def warm(self) -> None:
-        """Compile the kernels before any robot waits on an open, and calibrate the frame times
-        unless this device's are cached (:func:`.pools.warm_up`)."""
-        warm_up(self)
+        """Compile the kernels before any robot waits on an open (minutes on a cold cache), and,
+        with a frame budget, measure the step time at a few population sizes unless this device's
+        are cached. One world per group on the CPU without a budget; the sizes ``auto`` grants
+        first on CUDA, where some of Newton's kernels are compiled per size."""
+        traj = Trajectory.load(STEP_TIME_MOTION)
+        replay = traj.robot in self.robots and traj.object in self.objects
+        robot, obj = (traj.robot, traj.object) if replay else (next(iter(self.robots)), next(iter(self.objects)))
+        cfg, cuda = self.config, self.device.is_cuda
+        if not cfg.rate_hz:
+            sizes = [DEFAULT_WORLDS if cuda else 1]
+        else:
+            sizes = [k for k in ((8, 128, 1024) if cuda else (1, 8)) if cfg.groups * k <= cfg.max_worlds]
+        measure = cfg.rate_hz and any(cfg.groups * k not in self.frame_times.points for k in sizes)
+        if not replay and measure:
+            log.warning(
+                "frame times: calibrating with robot '%s' holding still (the bundled motion is the '%s' robot's);"
+                " the populations' own steps will correct them", robot, traj.robot,
+            )  # fmt: skip
+        for k in sizes if measure else sizes[:1]:
+            request = OpenSession(robot=robot, object=obj, p0=traj.truth.initial_pose, worlds=k)
+            key, spec, shape = PoolKey(robot, obj, k), self.robots[robot], self.objects[obj]
+            tracker = build_pool(key, spec, shape, TrackerConfig(), request.method, cfg.groups, cfg.device, cfg.physics,
+                                 self.turn).tracker  # fmt: skip
+            if measure:
+                q0 = self.gate.kinematics.setdefault(robot, Kinematics(self.robots[robot])).layout.default_q
+                ms = measure_step_times(tracker, traj if replay else None, q0, idle_pose(self.objects[obj]))
+                self.frame_times.observe(tracker.G * tracker.K, ms, weight=1.0)
+                log.info("frame times: %d worlds step in %.1f ms (p99) on %s", tracker.G * tracker.K, ms, self.device)
+            del tracker
+        if measure:
+            self.frame_times.save(cfg.frame_time_cache)
 
     # ------------------------------------------------------------------ frames
     def submit(self, frame: RobotFrame, received: float | None = None) -> None:

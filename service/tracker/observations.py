@@ -8,98 +8,123 @@ the gate reads one number back, on the frames an observation arrives only."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from inhand_tracker.sim_backend import Population
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
+from .config import ObservationConfig
 from .optimizers import HELD_COST
 from .sampling import sample_poses
+from .window import CostWindow
 
-if TYPE_CHECKING:
-    from .tracker import Tracker
-
-__all__ = ["CHI2_6_95", "PoseObserver"]
+__all__ = ["CHI2_6_95", "Judgement", "PoseObserver", "draw_around"]
 
 CHI2_6_95 = 12.59
 """The 95 % quantile of the chi-squared distribution with 6 degrees of freedom (a pose)."""
 
 
+@dataclass(frozen=True)
+class Judgement:
+    """What one observation asks of its group; the tracker applies it (:meth:`.Tracker.observe`)."""
+
+    distance: torch.Tensor
+    """Each world's Mahalanobis distance squared from the observed pose, (K,)."""
+    reseed: bool
+    """No world lies within the gate of a confident observation: re-seed the group around it."""
+    inject: int
+    """How many of the least likely worlds to draw around it (0: none)."""
+    position_sigma: float
+    """The observation's largest position standard deviation [m]."""
+    rotation_sigma: float
+    """Its largest rotation standard deviation [rad]."""
+
+
 class PoseObserver:
-    """Pose observations for the groups of one tracker."""
+    """Judges pose observations against a group's worlds (:meth:`judge`)."""
 
-    def __init__(self, tracker: Tracker):
-        self.tracker = tracker
-        self.config = tracker.config.observations
+    def __init__(self, config: ObservationConfig, worlds: int):
+        self.config = config
+        self.K = worlds
 
-    def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
-        """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``
-        (6, 6; position [m^2], rotation vector [rad^2]). When no world lies within
-        ``observation_gate`` of a confident observation the group is re-seeded around it instead
-        (the worlds lost the object; contact alone would not bring them back); when the nearest
-        lies beyond ``inject_gate``, a share of the worlds is drawn around it (:meth:`_inject`).
-        Returns whether it re-seeded. An open-loop group (OLP) ignores it: it simulates its start alone."""
-        t, cfg = self.tracker, self.config
-        if bool(t.olp[group]):
-            return False
-        observed = torch.as_tensor(np.asarray(pose, np.float32), device=t.device)
-        cov = torch.as_tensor(np.asarray(covariance, np.float64), device=t.device)
-        chol = torch.linalg.cholesky(cov)
-        d2 = self._distance(group, observed, chol)  # (K,)
+    def judge(self, poses: torch.Tensor, pose: np.ndarray, covariance: np.ndarray) -> Judgement:
+        """How a group whose worlds' object poses are ``poses`` (K, 7) meets an observed object
+        pose (7,) with its ``covariance`` (6, 6; position [m^2], rotation vector [rad^2]). When no
+        world lies within ``observation_gate`` of a confident observation the group is to be
+        re-seeded around it (the worlds lost the object; contact alone would not bring them back);
+        when the nearest lies beyond ``inject_gate``, a share of the worlds drawn around it."""
+        cfg = self.config
+        chol = self.factor(covariance, poses.device)
+        d2 = self.distance(poses, self.observed(pose, poses.device), chol)
         host = np.asarray(covariance, np.float64)
         largest = lambda block: float(np.sqrt(np.linalg.eigvalsh(block).max()))  # noqa: E731
         position_sigma, rotation_sigma = largest(host[:3, :3]), largest(host[3:, 3:])
         confident = position_sigma < cfg.observation_confident
         nearest = float(d2.min())
-        if confident and nearest > cfg.observation_gate:
-            anchor = np.tile(np.asarray(pose, np.float32), (t.G, 1))
-            mask = np.zeros(t.G, bool)
-            mask[group] = True
-            t.seed_groups(mask, anchor, t.real.q.detach().cpu().numpy(), position_sigma, rotation_sigma)
-            t.recovery.reseeded(anchor, mask)
-            return True
-        may_draw = cfg.inject_share > 0 and t.K > 1
-        if confident and may_draw and nearest > cfg.inject_gate:
-            self._inject(group, observed, position_sigma, rotation_sigma)
-            d2 = self._distance(group, observed, chol)
-        t.windows.evidence[group] += (cfg.observation_weight / CHI2_6_95) * d2.float()
-        return False
+        reseed = confident and nearest > cfg.observation_gate
+        may_draw = cfg.inject_share > 0 and self.K > 1
+        inject = confident and may_draw and not reseed and nearest > cfg.inject_gate
+        count = max(1, round(cfg.inject_share * self.K)) if inject else 0
+        return Judgement(d2, reseed, count, position_sigma, rotation_sigma)
 
-    def _inject(self, group: int, observed: torch.Tensor, sigma_t: float, sigma_r: float) -> None:
-        """Draw the least likely ``inject_share`` of ``group``'s worlds around an observed pose
-        (7,) (sensor resetting, as in mixture Monte Carlo localisation). Each new world is a copy
-        of the group's best, hand, velocities and physics, with its object moved: reset to the real
-        joints at rest instead, a new world's hand lags the moving ones and its cost loses to theirs."""
-        t = self.tracker
-        scored = t.scored()[group]
-        count = max(1, round(self.config.inject_share * t.K))
-        worst = scored.topk(count).indices
-        index = torch.arange(t.K, device=t.device).expand(t.G, t.K).clone()
-        index[group, worst] = scored.argmin()
-        window = t.windows.sum
-        held = window[group] < HELD_COST
-        typical = window[group][held].median() if bool(held.any()) else window.new_tensor(0.0)
-        t.pop.resample(index)
-        poses = sample_poses(observed[None], sigma_t, sigma_r, count, t.gen)[0]
-        coords = t.pop.object_coords
-        coords[group, worst] = poses
-        drawn = torch.zeros(t.G, t.K, dtype=torch.bool, device=t.device)
-        drawn[group, worst] = True
-        t.pop.separate_object(drawn)
-        # The new worlds join the window at its typical cost: their source's would make them the
-        # best before they scored a frame.
-        window[group, worst] = typical
-        t.windows.evidence[group, worst] = 0.0
+    def evidence(self, distance: torch.Tensor) -> torch.Tensor:
+        """What an observation adds to each world's window cost, (K,), from its ``distance``."""
+        return (self.config.observation_weight / CHI2_6_95) * distance.float()
 
-    def _distance(self, group: int, observed: torch.Tensor, chol: torch.Tensor) -> torch.Tensor:
-        """Each of ``group``'s worlds' Mahalanobis distance squared from an observed pose (7,)
-        under its covariance's Cholesky factor (6, 6), (K,); large for a NaN world."""
-        poses = self.tracker.pop.object_coords[group]  # (K, 7), the state as it will step next
+    @staticmethod
+    def observed(pose: np.ndarray, device: torch.device) -> torch.Tensor:
+        """The observed pose (7,) on ``device``."""
+        return torch.as_tensor(np.asarray(pose, np.float32), device=device)
+
+    @staticmethod
+    def factor(covariance: np.ndarray, device: torch.device) -> torch.Tensor:
+        """The covariance's Cholesky factor (6, 6), float64 on ``device``."""
+        return torch.linalg.cholesky(torch.as_tensor(np.asarray(covariance, np.float64), device=device))
+
+    @staticmethod
+    def distance(poses: torch.Tensor, observed: torch.Tensor, chol: torch.Tensor) -> torch.Tensor:
+        """Each world's Mahalanobis distance squared from an observed pose (7,) under its
+        covariance's Cholesky factor (6, 6), (K,) for ``poses`` (K, 7); large for a NaN world."""
         q_obs = observed[3:].expand_as(poses[:, 3:])
         delta = torch.cat(
             [poses[:, :3] - observed[:3], quat_log(quat_multiply(quat_conjugate(q_obs), poses[:, 3:]))], -1
         )
         delta = torch.nan_to_num(delta.double(), nan=1e3)  # a NaN world agrees with nothing
         return torch.cholesky_solve(delta.T, chol).T.mul(delta).sum(-1)
+
+
+def draw_around(
+    pop: Population,
+    windows: CostWindow,
+    scored: torch.Tensor,
+    group: int,
+    observed: torch.Tensor,
+    judged: Judgement,
+    gen: torch.Generator,
+) -> None:
+    """Draw the least likely ``judged.inject`` of ``group``'s worlds (by ``scored`` (K,), their
+    window cost) around an observed pose (7,) (sensor resetting, as in mixture Monte Carlo
+    localisation). Each new world is a copy of the group's best, hand, velocities and physics, with
+    its object moved: reset to the real joints at rest instead, a new world's hand lags the moving
+    ones and its cost loses to theirs."""
+    G, K = pop.G, pop.K
+    worst = scored.topk(judged.inject).indices
+    index = torch.arange(K, device=scored.device).expand(G, K).clone()
+    index[group, worst] = scored.argmin()
+    window = windows.sum
+    held = window[group] < HELD_COST
+    typical = window[group][held].median() if bool(held.any()) else window.new_tensor(0.0)
+    pop.resample(index)
+    poses = sample_poses(observed[None], judged.position_sigma, judged.rotation_sigma, judged.inject, gen)[0]
+    coords = pop.object_coords
+    coords[group, worst] = poses
+    drawn = torch.zeros(G, K, dtype=torch.bool, device=scored.device)
+    drawn[group, worst] = True
+    pop.separate_object(drawn)
+    # The new worlds join the window at its typical cost: their source's would make them the
+    # best before they scored a frame.
+    window[group, worst] = typical
+    windows.evidence[group, worst] = 0.0

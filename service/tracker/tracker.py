@@ -33,7 +33,7 @@ from .cost import TERMS, Cost, RealObservation
 from .estimate import pose_statistics, unresolved_variance
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
-from .observations import PoseObserver
+from .observations import PoseObserver, draw_around
 from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, pose_sources, update
 from .recovery import Recovery
 from .sampling import (
@@ -130,7 +130,7 @@ class Tracker:
         )
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
-        self.observations = PoseObserver(self)
+        self.observations = PoseObserver(cfg.observations, self.K)
         self.overflows = 0
         """Frames on which a world dropped contacts for want of room (:meth:`_overflowed`)."""
         self.recovery.open_loop[:] = self.olp.cpu().numpy()
@@ -227,9 +227,26 @@ class Tracker:
     def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
         """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``
         (6, 6; position [m^2], rotation vector [rad^2]) until the next update, re-seeding or
-        drawing worlds around it where they disagree (:class:`.PoseObserver`). Returns whether it re-seeded."""
+        drawing worlds around it where they disagree (:class:`.PoseObserver`). Returns whether it
+        re-seeded. An open-loop group (OLP) ignores it: it simulates its start alone."""
+        if bool(self.olp[group]):
+            return False
+        obs = self.observations
         with self.pop.on_stream():  # behind the update the last frame may have queued
-            return self.observations.observe(group, pose, covariance)
+            judged = obs.judge(self.pop.object_coords[group], pose, covariance)
+            if judged.reseed:
+                anchor, mask = np.tile(np.asarray(pose, np.float32), (self.G, 1)), np.arange(self.G) == group
+                q = self.real.q.detach().cpu().numpy()
+                self.seed_groups(mask, anchor, q, judged.position_sigma, judged.rotation_sigma)
+                self.recovery.reseeded(anchor, mask)
+                return True
+            distance = judged.distance
+            if judged.inject:
+                observed = obs.observed(pose, self.device)
+                draw_around(self.pop, self.windows, self.scored()[group], group, observed, judged, self.gen)
+                distance = obs.distance(self.pop.object_coords[group], observed, obs.factor(covariance, self.device))
+            self.windows.evidence[group] += obs.evidence(distance)
+        return False
 
     # ------------------------------------------------------------------ frame
     def _allocate_io(self) -> None:
