@@ -22,7 +22,9 @@ from multiprocessing.connection import Connection
 import numpy as np
 import warp as wp
 
-__all__ = ["Drawing", "EstimateView", "draw_forever"]
+from .view_messages import Close, Draw, Drawn, EstimateView, Failed, Panel, Ready, Show, Warm, layout
+
+__all__ = ["Drawing", "draw_forever"]
 
 log = logging.getLogger(__name__)
 
@@ -41,25 +43,6 @@ the 95 % region of the object's position. Axes: the estimate. Faded objects: the
 opaque as its share of the estimate."""
 _POLL_S = 0.1
 """How often an idle drawing process looks for new browsers and the picked session [s]."""
-
-
-@dataclasses.dataclass(frozen=True)
-class EstimateView:
-    """What the view draws of an estimate."""
-
-    pose: np.ndarray
-    """The estimate, (7,): position [m] and quaternion (x, y, z, w)."""
-    mean: np.ndarray
-    """The weighted mean position, (3,) [m]."""
-    covariance: np.ndarray
-    """The position's covariance, (3, 3) [m^2]."""
-
-
-def layout(K: int, bodies: int, tips: int) -> dict[str, tuple[int, int]]:
-    """Where each array lies in the shared float32 buffer: name -> (start, stop)."""
-    sizes = {"body_q": K * bodies * 7, "weights": K, "tips": tips * 3}
-    stops = np.cumsum(list(sizes.values()))
-    return {name: (int(stop - size), int(stop)) for (name, size), stop in zip(sizes.items(), stops, strict=True)}
 
 
 class Drawing:
@@ -184,8 +167,8 @@ class _Shared:
 
 
 def draw_forever(conn: Connection, host: str, port: int) -> None:
-    """The drawing process's body: answers "ready" (with its port) or "failed", then draws what
-    the service sends until the pipe closes."""
+    """The drawing process's body: answers :class:`.Ready` (with its port) or :class:`.Failed`,
+    then draws what the service sends (:mod:`.view_messages`) until the pipe closes."""
     import inhand_tracker.sim_backend  # noqa: F401  (first: Warp's adjoints off, as the service has them)
     from inhand_tracker.service.logs import quiet_warp, setup_logging
 
@@ -201,45 +184,43 @@ def draw_forever(conn: Connection, host: str, port: int) -> None:
     try:
         drawing = Drawing(host, port)
     except Exception as exc:
-        conn.send(("failed", f"{type(exc).__name__}: {exc}"))
+        conn.send(Failed(f"{type(exc).__name__}: {exc}"))
         return
-    conn.send(("ready", drawing.port))
+    conn.send(Ready(drawing.port))
     shared: _Shared | None = None
     places: dict[str, tuple[int, int]] = {}
     told = None
     try:
         while True:
             if conn.poll(_POLL_S):
-                message = conn.recv()
-                kind = message[0]
-                if kind == "close":
-                    return
-                if kind == "warm":
-                    drawing.warm(*message[1:])
-                elif kind == "show":
-                    _, robot, obj, config, K, name, tips = message
-                    if shared is not None:
-                        shared.close()
-                    drawing.show(robot, obj, config, K)
-                    places = layout(K, drawing.bodies, tips)
-                    shared = _Shared(name, max(stop for _, stop in places.values()))
-                elif kind == "panel":
-                    drawing.panel(*message[1:])
-                elif kind == "draw" and shared is not None:
-                    _, estimate, text, sessions = message
-                    part = {n: shared.array[a:b] for n, (a, b) in places.items()}
-                    drawing.draw(part["body_q"], part["weights"], part["tips"].reshape(-1, 3), estimate, text, sessions)
+                match conn.recv():
+                    case Close():
+                        return
+                    case Warm(robot, obj, config):
+                        drawing.warm(robot, obj, config)
+                    case Show(robot, obj, config, K, memory, sensors):
+                        if shared is not None:
+                            shared.close()
+                        drawing.show(robot, obj, config, K)
+                        places = layout(K, drawing.bodies, sensors)
+                        shared = _Shared(memory, max(stop for _, stop in places.values()))
+                    case Panel(text, sessions):
+                        drawing.panel(text, sessions)
+                    case Draw(estimate, text, sessions) if shared is not None:
+                        part = {n: shared.array[a:b] for n, (a, b) in places.items()}
+                        tips = part["tips"].reshape(-1, 3)
+                        drawing.draw(part["body_q"], part["weights"], tips, estimate, text, sessions)
                 told = (drawing.choice.value, drawing.clients())
-                conn.send(("done", *told))
+                conn.send(Drawn(*told, done=True))
             elif (now := (drawing.choice.value, drawing.clients())) != told:
                 told = now
-                conn.send(("state", *told))
+                conn.send(Drawn(*told, done=False))
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass  # the service is gone
     except Exception as exc:
         log.exception("the live view failed to draw")
         with contextlib.suppress(OSError):
-            conn.send(("failed", f"{type(exc).__name__}: {exc}"))
+            conn.send(Failed(f"{type(exc).__name__}: {exc}"))
     finally:
         if shared is not None:
             shared.close()

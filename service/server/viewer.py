@@ -30,7 +30,8 @@ import torch
 from inhand_tracker.protocol import Estimate
 
 from .outputs import Output
-from .view_drawing import EstimateView, draw_forever, layout
+from .view_drawing import draw_forever
+from .view_messages import Close, Draw, Drawn, EstimateView, Failed, Panel, Ready, Show, Warm, layout
 
 __all__ = ["LiveView"]
 
@@ -44,8 +45,8 @@ _START_S = 120.0
 class _Snapshot:
     """One drawing's copies into the host buffer, queued on the device behind the frame they show."""
 
-    message: tuple
-    """What goes to the drawing process with it: ("draw", estimate, text, sessions)."""
+    message: Draw
+    """What goes to the drawing process with it."""
     taken: torch.cuda.Event | None
     """Recorded behind the copies on CUDA: the snapshot is shipped once it has passed."""
 
@@ -64,10 +65,10 @@ class LiveView(Output):
         if not self._pipe.poll(_START_S):
             self.close()
             raise RuntimeError(f"the live view did not start within {_START_S:.0f} s")
-        kind, value = self._pipe.recv()
-        if kind != "ready":
+        answer = self._pipe.recv()
+        if not isinstance(answer, Ready):
             self.close()
-            raise RuntimeError(f"the live view on {host}:{port} failed: {value}")
+            raise RuntimeError(f"the live view on {host}:{port} failed: {answer.reason}")
         self.period = 1.0 / rate_hz
         self._last = 0.0
         self._busy = False
@@ -81,7 +82,7 @@ class LiveView(Output):
         self._snapshot: _Snapshot | None = None
         self._counted: tuple[str, int, float] | None = None
         self._turn = contextlib.nullcontext()
-        log.info("live view on http://%s:%d", host, value)
+        log.info("live view on http://%s:%d", host, answer.port)
 
     def warm(self, manager) -> None:
         """The drawing process draws one world of the service's first robot and object, so that
@@ -89,24 +90,24 @@ class LiveView(Output):
         from inhand_tracker.sim_backend import PopulationConfig
 
         robot, obj = next(iter(manager.robots.values())), next(iter(manager.objects.values()))
-        self._send(("warm", robot, obj, PopulationConfig()))
+        self._send(Warm(robot, obj, PopulationConfig()))
         if manager.device.is_cuda:
             # The copies are device work: a build on another thread captures graphs, which another
             # thread's launches would break. On a CPU each thread's work runs apart.
             self._turn = manager.turn
 
-    def _send(self, message: tuple) -> None:
+    def _send(self, message: Warm | Show | Panel | Draw) -> None:
         self._pipe.send(message)
         self._busy = True
 
     def _receive(self) -> None:
         """What the drawing process said since the last turn."""
         while self._pipe.poll():
-            kind, *rest = self._pipe.recv()
-            if kind == "failed":
-                raise RuntimeError(f"the live view's drawing failed: {rest[0]}")  # the outputs close it
-            self._choice, self._clients = rest
-            self._busy = self._busy and kind != "done"
+            said: Drawn | Failed = self._pipe.recv()
+            if isinstance(said, Failed):
+                raise RuntimeError(f"the live view's drawing failed: {said.reason}")  # the outputs close it
+            self._choice, self._clients = said.choice, said.clients
+            self._busy = self._busy and not said.done
 
     def tick(self, sessions: dict) -> None:
         """Hand the chosen session's worlds and latest estimate to the drawing process
@@ -126,13 +127,13 @@ class LiveView(Output):
         if session is None:
             if self._shown is not None:
                 self._shown = None
-                self._send(("panel", "No session is tracking.", ids))
+                self._send(Panel("No session is tracking.", ids))
             return
         key = (session.id, session.group, weakref.ref(session.pool.tracker.pop))  # no hold on a closed one's
         if self._shown != key:
             self._show(session, key)
         elif session.frames == self._drawn:  # nothing moved: the panel alone, the browser redraws nothing
-            self._send(("panel", self._describe(session), ids))
+            self._send(Panel(self._describe(session), ids))
         else:
             self._drawn = session.frames
             self._snapshot = self._take(session, ids)
@@ -149,7 +150,7 @@ class LiveView(Output):
         self._shared = shared_memory.SharedMemory(create=True, size=size * 4)
         pinned = pop.device.is_cuda
         self._staged = torch.empty(size, dtype=torch.float32, pin_memory=pinned)
-        self._send(("show", pop.robot_spec, pop.object, pop.config, pop.K, self._shared.name, pop.L))
+        self._send(Show(pop.robot_spec, pop.object, pop.config, pop.K, self._shared.name, pop.L))
 
     def _take(self, session, ids: tuple[str, ...]) -> _Snapshot:
         """Queue the shown worlds' copies behind the frame (no wait on the device)."""
@@ -173,7 +174,7 @@ class LiveView(Output):
             np.asarray(estimate.pose), np.asarray(estimate.mean_pose[:3]),
             np.asarray(estimate.covariance, np.float32)[:3, :3],
         )  # fmt: skip
-        return _Snapshot(("draw", shown, self._describe(session), ids), taken)
+        return _Snapshot(Draw(shown, self._describe(session), ids), taken)
 
     def _ship(self, snap: _Snapshot) -> None:
         """The snapshot is on the host: into the shared memory, and the drawing process told."""
@@ -202,7 +203,7 @@ class LiveView(Output):
 
     def close(self) -> None:
         try:
-            self._pipe.send(("close",))
+            self._pipe.send(Close())
         except OSError:
             pass  # it has gone already
         self._process.join(timeout=10)
