@@ -13,7 +13,7 @@ import newton
 import numpy as np
 import warp as wp
 
-from .config import PopulationConfig
+from .config import DEFAULT_CONE, DEFAULT_IMPRATIO, PopulationConfig
 from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
 
@@ -113,15 +113,14 @@ def contact_capacity(built: BuiltModel, cfg: PopulationConfig) -> PopulationConf
 
 
 def robot_contacts(robot: RobotSpec, cfg: PopulationConfig) -> PopulationConfig:
-    """``cfg`` with the contact model the robot's model was written for, where its config names one
-    (:attr:`FileRobotSpec.cone`, :attr:`FileRobotSpec.impratio`): a model tuned under MuJoCo's
-    pyramidal cone grips differently under an elliptic one."""
-    cone, impratio = getattr(robot, "cone", ""), getattr(robot, "impratio", 0.0)
-    if cone and cone not in ("pyramidal", "elliptic"):
-        raise ValueError(f"robot '{robot.name}' cone: expected 'pyramidal' or 'elliptic', got {cone!r}")
-    if impratio < 0:
-        raise ValueError(f"robot '{robot.name}' impratio: expected > 0 (or 0: the service's), got {impratio}")
-    return replace(cfg, cone=cone or cfg.cone, impratio=impratio or cfg.impratio)
+    """``cfg`` with its contact model resolved. Precedence, most specific last: the defaults
+    (elliptic, impratio 10), then the robot's config (:class:`.ContactModel`: the model it was
+    written for; a model tuned under MuJoCo's pyramidal cone grips differently under an elliptic
+    one), then ``cfg``'s own where it names one (the service's ``[physics]``, a benchmark's
+    ``--set population.cone`` or ``population.impratio``): a user's explicit choice wins."""
+    cone = cfg.cone or robot.cone or DEFAULT_CONE
+    impratio = cfg.impratio or robot.impratio or DEFAULT_IMPRATIO
+    return replace(cfg, cone=cone, impratio=impratio)
 
 
 def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:

@@ -9,7 +9,20 @@ import warp as wp
 
 from inhand_tracker.protocol import DEFAULT_WORLDS
 
-__all__ = ["PopulationConfig", "SolverSettings", "forward_only_kernels", "resolve_device"]
+__all__ = [
+    "DEFAULT_CONE",
+    "DEFAULT_IMPRATIO",
+    "PopulationConfig",
+    "SolverSettings",
+    "forward_only_kernels",
+    "resolve_device",
+]
+
+
+DEFAULT_CONE = "elliptic"
+"""The friction cone where neither the robot nor the user names one: accurate sticking."""
+DEFAULT_IMPRATIO = 10.0
+"""The impratio where neither the robot nor the user names one: stiff sticking contacts."""
 
 
 @dataclass(frozen=True)
@@ -43,10 +56,12 @@ class PopulationConfig:
     docs/benchmarks.md)."""
     integrator: str = "implicitfast"
     """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
-    cone: str = "elliptic"
-    """Friction cone: "elliptic" (accurate sticking) or "pyramidal"."""
-    impratio: float = 10.0
-    """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer."""
+    cone: str | None = None
+    """Friction cone: "elliptic" (accurate sticking) or "pyramidal"; None: the robot's, else
+    elliptic (:func:`.build.robot_contacts` states the precedence)."""
+    impratio: float | None = None
+    """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer. None: the
+    robot's, else 10."""
     iterations: int | None = None
     """Solver iterations; None: 20 for Newton, 40 for CG."""
     ls_iterations: int | None = None
@@ -102,25 +117,27 @@ class PopulationConfig:
             if value is None and name.endswith(("iterations", "per_world")):
                 continue
             if not isinstance(value, int) or value < 1:
-                raise ValueError(f"population {name}: expected a positive integer, got {value!r}")
+                raise ValueError(f"population.{name}: expected a positive integer, got {value!r}")
         if self.substeps % 2:
-            raise ValueError(f"population substeps: expected an even number, got {self.substeps}")
+            raise ValueError(f"population.substeps: expected an even number, got {self.substeps}")
         if self.solver not in ("auto", "newton", "cg"):
-            raise ValueError(f"population solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
+            raise ValueError(f"population.solver: expected 'auto', 'newton' or 'cg', got {self.solver!r}")
         if self.jacobian not in ("dense", "sparse"):
-            raise ValueError(f"population jacobian: expected 'dense' or 'sparse', got {self.jacobian!r}")
+            raise ValueError(f"population.jacobian: expected 'dense' or 'sparse', got {self.jacobian!r}")
         for name in ("tolerance", "ls_tolerance"):
             if not (0.0 < getattr(self, name) < 1.0):
-                raise ValueError(f"population {name}: expected 0 < {name} < 1, got {getattr(self, name)}")
+                raise ValueError(f"population.{name}: expected 0 < {name} < 1, got {getattr(self, name)}")
         if not (0.0 < self.frame_rate <= 1000.0):
-            raise ValueError(f"population frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
+            raise ValueError(f"population.frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
         # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
         # MuJoCo's friction singular or flag every world lost, far from where it was set.
+        if self.cone not in (None, "pyramidal", "elliptic"):
+            raise ValueError(f"population.cone: expected 'pyramidal' or 'elliptic', got {self.cone!r}")
         for name in ("impratio", "slip_speed", "spin_speed", "lost_distance", "lost_speed"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"population {name}: expected > 0, got {getattr(self, name)}")
+            if getattr(self, name) is not None and not getattr(self, name) > 0.0:
+                raise ValueError(f"population.{name}: expected > 0, got {getattr(self, name)}")
         if not self.contact_gap >= 0.0:
-            raise ValueError(f"population contact_gap: expected >= 0 m, got {self.contact_gap}")
+            raise ValueError(f"population.contact_gap: expected >= 0 m, got {self.contact_gap}")
 
     @property
     def world_count(self) -> int:
@@ -157,11 +174,11 @@ def resolve_device(name: str = "auto") -> wp.context.Device:
     if name == "auto":
         return wp.get_device("cuda:0" if wp.is_cuda_available() else "cpu")
     if name.startswith("cuda") and not wp.is_cuda_available():
-        raise ValueError(f"population device: '{name}' requested but no CUDA device is available")
+        raise ValueError(f"population.device: '{name}' requested but no CUDA device is available")
     try:
         return wp.get_device(name)
     except Exception as exc:
-        raise ValueError(f"population device: unknown device '{name}' (expected auto, cpu, cuda or cuda:N)") from exc
+        raise ValueError(f"population.device: unknown device '{name}' (expected auto, cpu, cuda or cuda:N)") from exc
 
 
 def forward_only_kernels() -> None:

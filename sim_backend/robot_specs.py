@@ -108,8 +108,32 @@ class RobotLayout:
         return len(self.zone_names)
 
 
+CONES = ("pyramidal", "elliptic")
+"""MuJoCo's friction cones."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ContactModel:
+    """The contact model a robot's model was written for, which its worlds run unless the service's
+    physics or a benchmark's ``--set`` name another (:func:`.build.robot_contacts`)."""
+
+    cone: str | None = None
+    """The friction cone, "pyramidal" or "elliptic" (an MJCF's ``<option cone>``, MuJoCo's default
+    pyramidal where it says none); None: the service's default (elliptic)."""
+    impratio: float | None = None
+    """The frictional-to-normal impedance ratio (an MJCF's ``<option impratio>``, MuJoCo's default
+    1); None: the service's default (10)."""
+
+    def __post_init__(self) -> None:
+        name = getattr(self, "name", "")
+        if self.cone is not None and self.cone not in CONES:
+            raise ValueError(f"robot '{name}' cone: expected one of {CONES}, got {self.cone!r}")
+        if self.impratio is not None and not self.impratio > 0:
+            raise ValueError(f"robot '{name}' impratio: expected > 0, got {self.impratio}")
+
+
 @dataclass(frozen=True)
-class HandSpec:
+class HandSpec(ContactModel):
     """The procedural Allegro-like hand on a 6-DoF position-controlled wrist.
 
     The wrist stands in for the arm: one joint of six axes, sliding along world x, y, z, then
@@ -143,7 +167,7 @@ class HandSpec:
 
 
 @dataclass(frozen=True)
-class FileRobotSpec:
+class FileRobotSpec(ContactModel):
     """A user's robot from a local URDF or MJCF file.
 
     ``joints`` names the actuated joints in control order; ``sensor_links`` the links that carry
@@ -179,12 +203,6 @@ class FileRobotSpec:
     """A regular expression: the MJCF's sites whose names match it become touch zones too (their
     box, or a sphere's bounding box, on the link that carries them), as a model that declares
     MuJoCo touch sensors on sites describes its touch array; empty for none."""
-    cone: str = ""
-    """The friction cone the robot's model was written for ("pyramidal" or "elliptic"; an MJCF's
-    ``<option cone>``, MuJoCo's default pyramidal where it says none); empty: the service's."""
-    impratio: float = 0.0
-    """The frictional-to-normal impedance ratio it was written for (an MJCF's ``<option impratio>``,
-    MuJoCo's default 1); 0: the service's."""
     package_dirs: tuple[str, ...] = ()
     """Folders that hold the packages ``package://NAME/...`` mesh paths name (each the parent of a
     NAME folder); the URDF's own package folder is found without it."""

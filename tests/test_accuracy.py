@@ -17,7 +17,7 @@ from inhand_tracker.service.bench import SUITES, AccuracyRun, ground_truth, run_
 from inhand_tracker.service.bench.report import write_report
 from inhand_tracker.service.evaluation import CHI2_6DOF_95
 from inhand_tracker.service.paths import DATA_DIR
-from inhand_tracker.service.tracker import TrackerConfig
+from inhand_tracker.service.tracker import tracker_config
 
 
 def test_the_smoke_suite_ships_its_trajectories():
@@ -58,9 +58,11 @@ def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
     )
     thrice = run_suite(AccuracyRun(
         SUITES["smoke"], methods=("OLP",), noises=("med",), device="cpu", cache=None, quiet=True, repeats=3,
-        config=TrackerConfig.of(jitter_bandwidth=0.5), frames_to=tmp_path / "frames.npz",
+        config=tracker_config({"exploration.jitter_bandwidth": 0.5}), frames_to=tmp_path / "frames.npz",
     ))  # fmt: skip
-    assert once["tracker"] == {} and thrice["tracker"] == {"jitter_bandwidth": 0.5}  # the settings are reported
+    assert once["tracker"] == {} and thrice["tracker"] == {
+        "exploration.jitter_bandwidth": 0.5
+    }  # the settings are reported
     assert thrice["repeats"] == 3 and len(thrice["tracks"]) == 3 * len(once["tracks"]) == 6
     first = [t for t in thrice["tracks"] if t["repeat"] == 0]
     # Repeat 0 starts where the single run starts. Later frames differ slightly: a population of

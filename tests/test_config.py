@@ -30,7 +30,9 @@ def test_environment_then_overrides(monkeypatch):
 
 def test_bad_values_name_the_key_and_the_value(monkeypatch, tmp_path):
     monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "3")
-    with pytest.raises(ValueError, match=r"service config physics\.substeps: Input should be a multiple of 2, got '3'"):
+    with pytest.raises(
+        ValueError, match=r"service config physics: population substeps: expected an even number, got 3"
+    ):
         load_config()
     monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "eight")
     with pytest.raises(

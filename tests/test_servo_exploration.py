@@ -14,7 +14,7 @@ import torch
 from inhand_tracker.service.bench.demos import make_demo
 from inhand_tracker.service.bench.recorder import record
 from inhand_tracker.service.paths import CONFIG_DIR
-from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
+from inhand_tracker.service.tracker import Frame, Tracker, tracker_config
 from inhand_tracker.service.tracker.servos import SCALED_SERVOS
 from inhand_tracker.sim_backend import (
     HandSpec,
@@ -70,9 +70,12 @@ def weak_index():
     return spec, record(truth, demo, np.array([obj.mass]), np.array([obj.friction]))
 
 
+_EXPLORED = {"servos.servo_sigma0": 0.5, "servos.servo_gate": 0.01, "servos.servo_gate_updates": 2}
+
+
 def _track(spec, rec, methods, **settings) -> Tracker:
     pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=len(methods), worlds=16, device="cpu"))
-    tracker = Tracker(pop, TrackerConfig.of(update_every=5, **settings), methods)
+    tracker = Tracker(pop, tracker_config({"update_every": 5, **settings}), methods)
     rows = np.zeros(len(methods), int)
     tracker.start(np.repeat(rec.initial_pose[:1], len(methods), 0), rec.initial_q[rows])
     for f in range(rec.frames):
@@ -85,7 +88,7 @@ def test_the_worlds_find_the_weak_finger_and_keep_the_config_elsewhere(weak_inde
     truth's 0.5 (0.51 when written); the other fingers' joints follow the robot, so their chains
     stay shut on the config's servos; OLP's world simulates the config's."""
     spec, rec = weak_index
-    tracker = _track(spec, rec, ["PBO", "OLP"], servo_sigma0=0.5, servo_gate=0.01, servo_gate_updates=2)
+    tracker = _track(spec, rec, ["PBO", "OLP"], **_EXPLORED)
     servos = tracker.servos
     assert servos.names == ("wrist_x", "index_0", "middle_0", "ring_0", "thumb_0")
     assert servos.open.tolist() == [[False, True, False, False, False], [False] * 5], servos.open
@@ -106,6 +109,6 @@ def test_a_robot_that_matches_its_config_keeps_its_servos(weak_index):
     demo = make_demo(Kinematics(spec), obj, "pick_place", 0, seconds=3.0, pace=0.7).until("place")
     truth = Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu"))
     rec = record(truth, demo, np.array([obj.mass]), np.array([obj.friction]))
-    tracker = _track(spec, rec, ["PBO"], servo_sigma0=0.5, servo_gate=0.01, servo_gate_updates=2)
+    tracker = _track(spec, rec, ["PBO"], **_EXPLORED)
     assert not tracker.servos.open.any(), (tracker.joints.rms() * 1e3).round()
     assert torch.equal(tracker.pop.servos("ke"), tracker.servos.nominal["ke"])

@@ -13,7 +13,7 @@ from inhand_tracker.protocol import TrackState as Status
 from inhand_tracker.service.bench.demos import make_demo
 from inhand_tracker.service.bench.recorder import record
 from inhand_tracker.service.evaluation import add_error
-from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig
+from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig, tracker_config
 from inhand_tracker.service.tracker.cost import CostConfig
 from inhand_tracker.service.tracker.estimate import unresolved_variance
 from inhand_tracker.service.tracker.optimizers import HELD_COST, OptimizerConfig
@@ -43,10 +43,11 @@ def _noisy_start(rec, seed: int = 1) -> np.ndarray:
     return sample_poses(torch.tensor(rec.initial_pose, dtype=torch.float32), 0.005, 0.1, 1, gen)[:, 0].numpy()
 
 
-def _tracker(hand, worlds: int, groups: int = 2, **cfg) -> Tracker:
+def _tracker(hand, worlds: int, groups: int = 2, settings: dict | None = None, **config) -> Tracker:
+    """A tracker of ``settings`` by their dotted names over ``TrackerConfig(**config)``."""
     spec, _ = hand
     pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=groups, worlds=worlds, device="cpu"))
-    return Tracker(pop, TrackerConfig.of(**cfg))
+    return Tracker(pop, tracker_config(settings or {}, TrackerConfig(**config)))
 
 
 def test_tracks_the_pick_with_sane_estimates_and_is_deterministic(hand, recording):
@@ -54,8 +55,8 @@ def test_tracks_the_pick_with_sane_estimates_and_is_deterministic(hand, recordin
     runs = []
     # The second run's status calls every rise of the cost a surprise: what the status says must
     # not feed back into the tracking.
-    for surprise in ({}, {"surprise_ratio": 1.0, "surprise_cost": 0.0}):
-        tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="EYE"), seed=3, **surprise)
+    for surprise in ({}, {"recovery.surprise_ratio": 1.0, "recovery.surprise_cost": 0.0}):
+        tr = _tracker(hand, worlds=8, settings=surprise, optimizer=OptimizerConfig(method="EYE"), seed=3)
         tr.start(_noisy_start(recording), recording.initial_q)
         estimates = [tr.step(_frame(recording, f)) for f in range(recording.frames)]
         runs.append(estimates)
@@ -74,10 +75,11 @@ def test_tracks_the_pick_with_sane_estimates_and_is_deterministic(hand, recordin
     assert np.abs(last.mean_pose[:, :3] - last.pose[:, :3]).max() < 0.02
 
 
-def _knocked_out(hand, recording, **cfg) -> tuple[np.ndarray, np.ndarray]:
+def _knocked_out(hand, recording, **settings) -> tuple[np.ndarray, np.ndarray]:
     """Track the recording while every simulated object is knocked out of the hand at frame 100
     (the real one stays held); each frame's status and pose, (F, G) and (F, G, 7)."""
-    tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="PBO"), recover_frames=10, **cfg)
+    settings = {"recovery.recover_frames": 10, **settings}
+    tr = _tracker(hand, worlds=8, settings=settings, optimizer=OptimizerConfig(method="PBO"))
     tr.start(_noisy_start(recording), recording.initial_q)
     statuses, poses = [], []
     for f in range(recording.frames):
@@ -110,7 +112,7 @@ def test_dropping_every_world_diverges_then_recovers(hand, recording, knocked_ou
 def test_a_surprised_status_re_seeds_the_lost_worlds_where_a_calm_one_does(hand, recording, knocked_out):
     """The cost's surprise is a report: the re-seed after the knock-out lands where it does
     without it (the anchor follows the contacts' agreement, not the status)."""
-    statuses, poses = _knocked_out(hand, recording, surprise_ratio=1.0, surprise_cost=0.0)
+    statuses, poses = _knocked_out(hand, recording, **{"recovery.surprise_ratio": 1.0, "recovery.surprise_cost": 0.0})
     assert (statuses != knocked_out[0]).any(), "the status rule never fired"
     assert np.array_equal(poses, knocked_out[1])
 
@@ -199,7 +201,8 @@ def test_a_held_object_is_re_seeded_where_the_hand_took_it(hand, recording):
     demo = make_demo(kin, obj, "pick_place", 0, seconds=1.0, pace=0.5)  # the recording's demo
     phase = dict(reversed(demo.phases))
     lift, carry = phase["lift"], phase["carry"]
-    tr = _tracker(hand, worlds=8, optimizer=OptimizerConfig(method="PBO"), recover_frames=carry - lift + 20)
+    frames = {"recovery.recover_frames": carry - lift + 20}
+    tr = _tracker(hand, worlds=8, settings=frames, optimizer=OptimizerConfig(method="PBO"))
 
     def knock_out(start: int) -> int:
         """Throw every simulated object up out of the hand (it rests on the table at first) until
@@ -251,7 +254,8 @@ def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording
     counts = {}
     optimizer = OptimizerConfig(method=method, min_pose_evidence=evidence)
     for groups, worlds in ((1, 4), (2, 16)):
-        tr = _tracker(hand, worlds=worlds, groups=groups, optimizer=optimizer, update_every=5, servo_sigma0=servos)
+        explore = {"servos.servo_sigma0": servos}
+        tr = _tracker(hand, worlds=worlds, groups=groups, settings=explore, optimizer=optimizer, update_every=5)
         rec_q = np.repeat(recording.initial_q[:1], groups, 0)
         tr.start(np.repeat(recording.initial_pose[:1], groups, 0), rec_q)
         frame = Frame(controls=np.repeat(recording.controls[0][:1], groups, 0), q=rec_q)
@@ -374,7 +378,7 @@ def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, reco
     pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
     tr = Tracker(
         pop,
-        TrackerConfig.of(contact_gate_cost=0.0, contact_worlds=8, update_every=3),
+        tracker_config({"contacts.contact_gate_cost": 0.0, "contacts.contact_worlds": 8, "update_every": 3}),
         methods=["PBO", "OLP"],
     )
     tr.start(_noisy_start(recording), recording.initial_q)
@@ -404,7 +408,7 @@ def test_worlds_explore_their_contacts_and_the_solver_steps_with_them(hand, reco
     assert np.allclose(contacts()[0], explored[0, 3], rtol=1e-6)
     assert np.allclose(mjm.geom_solref.numpy()[:8, -1, 0], explored[0, 3, 0], rtol=1e-4)
 
-    off = _tracker(hand, worlds=8, contact_gate_cost=0.0)  # fewer worlds than contact_worlds
+    off = _tracker(hand, worlds=8, settings={"contacts.contact_gate_cost": 0.0})  # fewer worlds than contact_worlds
     off.start(_noisy_start(recording), recording.initial_q)
     assert np.allclose(torch.stack([off.pop.params.timeconst, off.pop.params.impratio], -1).numpy(), nominal, rtol=1e-5)
 
@@ -460,7 +464,8 @@ def test_contact_exploration_opens_only_where_the_cost_says_the_model_is_wrong(h
     spec, _ = hand
     for gate, opened in ((1e9, [False, False]), (1e-9, [True, False])):
         pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=8, device="cpu"))
-        config = TrackerConfig.of(contact_gate_cost=gate, contact_gate_updates=2, contact_worlds=8, update_every=3)
+        gated = {"contacts.contact_gate_cost": gate, "contacts.contact_gate_updates": 2, "contacts.contact_worlds": 8}
+        config = tracker_config({**gated, "update_every": 3})
         tr = Tracker(pop, config, ["PBO", "OLP"])
         tr.start(_noisy_start(recording), recording.initial_q)
         nominal = np.array([pop.params.nominal_timeconst, pop.params.nominal_impratio])

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from inhand_tracker.service.tracker import tracker_config
 from inhand_tracker.service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
 from inhand_tracker.service.tracker.optimizers import (
     HELD_COST,
@@ -499,7 +500,7 @@ def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
     statuses, anchors = [], []
     config = TrackerConfig()
     recoveries = [Recovery(config, groups=4, sensors=4, moment=np.eye(3) * 1e-3)]
-    recoveries.append(Recovery(config.but(surprise_ratio=0.0), 4, 4, np.eye(3) * 1e-3))
+    recoveries.append(Recovery(tracker_config({"recovery.surprise_ratio": 0.0}), 4, 4, np.eye(3) * 1e-3))
     for r in recoveries:
         r.start(pose, np.ones(4, bool))
     for f, cost in enumerate(costs):
@@ -520,7 +521,9 @@ def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
     assert not uncertain[:, 1:].any(), uncertain
     # The anchor for a re-seed still follows the estimate: the contacts agreed throughout.
     assert anchors[-1] == pytest.approx(0.05 - 0.001 * (len(costs) - 1))
-    for bad, words in [({"surprise_frames": 0}, "surprise_frames: expected >= 1 frame, got 0"),
-                       ({"surprise_ratio": -1.0}, "surprise_ratio: expected >= 0, got -1.0")]:  # fmt: skip
+    for bad, words in [
+        ({"recovery.surprise_frames": 0}, "recovery.surprise_frames: expected >= 1 frame, got 0"),
+        ({"recovery.surprise_ratio": -1.0}, "recovery.surprise_ratio: expected >= 0, got -1.0"),
+    ]:
         with pytest.raises(ValueError, match=words):
-            TrackerConfig.of(**bad)
+            tracker_config(bad)

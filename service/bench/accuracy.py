@@ -20,15 +20,9 @@ import numpy as np
 
 from inhand_tracker.protocol import Trajectory
 from inhand_tracker.service.tracker import (
-    TERM_NAMES,
-    WEIGHTS,
-    CostConfig,
-    OptimizerConfig,
     TrackerConfig,
-    setting_types,
+    settings,
 )
-from inhand_tracker.service.tracker.config import TRACKER_GROUPS
-from inhand_tracker.sim_backend import PopulationConfig
 
 from .progress import progress_bar
 from .run import AccuracyRun
@@ -67,37 +61,15 @@ def files_suite(trajectories: Sequence[Trajectory]) -> Suite:
     return Suite("files", objects, (), 1, seconds=round(seconds, 1), robot=trajectories[0].robot)
 
 
-def parse_settings(settings: Sequence[str]) -> tuple[TrackerConfig, dict]:
-    """A TrackerConfig and the population's physics overrides from NAME=VALUE strings: the
-    tracker's number and flag settings by their own names, its optimizer's as optimizer.NAME, a
-    cost term's weight as cost.TERM (cost.zone_force=0 drops that term), and the population's
-    physics numbers (impratio, tolerance, ...) as population.NAME. Values are
-    parsed by pydantic, as the service's settings are; a bad one is a ValueError naming it."""
-    from pydantic import TypeAdapter, ValidationError
-
-    kinds = (int, float, bool)
-    # Layout, rate and seeds have their own flags or belong to the suite.
-    own = {"seed", "groups", "worlds", "substeps", "frame_rate"}
-    top = {k: t for k, t in setting_types(TrackerConfig, kinds).items() if k not in own}
-    nested = {f"optimizer.{k}": t for k, t in setting_types(OptimizerConfig, kinds).items()}
-    nested |= {f"population.{k}": t for k, t in setting_types(PopulationConfig, kinds).items() if k not in own}
-    nested |= {f"cost.{k}": float for k in TERM_NAMES}
-    values: dict[str, dict] = {"": {}, "optimizer": {}, "population": {}, "cost": {}}
-    for item in settings:
-        name, sep, text = item.partition("=")
-        kind = top.get(name) or nested.get(name)
-        if not sep or kind is None:
-            raise ValueError(f"expected NAME=VALUE with NAME one of {sorted(top) + sorted(nested)}, got '{item}'")
-        try:
-            value = TypeAdapter(kind).validate_python(text)
-        except ValidationError:
-            raise ValueError(f"{name}: expected a value of type {kind.__name__}, got '{text}'") from None
-        outer, _, inner = name.rpartition(".")
-        values[outer][inner] = value
-    PopulationConfig(**values["population"])  # out-of-range physics fails here, with the field named
-    weights = [values["cost"].get(name, w) for name, w in zip(TERM_NAMES, WEIGHTS, strict=True)]
-    optimizer, cost = OptimizerConfig(**values["optimizer"]), CostConfig(weights=tuple(weights))
-    return TrackerConfig.of(optimizer=optimizer, cost=cost, **values[""]), values["population"]
+def parse_settings(items: Sequence[str]) -> tuple[TrackerConfig, dict]:
+    """A TrackerConfig and the population's physics overrides (by PopulationConfig's field names)
+    from ``--set`` NAME=VALUE strings, by the settings' dotted names (:mod:`..tracker.settings`):
+    ``exploration.jitter_bandwidth=0.5``, ``optimizer.min_separation=4``, ``cost.zone_force=0``,
+    ``population.impratio=30``. The layout's and the suite's own (seed, substeps) have their flags.
+    A bad name or value is a ValueError naming it."""
+    allowed = [n for n in settings.registry() if n not in ("seed", "population.substeps")]
+    tracker, physics = settings.split(settings.parse(items, allowed))
+    return settings.tracker_config(tracker), physics
 
 
 def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None) -> dict:
@@ -217,7 +189,7 @@ def _collect(run: AccuracyRun, results: list[TrackResult], t_truth: float, t_tra
         "device": run.device,
         "worlds": worlds,
         "repeats": 1 + max((r.setting.repeat for r in results), default=0),
-        "tracker": _changed(asdict(run.config), asdict(TrackerConfig())),
+        "tracker": settings.changed(run.config),
         "substeps": run.substeps,
         "population": dict(run.population),
         **({"servos": {k: list(v) for k, v in run.servos}} if run.servos else {}),
@@ -228,19 +200,3 @@ def _collect(run: AccuracyRun, results: list[TrackResult], t_truth: float, t_tra
         "ablations": ablation,
         "tracks": [r.summary() | per_frame(r) for r in results],
     }
-
-
-def _changed(config: dict, default: dict) -> dict:
-    """The settings of ``config`` that differ from ``default``, by the names ``--set`` takes: a
-    tracker group's by their own names, the optimizer's and the cost's as ``outer.inner``."""
-    out = {}
-    for key, value in config.items():
-        if isinstance(value, dict):
-            inner = _changed(value, default[key])
-            out |= inner if key in TRACKER_GROUPS else {f"{key}.{k}": v for k, v in inner.items()}
-        elif key != "seed" and value != default[key]:
-            out[key] = value
-    if isinstance(weights := out.get("cost.weights"), (list, tuple)):  # per term, as --set names them
-        del out["cost.weights"]
-        out |= {f"cost.{n}": w for n, w, w0 in zip(TERM_NAMES, weights, WEIGHTS, strict=True) if w != w0}
-    return out

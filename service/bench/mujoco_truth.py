@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from inhand_tracker.protocol import SENSING
 from inhand_tracker.sim_backend import PopulationConfig, RobotSpec, observe
-from inhand_tracker.sim_backend.build import build_model
+from inhand_tracker.sim_backend.build import build_model, robot_contacts
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
@@ -68,7 +68,8 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
     """Write ``robot`` and ``obj`` over a ground plane as MJCF to ``xml`` (Newton's MuJoCo
     converter, so both engines start from one description) and load it back into MuJoCo C."""
     cpu = wp.get_device("cpu")
-    built = build_model(robot, obj, PopulationConfig(groups=1, worlds=1, device="cpu"), cpu)
+    config = robot_contacts(robot, PopulationConfig(groups=1, worlds=1, device="cpu"))
+    built = build_model(robot, obj, config, cpu)
     xml.parent.mkdir(parents=True, exist_ok=True)
     with wp.ScopedDevice(cpu):
         solver = newton.solvers.SolverMuJoCo(
@@ -78,8 +79,8 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
             save_to_mjcf=str(xml),
             solver="newton",
             integrator="implicitfast",
-            cone="elliptic",
-            impratio=PopulationConfig.impratio,
+            cone=config.cone,
+            impratio=config.impratio,
             iterations=100,
             ls_iterations=50,
         )

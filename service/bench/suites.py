@@ -46,8 +46,9 @@ class PhysicsGap:
     servo_scale: float = 1.0
     """Truth servos' gain, damping and effort limit relative to the robot config's: servos the
     config does not know, what a calibration recovers."""
-    impratio: float = 10.0
-    """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding."""
+    impratio: float | None = None
+    """Truth friction-to-normal impedance ratio: how stiffly contacts resist sliding (None: the
+    robot's, as the tracker's)."""
     ramp_targets: bool = True
     """The truth's position controllers move each target across the frame, as real ones interpolate."""
 

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from inhand_tracker.protocol import AUTO, DEFAULT_WORLDS, Error, ErrorCode, OpenSession, check_version
-from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig, setting_types
+from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig
+from inhand_tracker.service.tracker.settings import registry, tracker_config
 from inhand_tracker.sim_backend import ObjectSpec, RobotSpec
 from inhand_tracker.sim_backend.kinematics import Kinematics
 
@@ -21,8 +22,8 @@ from .pools import MEASURED_STEPS, Pool, PoolKey
 
 __all__ = ["Admission", "Gate", "ServiceError"]
 
-_OPTIMIZER = setting_types(OptimizerConfig)
-_TUNABLE = setting_types(TrackerConfig) | _OPTIMIZER
+_TUNABLE = sorted(name for name, s in registry().items() if s.session and s.kind is not str)
+"""What a session's overrides may change, by dotted name (numbers and flags: the wire carries floats)."""
 """Tracker settings a session may override, by name, with their types; the optimizer's numbers by
 their own names too (every name is unique)."""
 
@@ -279,7 +280,10 @@ class Gate:
             )
         unknown = sorted(set(request.overrides) - set(_TUNABLE))
         if unknown:
-            raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: unknown {unknown} (tunable: {sorted(_TUNABLE)})")
+            spelled = {n.rpartition(".")[2]: n for n in _TUNABLE}
+            hint = [f"'{u}' is '{spelled[u]}'" for u in unknown if u in spelled]
+            said = f" ({', '.join(hint)}: settings are named by their group)" if hint else f" (tunable: {_TUNABLE})"
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: unknown {unknown}{said}")
         return robot
 
     def _check_q0(self, request: OpenSession, robot: RobotSpec) -> None:
@@ -294,9 +298,8 @@ class Gate:
     def _tracker_config(request: OpenSession) -> TrackerConfig:
         """The session's tracker settings, refused with the field and the numbers before anything is built."""
         try:
-            overrides = {k: _TUNABLE[k](v) for k, v in request.overrides.items()}
-            optimizer = {k: overrides.pop(k) for k in list(overrides) if k in _OPTIMIZER}
-            return TrackerConfig.of(optimizer=OptimizerConfig(method=request.method, **optimizer), **overrides)
+            base = TrackerConfig(optimizer=OptimizerConfig(method=request.method))
+            return tracker_config(request.overrides, base)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
 

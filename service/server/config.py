@@ -4,13 +4,18 @@ the command line. A bad value is refused with the key and the value."""
 
 from __future__ import annotations
 
+import ast
+import dataclasses
+import inspect
+import itertools
 import json
 import os
 import textwrap
+import typing
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     NoDecode,
@@ -22,7 +27,7 @@ from pydantic_settings import (
 from inhand_tracker.service.paths import CONFIG_DIR
 from inhand_tracker.sim_backend import PopulationConfig
 
-__all__ = ["DEFAULT_CONFIG", "PhysicsSettings", "ServiceConfig", "load_config", "shipped_toml"]
+__all__ = ["DEFAULT_CONFIG", "SERVICE_PHYSICS", "PhysicsSettings", "ServiceConfig", "load_config", "shipped_toml"]
 
 DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 
@@ -30,33 +35,56 @@ DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 Endpoints = Annotated[tuple[str, ...], NoDecode]
 
 
-class PhysicsSettings(BaseModel):
-    """How every population simulates: the solver's budget per frame. The frame budget's cached
-    step times are kept per physics setting."""
+SERVICE_PHYSICS = (
+    "substeps",
+    "iterations",
+    "ls_iterations",
+    "tolerance",
+    "ls_tolerance",
+    "contacts_per_world",
+    "constraints_per_world",
+    "cone",
+    "impratio",
+)
+"""PopulationConfig's settings the service's ``[physics]`` may set: the solver's budget per frame,
+the worlds' room for contacts, and the contact model (which beats the robot config's)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
-    substeps: int = Field(PopulationConfig.substeps, ge=2, multiple_of=2)
-    """Physics substeps per frame (even): fewer are faster and less accurate (docs/benchmarks.md)."""
-    iterations: int | None = Field(None, ge=1)
-    """The constraint solver's iteration cap per substep (None: the solver's own, 20 for Newton).
-    A world that has not converged stops there; the frame waits for its slowest world."""
-    ls_iterations: int | None = Field(None, ge=1)
-    """The solver's line-search iteration cap (None: the solver's own, 10 for Newton)."""
-    tolerance: float = Field(PopulationConfig.tolerance, gt=0, lt=1)
-    """The solver's convergence tolerance on the scaled cost improvement and gradient."""
-    ls_tolerance: float = Field(PopulationConfig.ls_tolerance, gt=0, lt=1)
-    """Its line search's tolerance: the search stops once the slope has fallen to this share of its start."""
-    contacts_per_world: int | None = Field(PopulationConfig.contacts_per_world, ge=1)
-    """Contacts a world holds (default: sized from the robot and object); a world that makes more
-    drops the excess and the service says so, with the numbers."""
-    constraints_per_world: int | None = Field(PopulationConfig.constraints_per_world, ge=1)
-    """Constraint rows a world holds (joint limits, contacts' normal and friction rows; default:
-    five per contact)."""
+def _attribute_docs(cls: type) -> dict[str, str]:
+    """The docstrings under a dataclass's fields: pydantic reads them from its own models only."""
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    docs = {}
+    for field, doc in itertools.pairwise(body):
+        if isinstance(field, ast.AnnAssign) and isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant):
+            docs[field.target.id] = str(doc.value.value)
+    return docs
+
+
+class _Physics(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @model_validator(mode="after")
+    def _in_range(self) -> _Physics:
+        PopulationConfig(**self.model_dump())  # its own ranges, each error naming the setting
+        return self
 
     def population(self, groups: int, worlds: int, device: str) -> PopulationConfig:
         """The population's config for ``groups`` x ``worlds`` worlds with these physics."""
         return PopulationConfig(groups=groups, worlds=worlds, device=device, **self.model_dump())
+
+
+def _physics_settings() -> type[_Physics]:
+    """The ``[physics]`` table's model, made from PopulationConfig's own fields (types, defaults,
+    docstrings), so the two cannot drift apart."""
+    hints, docs = typing.get_type_hints(PopulationConfig), _attribute_docs(PopulationConfig)
+    defaults = {f.name: f.default for f in dataclasses.fields(PopulationConfig)}
+    fields = {n: (hints[n], Field(defaults[n], description=docs.get(n))) for n in SERVICE_PHYSICS}
+    model = create_model("PhysicsSettings", __base__=_Physics, **fields)
+    model.__doc__ = "How every population simulates: PopulationConfig's settings of :data:`SERVICE_PHYSICS`."
+    return model
+
+
+PhysicsSettings = _physics_settings()
 
 
 class ServiceConfig(BaseSettings):
@@ -137,7 +165,7 @@ class ServiceConfig(BaseSettings):
     and counted stale; a younger one is scored against the worlds at the next step [s]."""
     max_wait_s: float = Field(0.05, ge=0)
     """A population steps when every session sent a frame, or when a frame waited this long [s]."""
-    physics: PhysicsSettings = PhysicsSettings()
+    physics: PhysicsSettings = PhysicsSettings()  # type: ignore[valid-type]
     """The tracker's physics, shared by every population (``[physics]`` in the TOML file,
     INHAND_PHYSICS__<KEY> in the environment)."""
     rate_hz: float | None = Field(None, ge=0)
@@ -257,4 +285,6 @@ def load_config(path: str | os.PathLike | None = None, **overrides) -> ServiceCo
     except ValidationError as exc:
         first = exc.errors()[0]
         key = ".".join(str(p) for p in first["loc"])
+        if first["type"] == "value_error":  # a check of its own, whose message names the value
+            raise ValueError(f"service config {key}: {first['ctx']['error']}") from None
         raise ValueError(f"service config {key}: {first['msg']}, got {first['input']!r}") from None

@@ -1,13 +1,13 @@
 """The tracker's settings, nested by concern; every default in one place. Why each default is what
 it is, with the measurements behind it, is in docs/tracker-settings.md.
 
-A setting is named by its own name alone (``jitter_bandwidth``) where a session overrides it or
-``bench accuracy --set`` changes it: the names are unique across the groups."""
+A setting is named by its path in this nesting (``exploration.jitter_bandwidth``) wherever a user
+changes it: a session's overrides, ``bench accuracy --set``, a run's results (:mod:`.settings`)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 from .cost import CostConfig
 from .optimizers import OptimizerConfig
@@ -22,26 +22,37 @@ __all__ = [
     "Seeding",
     "ServoExploration",
     "TrackerConfig",
-    "setting_types",
 ]
 
 
 _INF = math.inf
+_GROUP_OF = {
+    "Seeding": "seeding",
+    "Exploration": "exploration",
+    "ContactExploration": "contacts",
+    "ServoExploration": "servos",
+    "EstimateConfig": "estimate",
+    "RecoveryConfig": "recovery",
+    "ObservationConfig": "observations",
+}
+"""Each settings group's name in TrackerConfig: the first part of its settings' dotted names."""
 
 
 def _check(config, ranges: dict[str, tuple[float, float, str]]) -> None:
     """Refuse non-finite numbers, and settings outside their range (low, high, unit), naming the
-    setting, the range and the value. The ranges are what the settings can mean: fractions of a
-    range at most 1, poses and spreads within a hand's reach."""
+    setting by its dotted name (:mod:`.settings`), the range and the value. The ranges are what the
+    settings can mean: fractions of a range at most 1, poses and spreads within a hand's reach."""
+    group = _GROUP_OF.get(type(config).__name__, "")
+    dotted = lambda name: f"{group}.{name}" if group else name  # noqa: E731
     for f in fields(config):
         value = getattr(config, f.name)
         if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"tracker {f.name}: expected a finite number, got {value}")
+            raise ValueError(f"{dotted(f.name)}: expected a finite number, got {value}")
     for name, (low, high, unit) in ranges.items():
         value = getattr(config, name)
         if not low <= value <= high:
             wanted = f">= {low:g}" if high == _INF else f"{low:g} to {high:g}"
-            raise ValueError(f"tracker {name}: expected {wanted}{unit}, got {value}")
+            raise ValueError(f"{dotted(name)}: expected {wanted}{unit}, got {value}")
 
 
 @dataclass(frozen=True)
@@ -335,7 +346,7 @@ class ObservationConfig:
 
 
 TRACKER_GROUPS = {"seeding", "exploration", "contacts", "servos", "estimate", "recovery", "observations"}
-"""TrackerConfig's groups whose settings are named by their own names alone."""
+"""TrackerConfig's groups of settings other than the optimizer's and the cost's."""
 
 
 @dataclass(frozen=True)
@@ -356,40 +367,3 @@ class TrackerConfig:
 
     def __post_init__(self) -> None:
         _check(self, {"update_every": (1, 10_000, " frames")})
-
-    @classmethod
-    def of(cls, **settings) -> TrackerConfig:
-        """A config from settings by their own names (``jitter_bandwidth=0.5``), whatever group
-        they belong to; ``optimizer`` and ``cost`` as objects."""
-        return cls().but(**settings)
-
-    def but(self, **settings) -> TrackerConfig:
-        """A copy with ``settings`` (by their own names) changed; an unknown name is a ValueError."""
-        owner = {f.name: g for g in TRACKER_GROUPS for f in fields(getattr(self, g))}
-        top = {f.name for f in fields(self)}
-        groups: dict[str, dict] = {}
-        for name, value in settings.items():
-            if name in top:
-                continue
-            if name not in owner:
-                raise ValueError(f"tracker: no setting '{name}' (settings: {sorted(owner | dict.fromkeys(top))})")
-            groups.setdefault(owner[name], {})[name] = value
-        changed = {g: replace(getattr(self, g), **v) for g, v in groups.items()}
-        return replace(self, **changed, **{k: v for k, v in settings.items() if k in top})
-
-
-def setting_types(config: type, kinds: tuple[type, ...] = (int, float)) -> dict[str, type]:
-    """The fields of the settings dataclass ``config`` whose defaults are of ``kinds``, with their
-    types: what a session's overrides and ``bench accuracy --set`` may change. A TrackerConfig's
-    grouped settings are listed by their own names."""
-    out: dict[str, type] = {}
-    for f in fields(config):
-        if f.name in TRACKER_GROUPS and config is TrackerConfig:
-            out |= setting_types(type(f.default_factory()), kinds)
-        elif type(f.default) in kinds:
-            out[f.name] = type(f.default)
-        elif f.default is None:  # an optional number (None: the library's own default) is set as the number
-            optional = [k for k in kinds if f.type == f"{k.__name__} | None"]
-            if optional:
-                out[f.name] = optional[0]
-    return out

@@ -74,18 +74,19 @@ class OptimizerConfig:
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
-            raise ValueError(f"optimizer method: expected one of {METHODS}, got {self.method!r}")
+            raise ValueError(f"optimizer.method: expected one of {METHODS}, got {self.method!r}")
         if not (0.0 < self.pbo_keep <= 1.0):
-            raise ValueError(f"optimizer pbo_keep: expected 0 < fraction <= 1, got {self.pbo_keep}")
+            raise ValueError(f"optimizer.pbo_keep: expected 0 < fraction <= 1, got {self.pbo_keep}")
         if self.pbo_rank_power < 0:
-            raise ValueError(f"optimizer pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
+            raise ValueError(f"optimizer.pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
         if self.min_pose_evidence < 0:
-            raise ValueError(f"optimizer min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
+            raise ValueError(f"optimizer.min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
         if self.min_separation < 0:
-            raise ValueError(f"optimizer min_separation: expected >= 0, got {self.min_separation}")
+            raise ValueError(f"optimizer.min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
             raise ValueError(
-                f"optimizer reps_epsilon and wrs_lambda must be positive, got {self.reps_epsilon}, {self.wrs_lambda}"
+                "optimizer.reps_epsilon and optimizer.wrs_lambda must be positive,"
+                f" got {self.reps_epsilon}, {self.wrs_lambda}"
             )
 
 
