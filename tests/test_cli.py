@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import asdict
 
 import pytest
 from typer.testing import CliRunner
@@ -35,19 +34,21 @@ def test_bad_arguments_are_refused_with_the_value():
 
 def test_bad_tracker_settings_are_refused_with_the_name_and_value():
     for setting, message in [
-        ("jitter_bandwith=0", "got 'jitter_bandwith=0'"),  # a typo: the names allowed follow
+        ("jitter_bandwith=0", "no setting 'jitter_bandwith'"),  # a typo: the names allowed follow
         ("update_every=x", "update_every: expected a value of type int, got 'x'"),
-        ("jitter_t=-1", "tracker jitter_t: expected 0 to 0.1 m, got -1"),
-        ("optimizer.pbo_keep=2", "optimizer pbo_keep: expected 0 < fraction <= 1, got 2.0"),
+        ("jitter_t=-1", "'jitter_t': settings are named by their group, e.g. 'exploration.jitter_t'"),
+        ("exploration.jitter_t=-1", "exploration.jitter_t: expected 0 to 0.1 m, got -1"),
+        ("optimizer.pbo_keep=2", "optimizer.pbo_keep: expected 0 < fraction <= 1, got 2.0"),
         ("optimizer.keep_best=flase", "optimizer.keep_best: expected a value of type bool, got 'flase'"),
-        ("population.tolerance=2", "population tolerance: expected 0 < tolerance < 1, got 2.0"),
-        ("population.substeps=4", "got 'population.substeps=4'"),  # --substeps sets it
-        ("population.impratio=0", "population impratio: expected > 0, got 0.0"),
-        ("estimate_lambda=nan", "tracker estimate_lambda: expected a finite number, got nan"),
+        ("population.tolerance=2", "population.tolerance: expected 0 < tolerance < 1, got 2.0"),
+        ("population.substeps=4", "no setting 'population.substeps'"),  # --substeps sets it
+        ("population.impratio=0", "population.impratio: expected > 0, got 0.0"),
+        ("population.cone=round", "population.cone: expected 'pyramidal' or 'elliptic', got 'round'"),
+        ("estimate.estimate_lambda=nan", "estimate.estimate_lambda: expected a finite number, got nan"),
     ]:
         out = _run("bench", "accuracy", "--suite", "smoke", "--set", setting)
         assert out.exit_code == 2 and message in out.stderr, (setting, out.stderr[-2000:])
-    assert "jitter_bandwidth" in _run("bench", "accuracy", "--set", "jitter_bandwith=0").stderr
+    assert "exploration.jitter_bandwidth" in _run("bench", "accuracy", "--set", "jitter_bandwith=0").stderr
 
 
 def test_bad_suite_options_are_refused_before_anything_runs():
@@ -64,8 +65,7 @@ def test_bad_suite_options_are_refused_before_anything_runs():
 
 def test_settings_split_into_the_tracker_and_its_physics():
     from inhand_tracker.service.bench import parse_settings
-    from inhand_tracker.service.bench.accuracy import _changed
-    from inhand_tracker.service.tracker import TERM_NAMES, WEIGHTS, TrackerConfig
+    from inhand_tracker.service.tracker import TERM_NAMES, WEIGHTS, changed
 
     config, physics = parse_settings(
         ["optimizer.pbo_keep=0.5", "population.impratio=30", "population.contact_gap=0.004"]
@@ -75,13 +75,13 @@ def test_settings_split_into_the_tracker_and_its_physics():
     assert parse_settings([])[1] == {}
     # A cost term's weight by the term's name; the others keep theirs.
     weights = parse_settings(["cost.zone_force=0", "cost.joints=25"])[0].cost.weights
-    changed = {name: (w, w0) for name, w, w0 in zip(TERM_NAMES, weights, WEIGHTS, strict=True) if w != w0}
-    assert changed == {"joints": (25.0, 50.0), "zone_force": (0.0, 1.7)}
+    differ = {name: (w, w0) for name, w, w0 in zip(TERM_NAMES, weights, WEIGHTS, strict=True) if w != w0}
+    assert differ == {"joints": (25.0, 50.0), "zone_force": (0.0, 1.7)}
     with pytest.raises(ValueError, match=r"cost\.zone_force: expected a value of type float, got 'x'"):
         parse_settings(["cost.zone_force=x"])
     # A run's results name the changed weights as --set does.
     config = parse_settings(["cost.joints=25", "optimizer.min_separation=4"])[0]
-    assert _changed(asdict(config), asdict(TrackerConfig())) == {"cost.joints": 25.0, "optimizer.min_separation": 4.0}
+    assert changed(config) == {"cost.joints": 25.0, "optimizer.min_separation": 4.0}
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():
@@ -109,7 +109,7 @@ def test_bench_speed_times_the_tracker_against_the_physics():
         assert r["captured"] is False  # torch has no CPU graphs: plain calls around the physics graph
     bad = _run("bench", "speed", "--worlds", "5", "--groups", "2", "--device", "cpu")
     assert bad.exit_code == 2 and "worlds: 5 do not split into 2 groups" in bad.stderr
-    bad = _run("bench", "speed", "--set", "jitter_bandwidth=0", "--device", "cpu")
+    bad = _run("bench", "speed", "--set", "exploration.jitter_bandwidth=0", "--device", "cpu")
     assert bad.exit_code == 2 and "--set: expected population.NAME=VALUE (the physics)" in bad.stderr
     bad = _run("bench", "speed", "--caps", "4x", "--device", "cpu")
     assert bad.exit_code == 2 and "caps: expected ITERATIONSxLINE_SEARCH" in bad.stderr

@@ -31,7 +31,7 @@ def test_environment_then_overrides(monkeypatch):
 def test_bad_values_name_the_key_and_the_value(monkeypatch, tmp_path):
     monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "3")
     with pytest.raises(
-        ValueError, match=r"service config physics: population substeps: expected an even number, got 3"
+        ValueError, match=r"service config physics: population.substeps: expected an even number, got 3"
     ):
         load_config()
     monkeypatch.setenv("INHAND_PHYSICS__SUBSTEPS", "eight")

@@ -83,7 +83,7 @@ def test_non_finite_overrides_are_refused_at_the_boundary(traj, value):
 
 def test_a_refused_open_leaves_no_session_and_builds_nothing(traj):
     manager = _manager()
-    for overrides, words in [({"update_every": 0}, "update_every"), ({"sigma_t": -1.0}, "sigma_t")]:
+    for overrides, words in [({"update_every": 0}, "update_every"), ({"seeding.sigma_t": -1.0}, "seeding.sigma_t")]:
         with pytest.raises(ServiceError) as exc:
             manager.open(_request(traj, overrides=overrides))
         assert exc.value.code == ErrorCode.BAD_REQUEST and words in exc.value.message
@@ -176,22 +176,27 @@ def test_out_of_range_values_are_refused_at_the_boundary_naming_the_field(traj, 
 
 @pytest.mark.parametrize(
     "overrides, words",
-    [({"recover_frames": -5}, "recover_frames: expected >= 0 frames, got -5"),
-     ({"mass_sigma0": 1e30}, "mass_sigma0: expected 0 to 1, got 1e+30"),
+    [({"recovery.recover_frames": -5}, "recovery.recover_frames: expected >= 0 frames, got -5"),
+     ({"seeding.mass_sigma0": 1e30}, "seeding.mass_sigma0: expected 0 to 1, got 1e+30"),
      ({"update_every": 0}, "update_every: expected 1 to 10000 frames, got 0")],
 )  # fmt: skip
 def test_settings_out_of_their_range_are_refused_naming_them(traj, overrides, words):
-    with pytest.raises(ServiceError, match=re.escape(f"overrides: tracker {words}")):
+    with pytest.raises(ServiceError, match=re.escape(f"overrides: {words}")):
         _manager().open(_request(traj, overrides=overrides))
 
 
-def test_the_optimizer_s_settings_are_overridden_by_their_own_names(traj):
+def test_settings_are_overridden_by_their_dotted_names_and_no_other_spelling(traj):
     manager = _manager()
-    info = manager.open(_request(traj, method="REPS", overrides={"min_separation": 4, "reps_epsilon": 0.25}))
+    dotted = {"optimizer.min_separation": 4, "optimizer.reps_epsilon": 0.25}
+    info = manager.open(_request(traj, method="REPS", overrides=dotted))
     optimizer = manager.sessions[info.session].pool.tracker.config.optimizer
     assert (optimizer.method, optimizer.min_separation, optimizer.reps_epsilon) == ("REPS", 4.0, 0.25)
-    with pytest.raises(ServiceError, match=re.escape("overrides: optimizer min_separation: expected >= 0, got -1.0")):
-        manager.open(_request(traj, overrides={"min_separation": -1}))
+    with pytest.raises(ServiceError, match=re.escape("overrides: optimizer.min_separation: expected >= 0, got -1.0")):
+        manager.open(_request(traj, overrides={"optimizer.min_separation": -1}))
+    with pytest.raises(ServiceError, match=re.escape("'min_separation' is 'optimizer.min_separation'")):
+        manager.open(_request(traj, overrides={"min_separation": 4}))
+    with pytest.raises(ServiceError, match=re.escape("overrides: unknown ['population.impratio']")):
+        manager.open(_request(traj, overrides={"population.impratio": 3}))  # the service's physics, not a session's
 
 
 def test_a_peer_sharing_the_population_cannot_poison_it(traj):

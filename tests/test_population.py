@@ -521,3 +521,28 @@ def test_ramped_targets_move_the_wrist_across_the_frame_from_where_it_stands(han
         pop.step()
         moved[ramp] = float(pop.obs.q[0, 0, 0]) - grasp.q_touch[0]
     assert 0.001 < moved[True] < 0.8 * moved[False], moved
+
+
+def test_the_contact_model_s_precedence_is_defaults_then_the_robot_then_the_user(hand):
+    """The defaults (elliptic, impratio 10) where nobody names one; the robot config's (the model
+    it was written for) over them; the service's ``[physics]`` or ``--set population.*`` over both."""
+    from inhand_tracker.sim_backend.build import robot_contacts
+
+    spec, _ = hand
+    shadow = load_robot(CONFIGS / "robots/shadow_touch.toml")
+    assert (shadow.cone, shadow.impratio) == ("pyramidal", 1.0)  # typed fields of every robot spec
+    resolved = lambda robot, **cfg: (lambda c: (c.cone, c.impratio))(robot_contacts(robot, PopulationConfig(**cfg)))  # noqa: E731
+    assert resolved(spec) == ("elliptic", 10.0)
+    assert resolved(shadow) == ("pyramidal", 1.0)
+    assert resolved(shadow, impratio=30.0) == ("pyramidal", 30.0)
+    assert resolved(shadow, cone="elliptic") == ("elliptic", 1.0)
+    assert resolved(replace(spec, impratio=2.0), cone="pyramidal") == ("pyramidal", 2.0)
+    with pytest.raises(ValueError, match="robot 'allegro' cone: expected one of"):
+        replace(spec, cone="round")
+    # The worlds' solver runs what the precedence resolved.
+    robot = replace(spec, impratio=2.0)
+    for cfg, impratio in (({}, 2.0), ({"impratio": 5.0}, 5.0)):
+        pop = Population(
+            robot, catalog_object("foam_brick"), PopulationConfig(worlds=1, device="cpu", use_graph=False, **cfg)
+        )
+        assert pop.params.nominal_impratio == pytest.approx(impratio)

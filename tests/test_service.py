@@ -379,12 +379,12 @@ def test_status_says_when_a_session_s_worlds_explore_their_contacts():
     traj = Trajectory.load(TRAJECTORY)
     robot = load_robot(ROOT / "configs/robots/allegro.toml")
     manager = SessionManager(ServiceConfig(groups=1, device="cpu", rate_hz=0), {robot.name: robot}, load_catalog())
-    gate = {"contact_worlds": 4, "contact_gate_updates": 2}
+    gate = {"contacts.contact_worlds": 4, "contacts.contact_gate_updates": 2}
     opened = {}
     for cost in (1e-9, 1e9):
         info = manager.open(
             OpenSession(robot=traj.robot, object=traj.object, p0=traj.truth.initial_pose, q0=traj.truth.initial_q,
-                        worlds=4, overrides=gate | {"contact_gate_cost": cost})
+                        worlds=4, overrides=gate | {"contacts.contact_gate_cost": cost})
         )  # fmt: skip
         pool = manager.sessions[info.session].pool
         assert not manager.status(info.session, info.token).contacts_explored
