@@ -15,7 +15,12 @@ from .replay import NOISE_LEVELS, ReplayResult, noisy_start
 from .replay import replay as stream
 from .tracker_client import TrackerClient
 
-__all__ = ["replay_file"]
+__all__ = ["Scorer", "replay_file"]
+
+Scorer = Callable[[str, np.ndarray, np.ndarray], np.ndarray]
+"""ADD per frame [m] of an object (by its catalog name) at its true poses (N, 7) against the
+estimates (N, 7); a ValueError when it does not know the object. The service's install has one
+(its object catalog and metric); the robot side alone reports the position error instead."""
 
 
 def replay_file(
@@ -27,11 +32,13 @@ def replay_file(
     noise: str = "med",
     live: bool = False,
     say: Callable[[str], None] = print,
+    score: Scorer | None = None,
 ) -> int:
     """Stream a trajectory file (``.traj``) or a session recording (``.mcap``) to the service as
     its robot would, and report what came back: latency, and ADD where the file carries the
     truth. A recording reopens its session as it was opened, unless ``method`` or ``worlds``
     say otherwise; a trajectory starts from its true pose with ``noise`` (low, med, high).
+    ``score``: ADD against the truth (:data:`Scorer`), else the position error is reported.
     Returns the exit status; a bad argument is a ValueError naming it."""
     traj, recording, start = _load(file, noise)
     chosen = {k: v for k, v in {"method": method, "worlds": worlds}.items() if v is not None}
@@ -63,7 +70,7 @@ def replay_file(
             print()
         _latency(result, client.status(), say)
         if traj.truth is not None:
-            _summary(traj, result.estimates, say)
+            _summary(traj, result.estimates, say, score)
         if recording is not None and recording.estimates:
             was = {e.seq: e.pose[:3] for e in recording.estimates}
             moved = [float(np.linalg.norm(e.pose[:3] - was[e.seq])) for e in result.estimates if e.seq in was]
@@ -121,19 +128,17 @@ def _latency(result: ReplayResult, status: SessionStatus, say: Callable[[str], N
         say(f"model check: joints the worlds hold away from the robot's (RMS, mrad or mm): {off}; see `calibrate`")
 
 
-def _summary(traj: Trajectory, estimates: list, say: Callable[[str], None]) -> None:
-    """ADD against the ground truth, when the object's model is at hand (the service's install)."""
+def _summary(traj: Trajectory, estimates: list, say: Callable[[str], None], score: Scorer | None) -> None:
+    """ADD against the ground truth where ``score`` knows the object, else the position error."""
+    seqs = np.array([e.seq for e in estimates])
     try:
-        from inhand_tracker.service.evaluation import add_error
-        from inhand_tracker.sim_backend import catalog_object
-
-        points = catalog_object(traj.object).surface_points(1000)
-    except (ImportError, ValueError):
+        if score is None:
+            raise ValueError("no scorer")
+        add = score(traj.object, traj.truth.pose[seqs], np.stack([e.pose for e in estimates]))
+    except ValueError:
         err = [float(np.linalg.norm(traj.truth.pose[e.seq, :3] - e.pose[:3])) for e in estimates]
         say(f"position error: mean {np.mean(err) * 1e3:.2f} mm, max {np.max(err) * 1e3:.2f} mm")
         return
-    seqs = np.array([e.seq for e in estimates])
-    add = add_error(points, traj.truth.pose[seqs], np.stack([e.pose for e in estimates]))
     say(
         f"ADD over {len(add)} frames: mean {add.mean() * 1e3:.2f} mm, median {np.median(add) * 1e3:.2f} mm, "
         f"max {add.max() * 1e3:.2f} mm"

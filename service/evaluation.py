@@ -9,7 +9,16 @@ from scipy.spatial import cKDTree
 
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply, quat_rotate
 
-__all__ = ["CHI2_6DOF_95", "add_error", "adds_error", "covered", "pose_error", "transform_points", "within_region"]
+__all__ = [
+    "CHI2_6DOF_95",
+    "add_error",
+    "adds_error",
+    "catalog_add",
+    "covered",
+    "pose_error",
+    "transform_points",
+    "within_region",
+]
 
 CHI2_6DOF_95 = 12.592
 """The 95 % quantile of a chi-square with 6 degrees of freedom: the reported 95 % region's bound."""
@@ -21,6 +30,14 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     points_t = torch.as_tensor(np.asarray(points, dtype=np.float64))
     q = pose_t[..., None, 3:].expand(*pose_t.shape[:-1], points_t.shape[0], 4)
     return (pose_t[..., None, :3] + quat_rotate(q, points_t.expand_as(q[..., :3]))).numpy()
+
+
+def catalog_add(name: str, true_pose: np.ndarray, est_pose: np.ndarray) -> np.ndarray:
+    """ADD (:func:`add_error`) of the catalog object ``name`` over its surface; a ValueError for
+    an object the catalog does not hold. The replay report's scorer (``client.report.Scorer``)."""
+    from inhand_tracker.sim_backend import catalog_object
+
+    return add_error(catalog_object(name).surface_points(1000), true_pose, est_pose)
 
 
 def add_error(points: np.ndarray, true_pose: np.ndarray, est_pose: np.ndarray) -> np.ndarray:

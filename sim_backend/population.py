@@ -27,7 +27,7 @@ from .robots import SERVO_ARRAYS, RobotLayout, RobotSpec
 from .rotations import quat_exp, quat_multiply
 from .separate import separate_objects
 from .step import no_collection, simulate
-from .worlds import Dims, Worlds, frame_index
+from .worlds import Dims, allocate_worlds
 
 __all__ = ["Population"]
 
@@ -75,27 +75,9 @@ class Population:
             physics = make_physics(self.model, cfg, self.device)
         self.solver, self.pipeline, self.contacts = physics.solver, physics.pipeline, physics.contacts
         with turn, wp.ScopedDevice(self.device):
-            self.state_0 = self.model.state()
-            self.state_1 = self.model.state()
-            self.data = Worlds(
-                config=cfg,
-                dims=self.dims,
-                layout=self.layout,
-                model=self.model,
-                solver=physics.solver,
-                pipeline=physics.pipeline,
-                contacts=physics.contacts,
-                observables=physics.observables,
-                state_0=self.state_0,
-                state_1=self.state_1,
-                control=self.model.control(),
-                buf=observe.allocate_buffers(self.W, self.D, self.L, self.Z),
-                # With ramped targets the robot's command for the frame, and the last frame's, per world.
-                goal=wp.zeros((self.W, self.D), dtype=float),
-                last_goal=wp.zeros((self.W, self.D), dtype=float),
-                index=frame_index(self.layout, self.dims, self.model.body_count),
-            )
+            self.data = allocate_worlds(cfg, self.dims, built, physics)
             """What the frame's stages read and write (:class:`.Worlds`)."""
+            self.state_0, self.state_1 = self.data.state_0, self.data.state_1
             self.params = ObjectParams(built, physics, self.G, self.K, self.torch_device)
             """The object's mass and friction per world and the solver's constants they set."""
             self._views()

@@ -15,12 +15,13 @@ import newton
 import numpy as np
 import warp as wp
 
+from .build import BuiltModel, Physics
 from .config import PopulationConfig
-from .observe import Buffers
+from .observe import Buffers, allocate_buffers
 from .robot_specs import RobotLayout
 from .zones import zone_arrays
 
-__all__ = ["Dims", "FrameIndex", "Worlds", "frame_index"]
+__all__ = ["Dims", "FrameIndex", "Worlds", "allocate_worlds", "frame_index"]
 
 
 @dataclass(frozen=True)
@@ -128,3 +129,25 @@ class Worlds:
     last_goal: wp.array
     """(W, D): the last frame's command, where this frame's ramp starts [rad or m]."""
     index: FrameIndex
+
+
+def allocate_worlds(config: PopulationConfig, dims: Dims, built: BuiltModel, physics: Physics) -> Worlds:
+    """The frame's record for ``built`` stepped by ``physics``, its arrays made on the current device."""
+    model = built.model
+    return Worlds(
+        config=config,
+        dims=dims,
+        layout=built.layout,
+        model=model,
+        solver=physics.solver,
+        pipeline=physics.pipeline,
+        contacts=physics.contacts,
+        observables=physics.observables,
+        state_0=model.state(),
+        state_1=model.state(),
+        control=model.control(),
+        buf=allocate_buffers(dims.W, dims.D, dims.L, dims.Z),
+        goal=wp.zeros((dims.W, dims.D), dtype=float),
+        last_goal=wp.zeros((dims.W, dims.D), dtype=float),
+        index=frame_index(built.layout, dims, model.body_count),
+    )

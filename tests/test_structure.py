@@ -71,3 +71,64 @@ def test_modules_and_functions_stay_small():
         if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and node.end_lineno - node.lineno + 1 > 80
     }
     assert not long_functions, long_functions
+
+
+def _module(path: Path) -> str:
+    """``path``'s module name from the source tree's top (``service.server.pools``; a package by its folder)."""
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _project_imports(path: Path, modules: set[str]) -> set[str]:
+    """The project's modules ``path`` imports, anywhere in it (a function's import and a type
+    checker's count too): ``from . import x`` is x where x is a module, else the package."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names = [a.name.removeprefix("inhand_tracker.") for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                package = _module(path).split(".")[: None if path.name == "__init__.py" else -1]
+                base = ".".join(package[: len(package) - node.level + 1] + ([node.module] if node.module else []))
+            else:
+                base = (node.module or "").removeprefix("inhand_tracker.")
+            names = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+        else:
+            continue
+        for name in names:
+            while name and name not in modules:  # a name inside a module: the module
+                name = name.rpartition(".")[0]
+            if name and name != _module(path):
+                out.add(name)
+    return out
+
+
+def test_no_module_imports_one_that_imports_it_back():
+    """No import circles, type-only ones included: a function carved out of a class that takes the
+    whole object back is a circle; the record it needs goes to a module of its own."""
+    files = [p for p in SOURCES if "examples" not in p.parts]
+    modules = {_module(p) for p in files}
+    graph = {_module(p): _project_imports(p, modules) for p in files}
+
+    def reaches(start: str, goal: str) -> bool:
+        seen, todo = set(), [start]
+        while todo:
+            m = todo.pop()
+            if m == goal:
+                return True
+            if m not in seen:
+                seen.add(m)
+                todo += graph.get(m, ())
+        return False
+
+    circles = sorted(f"{a} -> {b}" for a, out in graph.items() for b in out if reaches(b, a))
+    assert not circles, circles
+
+
+def test_the_client_imports_neither_the_service_nor_the_simulation():
+    """The robot side is protocol and zenoh: not even a function of it reaches into the GPU side."""
+    reaching = {
+        str(p.relative_to(ROOT)): sorted(m for m in _imports(p) if m.startswith(("service", "sim_backend")))
+        for p in (ROOT / "client").rglob("*.py")
+    }
+    assert not {k: v for k, v in reaching.items() if v}, reaching
