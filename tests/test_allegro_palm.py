@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from inhand_tracker.service.bench.allegro_motions import ALLEGRO_MOTION_KINDS, make_allegro_motion
 from inhand_tracker.service.bench.mujoco_truth import record_mujoco
-from inhand_tracker.service.bench.push_motions import PUSH_MOTION_KINDS, make_push_motion
 from inhand_tracker.service.bench.scene_truth import ALLEGRO_PALM_BLOCK, load_scene
 from inhand_tracker.service.bench.suites import SUITES, robot_spec
 from inhand_tracker.service.cli import app
@@ -100,7 +100,7 @@ def test_the_weak_truth_s_own_numbers_replay_its_joints_once_the_joint_damping_i
 @pytest.mark.parametrize("kind", ["push", "slide"])
 def test_the_block_stays_on_the_palm_moves_and_its_weight_is_felt_there(scene, hand, kind):
     obj = catalog_object("block")
-    demo = make_push_motion(hand, obj, kind, seconds=8.0)
+    demo = make_allegro_motion(hand, obj, kind, seconds=8.0)
     truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
     assert truth.held([demo], margin=-0.03)[0]
     assert truth.force is None and truth.touch.shape == (demo.frames, 1, 14)
@@ -123,7 +123,7 @@ def test_the_palm_s_zones_feel_a_block_lying_across_their_rims_as_the_truth_does
     from inhand_tracker.sim_backend import Population, PopulationConfig
 
     obj = catalog_object("block")
-    demo = make_push_motion(hand, obj, "slide", seconds=8.0)
+    demo = make_allegro_motion(hand, obj, "slide", seconds=8.0)
     demo = replace(demo, controls=demo.controls[:18], phases=())
     truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
     pop = Population(robot_spec("allegro_palm"), obj, PopulationConfig(worlds=1, device="cpu"))
@@ -149,7 +149,7 @@ def test_a_palm_skin_feels_where_the_block_lies_as_the_truth_s_taxels_do():
     assert grid.layout.zone_names[16:] == Kinematics(robot_spec("allegro_palm")).layout.zone_names[2:]
     obj = catalog_object("block")
     scene = load_scene(ALLEGRO_PALM_GRID_BLOCK, grid.layout, obj.mass)
-    demo = make_push_motion(grid, obj, "push", seconds=8.0)
+    demo = make_allegro_motion(grid, obj, "push", seconds=8.0)
     truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
     taxels = truth.touch[:, 0, :16]
     settled = slice(8, 17)
@@ -169,10 +169,10 @@ def test_a_palm_skin_feels_where_the_block_lies_as_the_truth_s_taxels_do():
 def test_a_push_motion_refuses_what_it_cannot_script(hand):
     obj = catalog_object("block")
     with pytest.raises(ValueError, match=r"push motion kind: expected one of .*got 'wave'"):
-        make_push_motion(hand, obj, "wave")
+        make_allegro_motion(hand, obj, "wave")
     with pytest.raises(ValueError, match=r"push motions need the Allegro Hand's joints; robot 'shadow_touch' lacks"):
-        make_push_motion(Kinematics(robot_spec("shadow_touch")), obj, "push")
-    assert SUITES["allegro-palm"].kinds == PUSH_MOTION_KINDS
+        make_allegro_motion(Kinematics(robot_spec("shadow_touch")), obj, "push")
+    assert SUITES["allegro-palm"].kinds == ALLEGRO_MOTION_KINDS
 
 
 @pytest.mark.slow
@@ -200,11 +200,11 @@ def test_a_block_resting_on_the_table_beside_the_palm_is_away_and_one_in_the_air
     """A hand that carries objects on its palm has left a block that rests on the table and touches
     no link, however near (here 15 cm from the palm, well inside the distance that says "far");
     a block on the palm, or in the air above it or beside it, is still a hypothesis."""
-    from inhand_tracker.service.bench.push_motions import make_push_motion
+    from inhand_tracker.service.bench.allegro_motions import make_allegro_motion
     from inhand_tracker.sim_backend import HEALTH_AWAY, HEALTH_OK, Population, PopulationConfig
 
     obj = catalog_object("block")
-    demo = make_push_motion(hand, obj, "push", seconds=6.0)
+    demo = make_allegro_motion(hand, obj, "push", seconds=6.0)
     pop = Population(robot_spec("allegro_palm"), obj, PopulationConfig(worlds=4, device="cpu"))
     poses = np.tile(demo.object_pose, (1, 4, 1))
     poses[0, 1, [0, 2]] = poses[0, 1, 0] + 0.15, 0.025  # on the table beside the hand

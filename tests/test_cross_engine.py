@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from inhand_tracker.protocol import SENSING
 from inhand_tracker.service.bench.motions import MOTION_KINDS, make_motion
 from inhand_tracker.service.bench.mujoco_truth import export_scene, record_mujoco
-from inhand_tracker.service.bench.palm_motions import DISTAL_COUPLING, PALM_MOTION_KINDS, make_palm_motion
+from inhand_tracker.service.bench.shadow_motions import DISTAL_COUPLING, SHADOW_MOTION_KINDS, make_shadow_motion
 from inhand_tracker.service.bench.suites import robot_spec
 from inhand_tracker.service.cli import app
 from inhand_tracker.sim_backend import HandSpec, Kinematics, catalog_object
@@ -70,8 +70,8 @@ def test_mujoco_truth_on_the_shadow_hand_keeps_the_object_on_its_palm_and_feels_
     kin = Kinematics(spec)
     names = [n.rsplit(":", 1)[-1] for n in kin.layout.joint_names]
     middle, distal = names.index("MFJ1"), names.index("MFJ0")
-    for kind in PALM_MOTION_KINDS:
-        demo = make_palm_motion(kin, obj, kind, seconds=8.0)
+    for kind in SHADOW_MOTION_KINDS:
+        demo = make_shadow_motion(kin, obj, kind, seconds=8.0)
         rec = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
         assert rec.held([demo], margin=-0.03)[0], kind
         first = dict(reversed(demo.phases))
@@ -114,7 +114,7 @@ def test_cross_engine_suite_on_the_shadow_hand_in_short_form(tmp_path):
     assert max(summary.values()) < 20.0, summary
     assert all(np.isfinite(t["open_loop_mean_mm"]) for t in results["tracks"])
     assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
-        f"cross-engine-shadow-short-spam_can_{k}_0.traj" for k in sorted(PALM_MOTION_KINDS[:2])
+        f"cross-engine-shadow-short-spam_can_{k}_0.traj" for k in sorted(SHADOW_MOTION_KINDS[:2])
     ]
 
 

@@ -13,9 +13,9 @@ from typer.testing import CliRunner
 
 from inhand_tracker.service.bench.demos import Demo
 from inhand_tracker.service.bench.mujoco_truth import record_mujoco
-from inhand_tracker.service.bench.palm_motions import PALM_MOTION_KINDS, make_palm_motion
 from inhand_tracker.service.bench.recorder import record
 from inhand_tracker.service.bench.scene_truth import MANIPULATE_BLOCK, SceneFile, load_scene
+from inhand_tracker.service.bench.shadow_motions import SHADOW_MOTION_KINDS, make_shadow_motion
 from inhand_tracker.service.bench.suites import robot_spec
 from inhand_tracker.service.cli import app
 from inhand_tracker.sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
@@ -35,7 +35,7 @@ def roll(hand):
     """A roll of the block on the palm, in the package's scene and in the tracker's physics."""
     spec, kin = hand
     obj = catalog_object("block")
-    demo = make_palm_motion(kin, obj, "roll", seconds=8.0)
+    demo = make_shadow_motion(kin, obj, "roll", seconds=8.0)
     scene = load_scene(MANIPULATE_BLOCK, kin.layout, obj.mass)
     truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
     ours = record(Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu")), demo,
@@ -108,7 +108,7 @@ def test_the_manipulate_suite_in_short_form_tracks_the_block_on_the_palm(tmp_pat
     assert max(summary.values()) < 40.0, summary
     assert "manipulate_block_touch_sensors.xml" in (out / "report.md").read_text()
     assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
-        f"manipulate-short-block_{k}_0.traj" for k in sorted(PALM_MOTION_KINDS[:2])
+        f"manipulate-short-block_{k}_0.traj" for k in sorted(SHADOW_MOTION_KINDS[:2])
     ]
 
 

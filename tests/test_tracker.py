@@ -417,13 +417,13 @@ def test_hypotheses_drawn_around_an_object_lying_on_a_palm_stay_on_the_hand():
     """A start pose of a can lying on the Shadow Hand's palm: about half the worlds drawn around it
     begin a few millimetres inside the palm. Separated before the first frame, none is thrown off
     the hand (without it, 5 of these 24 ended over 3 cm away within half a second, one 26 cm)."""
-    from inhand_tracker.service.bench.palm_motions import palm_rest_pose
+    from inhand_tracker.service.bench.shadow_motions import rest_pose
     from inhand_tracker.service.bench.suites import robot_spec
 
     obj = catalog_object("spam_can")
     pop = Population(robot_spec("shadow_hand"), obj, PopulationConfig(worlds=24, device="cpu"))
     tracker = Tracker(pop, TrackerConfig(optimizer=OptimizerConfig(method="EYE"), seed=0))
-    start = palm_rest_pose(obj, np.zeros(3))
+    start = rest_pose(obj, np.zeros(3))
     start[2] -= 0.008  # on the palm, not just above it
     q = pop.layout.default_q[None].astype(np.float32)
     tracker.start(start[None], q)
@@ -438,13 +438,13 @@ def test_on_a_palm_that_cannot_feel_an_object_resting_on_the_table_beside_it_is_
     nothing the palm is taken to hold it, so worlds whose can rests on the table and touches no link
     (15 cm from the palm: not far enough to be "away" by distance) are lost; those whose can lies
     on the palm are not."""
-    from inhand_tracker.service.bench.palm_motions import palm_rest_pose
+    from inhand_tracker.service.bench.shadow_motions import rest_pose
     from inhand_tracker.service.bench.suites import robot_spec
 
     obj = catalog_object("spam_can")
     pop = Population(robot_spec("shadow_hand"), obj, PopulationConfig(worlds=4, device="cpu"))
     tracker = Tracker(pop, TrackerConfig(optimizer=OptimizerConfig(method="EYE"), seed=0))
-    start = palm_rest_pose(obj, np.zeros(3))
+    start = rest_pose(obj, np.zeros(3))
     q = pop.layout.default_q[None].astype(np.float32)
     tracker.start(start[None], q)
     numb = Frame(controls=q, q=q, force=np.zeros((1, pop.L, 3), np.float32))

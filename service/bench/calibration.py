@@ -12,13 +12,11 @@ from pathlib import Path
 import numpy as np
 
 from inhand_tracker.protocol import Trajectory
-from inhand_tracker.sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
+from inhand_tracker.sim_backend import Kinematics, add_sensor_noise, catalog_object
 
+from .engines import truth_engine
 from .excitation import excitation_demo
-from .mujoco_truth import export_scene, record_mujoco
-from .palm_motions import DISTAL_COUPLING, distal_coupling
-from .recorder import record
-from .scene_truth import load_scene
+from .shadow_motions import DISTAL_COUPLING, distal_coupling
 from .suites import SensorNoise, Suite, robot_spec
 
 __all__ = ["calibration_recording"]
@@ -32,21 +30,9 @@ def calibration_recording(suite: Suite, device: str = "auto", seconds: float = 2
     obj = catalog_object(suite.objects[0])
     coupled = distal_coupling(kin.layout)  # a Shadow Hand's driver commands its distal joints so
     demo = excitation_demo(kin, obj, seconds, seed, (*coupled, DISTAL_COUPLING) if coupled else None)
-    mass, friction = np.array([obj.mass]), np.array([obj.friction])
-    if suite.engine == "scene" and suite.scene is not None:
-        scene = load_scene(suite.scene, kin.layout, obj.mass, suite.gap.servo_scale)
-        rec = record_mujoco(scene, demo, obj.mass, obj.friction)
-    elif suite.engine == "mujoco":
-        with tempfile.TemporaryDirectory() as tmp:
-            scene = export_scene(spec, obj.scaled(suite.gap.object_scale), Path(tmp) / "robot.xml")
-            rec = record_mujoco(scene, demo, obj.mass, obj.friction)
-    else:
-        gap = suite.gap
-        config = PopulationConfig(
-            groups=1, worlds=1, device=device, substeps=gap.substeps, impratio=gap.impratio,
-            ramp_targets=gap.ramp_targets, tolerance=1e-6, ls_tolerance=0.01,
-        )  # fmt: skip
-        rec = record(Population(spec, obj.scaled(gap.object_scale), config), demo, mass, friction)
+    with tempfile.TemporaryDirectory() as tmp:
+        engine = truth_engine(suite, kin, spec, obj, device, Path(tmp) / "robot.xml")
+        rec = engine.record_one(demo, obj.mass, obj.friction)
     if suite.sensors != SensorNoise():
         add_sensor_noise(rec.sensing, np.random.default_rng([suite.seed, seed, 7]), **asdict(suite.sensors))
     meta = {"suite": suite.name, "engine": suite.engine, "calibration": "free motion, object out of reach"}

@@ -16,7 +16,7 @@ from inhand_tracker.sim_backend.kinematics import Kinematics
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
-from .motions import minimum_jerk
+from .scripting import minimum_jerk
 
 __all__ = ["excitation_demo"]
 

@@ -22,19 +22,15 @@ from inhand_tracker.sim_backend.kinematics import Kinematics
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo, Script
+from .scripting import minimum_jerk
 
-__all__ = ["MOTION_KINDS", "make_motion", "minimum_jerk"]
+__all__ = ["MOTION_KINDS", "make_motion"]
 
 MOTION_KINDS = ("wrist_roll", "tilt_shake", "loosen", "twist")
 
 _WRIST_YAW, _WRIST_PITCH, _WRIST_ROLL = 3, 4, 5
 _ABDUCTION = (6, 10, 14)
 _THUMB_SWING = 18
-
-
-def minimum_jerk(t: np.ndarray) -> np.ndarray:
-    """Progress at times ``t`` in (0, 1] with zero velocity and acceleration at both ends."""
-    return t**3 * (10.0 - 15.0 * t + 6.0 * t**2)
 
 
 def make_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 20.0) -> Demo:

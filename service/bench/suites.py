@@ -11,11 +11,11 @@ from inhand_tracker.client.replay import NOISE_LEVELS
 from inhand_tracker.service.paths import CONFIG_DIR
 from inhand_tracker.sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
 
+from .allegro_motions import ALLEGRO_MOTION_KINDS
 from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS
-from .palm_motions import PALM_MOTION_KINDS
-from .push_motions import PUSH_MOTION_KINDS
 from .scene_truth import ALLEGRO_PALM_BLOCK, ALLEGRO_PALM_GRID_BLOCK, MANIPULATE_BLOCK, SceneFile
+from .shadow_motions import SHADOW_MOTION_KINDS
 
 __all__ = [
     "EXPLORATION",
@@ -136,11 +136,11 @@ SUITES: dict[str, Suite] = {
         sensors=_REAL_SENSORS,
         engine="mujoco",
     ),
-    "paper-shadow": Suite("paper-shadow", _SHADOW_OBJECTS, PALM_MOTION_KINDS, 1, seconds=20.0, robot="shadow_hand"),
+    "paper-shadow": Suite("paper-shadow", _SHADOW_OBJECTS, SHADOW_MOTION_KINDS, 1, seconds=20.0, robot="shadow_hand"),
     "reality-gap-shadow": Suite(
         "reality-gap-shadow",
         _SHADOW_OBJECTS,
-        PALM_MOTION_KINDS,
+        SHADOW_MOTION_KINDS,
         1,
         seconds=20.0,
         gap=PhysicsGap(substeps=32, object_scale=1.03, finger_damping=2.0, impratio=3.0),
@@ -150,7 +150,7 @@ SUITES: dict[str, Suite] = {
     "manipulate": Suite(
         "manipulate",
         ("block",),
-        PALM_MOTION_KINDS,
+        SHADOW_MOTION_KINDS,
         1,
         seconds=15.0,
         sensors=_REAL_SENSORS,
@@ -161,7 +161,7 @@ SUITES: dict[str, Suite] = {
     "allegro-palm": Suite(
         "allegro-palm",
         ("block",),
-        PUSH_MOTION_KINDS,
+        ALLEGRO_MOTION_KINDS,
         1,
         seconds=15.0,
         sensors=_REAL_SENSORS,
@@ -172,7 +172,7 @@ SUITES: dict[str, Suite] = {
     "allegro-palm-grid": Suite(
         "allegro-palm-grid",
         ("block",),
-        PUSH_MOTION_KINDS,
+        ALLEGRO_MOTION_KINDS,
         1,
         seconds=15.0,
         sensors=_REAL_SENSORS,
@@ -183,7 +183,7 @@ SUITES: dict[str, Suite] = {
     "allegro-palm-weak": Suite(
         "allegro-palm-weak",
         ("block",),
-        PUSH_MOTION_KINDS,
+        ALLEGRO_MOTION_KINDS,
         1,
         seconds=15.0,
         gap=PhysicsGap(servo_scale=0.5),
@@ -195,7 +195,7 @@ SUITES: dict[str, Suite] = {
     "cross-engine-shadow": Suite(
         "cross-engine-shadow",
         _SHADOW_OBJECTS,
-        PALM_MOTION_KINDS,
+        SHADOW_MOTION_KINDS,
         1,
         seconds=20.0,
         sensors=_REAL_SENSORS,

@@ -1,4 +1,4 @@
-"""Scripted motions for a palm-up hand without a wrist (the Allegro Hand of
+"""The Allegro Hand's scripted motions: palm up, without a wrist (the hand of
 ``configs/robots/allegro_palm.toml``): the object lies on the palm and only the fingers and the
 thumb move it, as in the field's palm-up reorientation tasks.
 
@@ -23,11 +23,11 @@ from inhand_tracker.sim_backend.kinematics import Kinematics
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
-from .palm_motions import palm_rest_pose, start_script
+from .scripting import palm_rest_pose, start_script
 
-__all__ = ["PUSH_MOTION_KINDS", "make_push_motion"]
+__all__ = ["ALLEGRO_MOTION_KINDS", "make_allegro_motion"]
 
-PUSH_MOTION_KINDS = ("push", "slide", "turn", "knead")
+ALLEGRO_MOTION_KINDS = ("push", "slide", "turn", "knead")
 
 PALM_CENTRE = np.array([0.0, 0.0, 0.1311])
 """Where the object lies on the mounted hand: on the palm's face, its far side just short of the
@@ -42,12 +42,12 @@ _THUMB_IN = np.array([0.45, 0.6, 1.644, 1.4])
 """The thumb swung in over the palm's edge: its tip where the object's side would be [rad]."""
 
 
-def make_push_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 15.0) -> Demo:
-    """Script a ``kind`` motion (see :data:`PUSH_MOTION_KINDS`) of about ``seconds`` for ``obj``
+def make_allegro_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 15.0) -> Demo:
+    """Script a ``kind`` motion (see :data:`ALLEGRO_MOTION_KINDS`) of about ``seconds`` for ``obj``
     lying on the palm; ``variant`` seeds where it lies and how far each move goes."""
     needed = {f"{f}j{k}" for f in (*_FINGERS, "th") for k in range(4)}
     index, rng, path = start_script(
-        kin, PUSH_MOTION_KINDS, kind, seconds, needed, (variant, 300), "push motion", "the Allegro Hand"
+        kin, ALLEGRO_MOTION_KINDS, kind, seconds, needed, (variant, 300), "push motion", "the Allegro Hand"
     )
     j = lambda *names: [index[n] for n in names]  # noqa: E731
     offset = np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.2, 0.2)])

@@ -1,4 +1,4 @@
-"""Scripted motions for a hand that carries the object on its upturned palm (the Shadow Hand of
+"""The Shadow Hand's scripted motions: it carries the object on its upturned palm (the hand of
 ``configs/robots/shadow_hand.toml``), so that the tracker is measured on a second real hand whose
 grasps are not pinches.
 
@@ -24,12 +24,12 @@ import numpy as np
 from inhand_tracker.sim_backend.kinematics import Kinematics
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
-from .demos import FRAME_RATE, Demo, Script
-from .motions import minimum_jerk
+from .demos import FRAME_RATE, Demo
+from .scripting import palm_rest_pose, start_script
 
-__all__ = ["PALM_MOTION_KINDS", "make_palm_motion", "palm_rest_pose"]
+__all__ = ["DISTAL_COUPLING", "SHADOW_MOTION_KINDS", "distal_coupling", "make_shadow_motion", "rest_pose"]
 
-PALM_MOTION_KINDS = ("cradle", "roll", "tilt", "cup")
+SHADOW_MOTION_KINDS = ("cradle", "roll", "tilt", "cup")
 
 PALM_CENTRE = np.array([0.0, -0.13, 0.147])
 """Where the object lies on the open hand, as the robot config mounts it: on the palm's face
@@ -44,17 +44,10 @@ DISTAL_COUPLING = 0.00805 / 0.00705
 """A finger's distal joint angle per middle joint angle: the ratio of the model's coupling tendon."""
 
 
-def palm_rest_pose(
-    obj: ObjectSpec, offset: np.ndarray, centre: np.ndarray = PALM_CENTRE, drop: float = _DROP
-) -> np.ndarray:
-    """The object ``drop`` [m] above the palm's ``centre`` (its face, where the object lies [m]),
-    its longest horizontal side along the hand (world y), shifted by ``offset`` (x, y) [m] and
-    turned by a small yaw ``offset[2]`` [rad], (7,)."""
-    extent = obj.mesh.bounds[1] - obj.mesh.bounds[0]
-    yaw = (np.pi / 2 if extent[0] > extent[1] else 0.0) + offset[2]
-    quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-    z = centre[2] - obj.mesh.bounds[0, 2] + drop
-    return np.array([centre[0] + offset[0], centre[1] + offset[1], z, *quat])
+def rest_pose(obj: ObjectSpec, offset: np.ndarray) -> np.ndarray:
+    """``obj`` just above the Shadow Hand's palm, shifted by ``offset`` (x, y [m], yaw [rad]), (7,)
+    (:func:`.scripting.palm_rest_pose`)."""
+    return palm_rest_pose(obj, offset, PALM_CENTRE, _DROP)
 
 
 def distal_coupling(lay) -> tuple[list[int], list[int]] | None:
@@ -67,41 +60,15 @@ def distal_coupling(lay) -> tuple[list[int], list[int]] | None:
     return [m for m, _ in pairs], [d for _, d in pairs]  # type: ignore[misc]
 
 
-def start_script(
-    kin: Kinematics,
-    kinds: tuple[str, ...],
-    kind: str,
-    seconds: float,
-    needed: set[str],
-    seed: tuple[int, int],
-    motion: str = "palm motion",
-    hand: str = "the Shadow Hand",
-) -> tuple[dict[str, int], np.random.Generator, Script]:
-    """What a scripted ``motion`` of ``kind`` for ``kin``'s hand starts from, after refusing a kind
-    not in ``kinds``, a length outside 6-120 s or a robot without the ``needed`` joints of
-    ``hand``: each joint's index by its short name, the motion's random numbers (``seed``: the
-    variant and the motions' base, plus the kind's place in ``kinds``) and a script at the
-    robot's start joints."""
-    if kind not in kinds:
-        raise ValueError(f"{motion} kind: expected one of {kinds}, got {kind!r}")
-    if not (6.0 <= seconds <= 120.0):
-        raise ValueError(f"{motion} seconds: expected 6 to 120, got {seconds}")
-    lay = kin.layout
-    index = {name.rsplit(":", 1)[-1]: i for i, name in enumerate(lay.joint_names)}
-    missing = sorted(needed - set(index))
-    if missing:
-        raise ValueError(f"{motion}s need {hand}'s joints; robot '{lay.name}' lacks {missing}")
-    rng = np.random.default_rng([seed[0], seed[1] + kinds.index(kind)])
-    return index, rng, Script(lay.default_q.copy(), lay.lower, lay.upper, profile=minimum_jerk)
-
-
-def make_palm_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 20.0) -> Demo:
-    """Script a ``kind`` motion (see :data:`PALM_MOTION_KINDS`) of about ``seconds`` for ``obj``
+def make_shadow_motion(kin: Kinematics, obj: ObjectSpec, kind: str, variant: int = 0, seconds: float = 20.0) -> Demo:
+    """Script a ``kind`` motion (see :data:`SHADOW_MOTION_KINDS`) of about ``seconds`` for ``obj``
     lying on the palm; ``variant`` seeds where it lies and how far each move goes."""
     needed = {"WRJ0", "WRJ1", *(f"{f}J{k}" for f in _FINGERS for k in range(3)), "THJ4", "THJ3", "THJ1", "THJ0"}
-    index, rng, path = start_script(kin, PALM_MOTION_KINDS, kind, seconds, needed, (variant, 200))
+    index, rng, path = start_script(
+        kin, SHADOW_MOTION_KINDS, kind, seconds, needed, (variant, 200), "palm motion", "the Shadow Hand"
+    )
     j = lambda *names: [index[n] for n in names]  # noqa: E731
-    pose = palm_rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.15, 0.15)]))
+    pose = rest_pose(obj, np.array([*rng.uniform(-0.004, 0.004, 2), rng.uniform(-0.15, 0.15)]))
     start = path.q.copy()
     middle, distal = j(*(f"{f}J1" for f in _FINGERS)), j(*(f"{f}J0" for f in _FINGERS))
 
