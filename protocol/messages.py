@@ -164,7 +164,8 @@ class OpenSession(_Message):
     allow_fewer: bool = False
     """Take fewer worlds than asked for when the budget has no room for them, instead of a refusal."""
     overrides: dict[str, float] = Field(default_factory=dict)
-    """Tracker hyperparameters by name (e.g. update_every, wrench_force)."""
+    """Tracker settings by their dotted names (e.g. update_every, exploration.wrench_force,
+    optimizer.min_separation); a flag as 1 or 0."""
     name: str | None = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
     """The session's name, a ROS name token: its ROS 2 topics and TF frame are named after it
     (``/inhand/{name}/pose``, ``{name}``), so a launch file or an RViz config can name them. A name

@@ -76,17 +76,17 @@ def test_the_tracker_s_model_damps_each_joint_as_the_scene_does(scene, hand):
 
 
 def test_the_weak_truth_s_own_numbers_replay_its_joints_once_the_joint_damping_is_among_them():
-    """The weak suite's calibration recording replayed by the tracker's engine with the truth's
+    """The weak suite's excitation recording replayed by the tracker's engine with the truth's
     servos (gain 5, force limit 0.35) follows the measured joints within their noise (5 mrad) only
     with the truth's joint damping as well (0.1, half the file's): the file's 0.2 caps the fingers'
     speed at the force limit over the damping, half the truth's."""
     import torch
 
-    from inhand_tracker.service.bench.calibration import calibration_recording
+    from inhand_tracker.service.bench.excitation import excitation_recording
     from inhand_tracker.service.calibration.servos import _replay, _series
     from inhand_tracker.sim_backend import Population, PopulationConfig
 
-    rec = calibration_recording(SUITES["allegro-palm-weak"], "cpu", seconds=8.0)
+    rec = excitation_recording(SUITES["allegro-palm-weak"], "cpu", seconds=8.0)
     obj = catalog_object(rec.object)
     pop = Population(robot_spec("allegro_palm"), obj, PopulationConfig(groups=1, worlds=2, device="cpu"))
     series = _series([rec], obj, pop.torch_device)

@@ -1,6 +1,6 @@
 """The suites' truth engines, one per suite engine (``Suite.engine``): Newton, the tracker's own
 simulator with the suite's physics gap; MuJoCo C on the robot's model as Newton exports it; MuJoCo C
-on a scene file written by others. Ground truth (:mod:`.truth`) and calibration recordings
+on a scene file written by others. Ground truth (:mod:`.truth`) and excitation recordings
 (:mod:`.calibration`) both record through them; :func:`truth_engine` is the one place a suite's
 engine is chosen."""
 

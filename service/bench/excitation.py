@@ -1,5 +1,7 @@
-"""A calibration recording's script: the hand moves every joint on its own, with the object out of
-its reach, so that each servo's stiffness and damping show in how its joint follows.
+"""A suite's excitation recording, what `calibrate` fits a robot's servos to: the hand moves every
+joint on its own, the object out of its reach, so that each servo's stiffness and damping show in
+how its joint follows; recorded by the suite's truth (its engine, servos, contact settings and
+sensor noise) apart from the tracked tracks.
 
 Each joint steps between targets drawn across most of its range, held 0.3-0.8 s, with fast
 minimum-jerk moves between them (a servo's gain shows in how far it lags and overshoots, its
@@ -9,16 +11,24 @@ confused with another's.
 
 from __future__ import annotations
 
+import tempfile
+from dataclasses import asdict
+from pathlib import Path
+
 import numpy as np
 
+from inhand_tracker.protocol import Trajectory
 from inhand_tracker.service.calibration.servos import out_of_reach
-from inhand_tracker.sim_backend.kinematics import Kinematics
+from inhand_tracker.sim_backend import Kinematics, add_sensor_noise, catalog_object
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
+from .engines import truth_engine
 from .scripting import minimum_jerk
+from .shadow_motions import DISTAL_COUPLING, distal_coupling
+from .suites import SensorNoise, Suite, robot_spec
 
-__all__ = ["excitation_demo"]
+__all__ = ["excitation_demo", "excitation_recording"]
 
 _MOVE = 0.05
 """How long a step between targets takes [s]."""
@@ -57,3 +67,20 @@ def excitation_demo(
         controls[:, followers] = np.clip(ratio * controls[:, leaders], lay.lower[followers], lay.upper[followers])
     return Demo(f"{obj.name}_excitation_{seed}", controls.astype(np.float32), out_of_reach(obj),
                 lay.default_q.astype(np.float32), phases=(("move", 0),))  # fmt: skip
+
+
+def excitation_recording(suite: Suite, device: str = "auto", seconds: float = 20.0, seed: int = 1) -> Trajectory:
+    """``seconds`` of the suite's robot stepping every joint through its range, recorded by the
+    suite's truth with its sensor noise (the joints' noise is what a calibration sees)."""
+    spec = robot_spec(suite.robot, suite.gap.finger_damping, suite.gap.servo_scale)
+    kin = Kinematics(robot_spec(suite.robot))
+    obj = catalog_object(suite.objects[0])
+    coupled = distal_coupling(kin.layout)  # a Shadow Hand's driver commands its distal joints so
+    demo = excitation_demo(kin, obj, seconds, seed, (*coupled, DISTAL_COUPLING) if coupled else None)
+    with tempfile.TemporaryDirectory() as tmp:
+        engine = truth_engine(suite, kin, spec, obj, device, Path(tmp) / "robot.xml")
+        rec = engine.record_one(demo, obj.mass, obj.friction)
+    if suite.sensors != SensorNoise():
+        add_sensor_noise(rec.sensing, np.random.default_rng([suite.seed, seed, 7]), **asdict(suite.sensors))
+    meta = {"suite": suite.name, "engine": suite.engine, "excitation": "free motion, object out of reach"}
+    return rec.trajectory(0, suite.robot, obj.name, meta)

@@ -106,8 +106,8 @@ def _record(
     if suite.drop:  # a scripted drop: the procedural hand's carry, in Newton
         held, drops = engine.dropped(demos, tracks[0][0])
         tracks = [(held, g) for _, g in tracks]
-    noisy = {id(rec): _add_sensor_noise(rec, suite.sensors, rng) for rec, _ in tracks}  # each recording once
-    tracks = [(noisy[id(rec)], g) for rec, g in tracks]
+    for rec in {id(rec): rec for rec, _ in tracks}.values():  # each recording once, in order
+        _add_sensor_noise(rec, suite.sensors, rng)
     seconds = time.perf_counter() - t0
     log.info(f"recorded {name} with {suite.engine}: {rounds} round(s) of physics draws in {seconds:.0f} s")
     meta = {

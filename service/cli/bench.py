@@ -223,7 +223,7 @@ def bench_accuracy(
 def bench_calibration(
     ctx: typer.Context,
     suite: Annotated[str, typer.Option(help=SUITE_HELP)] = "manipulate",
-    seconds: Annotated[float, typer.Option(help="length of the calibration recording [s]")] = 20.0,
+    seconds: Annotated[float, typer.Option(help="length of the excitation recording [s]")] = 20.0,
     settings: Annotated[
         str, typer.Option(help="what to fit, comma-separated: ke, kd, effort, damping, armature, friction")
     ] = "ke,kd",
@@ -232,11 +232,11 @@ def bench_calibration(
     device: Device = "auto",
     out: Annotated[Path | None, typer.Option(help="output folder (default bench-results/calibration-SUITE)")] = None,
 ) -> None:
-    """The suite's calibration recording (its robot moving every joint, the object out of reach,
+    """The suite's excitation recording (its robot moving every joint, the object out of reach,
     recorded by the suite's truth), and the tracker's servos fitted to it: an overlay of the robot's
     config for `bench accuracy --robot-overlay`, and a report."""
     gpu_stack()
-    from inhand_tracker.service.bench.calibration import calibration_recording
+    from inhand_tracker.service.bench.excitation import excitation_recording
     from inhand_tracker.service.bench.suites import robot_spec
     from inhand_tracker.service.calibration import calibration_report, fit_servos, write_overlay
     from inhand_tracker.service.paths import CONFIG_DIR
@@ -247,7 +247,7 @@ def bench_calibration(
     out.mkdir(parents=True, exist_ok=True)
     try:
         with contextlib.redirect_stdout(sys.stderr):
-            traj = calibration_recording(chosen, device, seconds)
+            traj = excitation_recording(chosen, device, seconds)
             traj.save(out / f"{suite}-calibration.traj")
             spec, obj = robot_spec(chosen.robot), catalog_object(traj.object)
             fit = fit_servos(

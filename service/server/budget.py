@@ -2,7 +2,7 @@
 function of its worlds, and so how many worlds a new session may have while the service still
 keeps up with its robots.
 
-A step's time is learnt, not assumed: calibrated at start-up (a population replaying the bundled
+A step's time is learnt, not assumed: measured at start-up (a population replaying the bundled
 pick and place, the hand in contact, at two sizes), cached per device and physics setting, and
 corrected online from every population's own steps.
 """
@@ -121,7 +121,7 @@ class FrameTimes:
             points = {str(w): round(t, 3) for w, t in sorted(self.points.items())}
             tmp.write_text(json.dumps({"key": self.key, "points": points, "measured": self.measured}, indent=1))
             tmp.replace(path)
-        except OSError as exc:  # a read-only home costs a calibration per start, not the service
+        except OSError as exc:  # a read-only home costs a measurement per start, not the service
             log.warning("frame times: cannot write the cache %s (%s)", path, exc)
 
 

@@ -236,7 +236,7 @@ class SessionManager:
         measure = cfg.rate_hz and any(cfg.groups * k not in self.frame_times.points for k in sizes)
         if not replay and measure:
             log.warning(
-                "frame times: calibrating with robot '%s' holding still (the bundled motion is the '%s' robot's);"
+                "frame times: measuring with robot '%s' holding still (the bundled motion is the '%s' robot's);"
                 " the populations' own steps will correct them", robot, traj.robot,
             )  # fmt: skip
         for k in sizes if measure else sizes[:1]:
