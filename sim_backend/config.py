@@ -40,20 +40,16 @@ class PopulationConfig:
     ramp_targets: bool = True
     """Move each joint's target linearly from the last frame's to this frame's across the
     substeps, as a real position controller interpolates between commands. Off, the target steps
-    at the frame boundary and the stiff wrist jerks there, where engines disagree most: against
-    truth from MuJoCo C with interpolating controllers, the open-loop drift of a wrist roll fell
-    from 107-169 mm to 7-20 mm with the ramp, and tracking error from 38-40 mm to 11-12 mm
+    at the frame boundary and the stiff wrist jerks there, where engines disagree most
     (docs/benchmarks.md)."""
     device: str = "auto"
     """"auto" (CUDA when present, else CPU), "cpu", "cuda" or "cuda:N"."""
     use_graph: bool = True
     """Replay a captured graph per frame (False steps eagerly, for debugging)."""
     solver: str = "auto"
-    """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in 1-8
-    iterations where CG needs 10-40 (a quarter of CG's steps stop at 40 unconverged); each
-    Newton iteration assembles and factors a Hessian, which the sparse Jacobian keeps cheap on
-    the CPU (K=40 on 2 cores, the hand in motion: 49 ms of physics per frame against CG's 94;
-    docs/benchmarks.md)."""
+    """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in a few
+    iterations where CG needs tens; each Newton iteration assembles and factors a Hessian, which
+    the sparse Jacobian keeps cheap (docs/benchmarks.md)."""
     integrator: str = "implicitfast"
     """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
     cone: str | None = None
@@ -68,20 +64,18 @@ class PopulationConfig:
     """Line-search iterations; None: 10 for Newton, 6 for CG."""
     jacobian: str = "sparse"
     """Constraint Jacobian layout: "dense" or "sparse". A contact row touches the wrist, one finger
-    and the object, about half of the DOFs, so the sparse Hessian products do half the work: on an
-    H100 at K=4096, 4 substeps, 10.2 ms a frame against dense's 13.5; on the 2-core CPU at K=40,
-    8 substeps, 49 against 85 (docs/benchmarks.md)."""
+    and the object, about half of the DOFs, so the sparse Hessian products do about half the work
+    (docs/benchmarks.md)."""
     tolerance: float = 1e-4
     """Solver convergence tolerance on the scaled cost improvement and gradient. Looser than the
-    solver's own 1e-6 (with ``ls_tolerance`` 0.1 against its 0.01): 5 % faster at 8192 worlds on an
-    H100, and paired tracking runs on the paper and reality-gap suites at K=40 and K=1024 cost at
-    most 0.23 ± 0.18 mm of ADD (docs/real-time.md). Ground truth keeps the solver's own."""
+    solver's own 1e-6 (with ``ls_tolerance`` 0.1 against its 0.01): faster, at no accuracy the
+    paired benchmarks can tell (docs/real-time.md). Ground truth keeps the solver's own."""
     ls_tolerance: float = 0.1
     """Line-search tolerance: the search stops once the slope has fallen to this share of its start."""
     contacts_per_world: int | None = None
     """MuJoCo contact capacity per world (nconmax); None sizes it from the robot and object
-    (:func:`sim_backend.build.contact_capacity`). A pinch makes about 10, a grasp on the table
-    about 20, an object rolled on a Shadow hand's palm over 30."""
+    (:func:`sim_backend.build.contact_capacity`): a pinch makes few, an object rolled on a
+    palm among curled fingers many."""
     broad_phase: str = "explicit"
     """Collision broad phase: "explicit" tests the model's precomputed shape pairs (the hand never
     collides with itself, so that list is short), "sap" or "nxn" search all shapes."""

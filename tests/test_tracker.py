@@ -312,7 +312,7 @@ def test_a_bad_frame_is_refused_with_the_field_and_shapes(hand, recording):
         tr.step(Frame(controls=controls, q=good.q))
     assert tr.frame == 0 and torch.equal(tr.pop.obs.object_pose, before), "a refused frame moved nothing"
     assert tr.step(good).frame == 1  # and the tracker goes on
-    with pytest.raises(ValueError, match="optimizer.method: expected one of"):
+    with pytest.raises(ValueError, match=r"optimizer\.method: expected one of"):
         TrackerConfig(optimizer=OptimizerConfig(method="SGD"))
 
 

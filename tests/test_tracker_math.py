@@ -274,7 +274,7 @@ def test_eye_and_olp_never_move_worlds():
     for method in ("EYE", "OLP"):
         upd = update(cost, OptimizerConfig(method=method), torch.Generator())
         assert torch.equal(upd.index, torch.arange(5).expand(3, 5)) and not upd.explore.any()
-    with pytest.raises(ValueError, match="optimizer.method: expected one of"):
+    with pytest.raises(ValueError, match=r"optimizer\.method: expected one of"):
         OptimizerConfig(method="CMA")
 
 

@@ -48,10 +48,8 @@ _EXCITED = 0.1
 STAYS_OFF = 0.015
 """A joint that the fit leaves further off than this, net of the joints' noise [rad or m], keeps
 the config's servo: its model differs in more than its servo (a coupling, a contact, a mass), and
-a fitted servo there stands in for what is missing. Half what the service's model check names at
-run time; a calibrated hand leaves at most 3.3 mrad in the benchmarks (allegro-palm-weak). On the
-Shadow hand's manipulate suite the fingers the fit left 15-130 mrad off took gains 3-8 times the
-scene's own and tracking with them lost 5-7 mm; kept on the config's, the fit gained 1.5 mm."""
+a fitted servo there stands in for what is missing (and drives the worlds to press far harder than
+the robot does). Half what the service's model check names at run time (docs/calibration.md)."""
 
 
 def _net(rms: np.ndarray, noise: float) -> np.ndarray:
@@ -300,10 +298,10 @@ def fit_servos(
         return {name: base[i] * factor[:, i] for i, name in enumerate(settings)}
 
     # A joint's settings trade against each other (at its limit a servo moves as fast as effort
-    # over damping): from the config's values the search ran up a valley of more effort, 9-39 mrad
-    # off where the truth's numbers, every setting halved, replay within 6. So one replay first
-    # scales all of a joint's settings together along the diagonal, a factor per world, and the
-    # search starts from each joint's best.
+    # over damping), so from the config's values a search runs up a valley of more effort, away
+    # from a joint whose settings are all scaled alike. So one replay first scales all of a joint's
+    # settings together along the diagonal, a factor per world, and the search starts from each
+    # joint's best.
     n_set = len(settings)
     search = _Search(pop, series, candidates, worlds, seed, progress)
     diagonal = search.diagonal(n_set)
