@@ -79,7 +79,7 @@ def test_repeated_runs_draw_their_own_start_and_report_each_runs_mean(tmp_path):
     report = write_report(thrice, tmp_path).read_text()
     runs = " / ".join(f"{m:.2f}" for m in olp["run_means_mm"])
     assert f"| OLP | {olp['mean_mm']:.2f} [{runs}] ± " in report, report
-    assert "tracker settings other than the defaults: {'jitter_bandwidth': 0.5}" in report
+    assert "tracker settings other than the defaults: {'exploration.jitter_bandwidth': 0.5}" in report
     assert "## ADD of the lowest-cost world" in report
     # The saved frames are what each track's coverage was judged on.
     frames = np.load(tmp_path / "frames.npz")
