@@ -50,7 +50,14 @@ _FLAG = (0.0, 1.0)
 _UNIT = (-1.5, 1.5)  # a unit vector's components, with room for rounding
 
 SENSING: tuple[SensingField, ...] = (
-    SensingField("controls", "joint", (), "rad or m", "Joint position targets."),
+    SensingField(
+        "controls",
+        "joint",
+        (),
+        "rad or m",
+        "Joint position targets, one per joint of the robot config in its order; a joint the robot's"
+        " file does not drive (one a tendon ties to another) has its target ignored.",
+    ),
     SensingField("q", "joint", (), "rad or m", "Measured joint positions."),
     SensingField(
         "force", "sensor", (3,), "N", "Contact force on each fingertip pad, in the sensor frame.", "force", _FORCE

@@ -13,7 +13,7 @@ import newton
 import numpy as np
 import warp as wp
 
-from .config import DEFAULT_CONE, DEFAULT_IMPRATIO, PopulationConfig
+from .config import DEFAULT_CONE, DEFAULT_IMPRATIO, DEFAULT_INTEGRATOR, PopulationConfig
 from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
 
@@ -112,15 +112,19 @@ def contact_capacity(built: BuiltModel, cfg: PopulationConfig) -> PopulationConf
     return replace(cfg, contacts_per_world=contacts, constraints_per_world=cfg.constraints_per_world or 5 * contacts)
 
 
-def robot_contacts(robot: RobotSpec, cfg: PopulationConfig) -> PopulationConfig:
-    """``cfg`` with its contact model resolved. Precedence, most specific last: the defaults
-    (elliptic, impratio 10), then the robot's config (:class:`.ContactModel`: the model it was
-    written for; a model tuned under MuJoCo's pyramidal cone grips differently under an elliptic
-    one), then ``cfg``'s own where it names one (the service's ``[physics]``, a benchmark's
-    ``--set population.cone`` or ``population.impratio``): a user's explicit choice wins."""
-    cone = cfg.cone or robot.cone or DEFAULT_CONE
-    impratio = cfg.impratio or robot.impratio or DEFAULT_IMPRATIO
-    return replace(cfg, cone=cone, impratio=impratio)
+def robot_contacts(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout | None = None) -> PopulationConfig:
+    """``cfg`` with the physics options it leaves open resolved: the friction cone, impratio and
+    integrator. Precedence, each later source winning: the defaults (elliptic, impratio 10,
+    implicitfast); the robot's file (``layout.options``: an MJCF's ``<option>``, MuJoCo's defaults
+    where it says none, which is what MuJoCo C runs it with); the robot config (:class:`.ContactModel`);
+    ``cfg``'s own (the service's ``[physics]``, a benchmark's ``--set population.cone``): a
+    user's explicit choice wins. A model tuned under MuJoCo's pyramidal cone grips differently
+    under an elliptic one."""
+    file = layout.options if layout is not None else {}
+    cone = cfg.cone or robot.cone or file.get("cone") or DEFAULT_CONE
+    impratio = cfg.impratio or robot.impratio or file.get("impratio") or DEFAULT_IMPRATIO
+    integrator = cfg.integrator or file.get("integrator") or DEFAULT_INTEGRATOR
+    return replace(cfg, cone=cone, impratio=impratio, integrator=integrator)
 
 
 def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:

@@ -12,6 +12,7 @@ from inhand_tracker.protocol import DEFAULT_WORLDS
 __all__ = [
     "DEFAULT_CONE",
     "DEFAULT_IMPRATIO",
+    "DEFAULT_INTEGRATOR",
     "PopulationConfig",
     "SolverSettings",
     "forward_only_kernels",
@@ -23,6 +24,9 @@ DEFAULT_CONE = "elliptic"
 """The friction cone where neither the robot nor the user names one: accurate sticking."""
 DEFAULT_IMPRATIO = 10.0
 """The impratio where neither the robot nor the user names one: stiff sticking contacts."""
+DEFAULT_INTEGRATOR = "implicitfast"
+"""The integrator where neither the robot's file nor the user names one: the servos' damping
+treated implicitly."""
 
 
 @dataclass(frozen=True)
@@ -50,8 +54,9 @@ class PopulationConfig:
     """MuJoCo constraint solver: "newton", "cg", or "auto" (Newton). Newton converges in a few
     iterations where CG needs tens; each Newton iteration assembles and factors a Hessian, which
     the sparse Jacobian keeps cheap (docs/benchmarks.md)."""
-    integrator: str = "implicitfast"
-    """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, or "euler"."""
+    integrator: str | None = None
+    """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, "euler"; None: the
+    robot file's, else implicitfast (:func:`.build.robot_contacts` states the precedence)."""
     cone: str | None = None
     """Friction cone: "elliptic" (accurate sticking) or "pyramidal"; None: the robot's, else
     elliptic (:func:`.build.robot_contacts` states the precedence)."""

@@ -62,7 +62,7 @@ class Population:
 
         self.built = built = build_model(robot, obj, cfg, self.device, turn)
         """The replicated model and what one world of it holds (static)."""
-        self.config = cfg = robot_contacts(robot, contact_capacity(built, cfg))
+        self.config = cfg = robot_contacts(robot, contact_capacity(built, cfg), built.layout)
         self.model = built.model
         self.layout: RobotLayout = built.layout
         self.object_body, self.bodies, self.coords, self._dofs = (

@@ -1,6 +1,9 @@
-"""A user's robot from a URDF or MJCF file: imported into a world's builder, its actuated joints
-given the spec's position servos, its touch sensors found on their links. Paths may name files in
-an installed Python package as ``python://PACKAGE/...``, the way ``package://`` names a ROS package."""
+"""A user's robot from a URDF or MJCF file: imported into a world's builder with the file's own
+actuation (an MJCF's actuators: their gains, damping and force ranges; a joint it leaves
+unactuated stays passive, held by its tendons, limits and springs), or, for a file without
+actuators, a position servo per listed joint from the spec; its touch sensors found on their
+links. Paths may name files in an installed Python package as ``python://PACKAGE/...``, the way
+``package://`` names a ROS package."""
 
 from __future__ import annotations
 
@@ -77,12 +80,7 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
                 f"robot '{spec.name}' joints: '{builder.joint_label[j]}' is not a revolute or prismatic joint"
             )
     coord, dof = joint_coord_dof(builder, joints)
-    gains = {name: _per_joint(spec, name) for name in ("ke", "kd", "effort")}
-    for i, d in enumerate(dof):
-        builder.joint_target_ke[d] = gains["ke"][i]
-        builder.joint_target_kd[d] = gains["kd"][i]
-        builder.joint_effort_limit[d] = gains["effort"][i]
-        builder.joint_target_mode[d] = int(newton.JointTargetMode.POSITION)
+    actuated = _actuate(builder, spec, dof)
     lower = np.asarray([builder.joint_limit_lower[d] for d in dof])
     upper = np.asarray([builder.joint_limit_upper[d] for d in dof])
 
@@ -122,6 +120,8 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
         sensor_bodies=np.asarray([body_names[n] for n in spec.sensor_links]) - body_start,
         sensor_offsets=offsets,
         carries_on_palm=spec.carries_on_palm,
+        actuated=actuated,
+        options=_file_options(builder) if ext in (".xml", ".mjcf") else {},
         zone_names=zones,
         zone_bodies=zone_bodies,
         zone_boxes=zone_boxes,
@@ -161,9 +161,80 @@ def _site_zones(builder: newton.ModelBuilder, spec: FileRobotSpec, body_start: i
     return tuple(zones)
 
 
-def _per_joint(spec: FileRobotSpec, name: str) -> np.ndarray:
-    """A controller setting of ``spec`` as one value per joint, (D,)."""
-    value = np.atleast_1d(np.asarray(getattr(spec, name), dtype=np.float64))
+_DEFAULT_SERVO = {"ke": 3.0, "kd": 0.1, "effort": 1.0}
+"""A file without actuators: each listed joint's position servo where the config gives none."""
+
+
+def _actuate(builder: newton.ModelBuilder, spec: FileRobotSpec, dof: list[int]) -> np.ndarray:
+    """Drive the listed joints as the file does, and say which it drives, (D,) bool.
+
+    An MJCF that declares actuators keeps them: each position actuator on a listed joint is its
+    servo (the importer's gain and damping, its force range as the effort limit), and a joint the
+    file does not drive stays passive, whatever the config says (the Shadow hand's distal joints
+    follow their middle ones through tendons). The config's ``ke``, ``kd`` and ``effort``, where it
+    gives them, replace the file's on the joints the file drives. A file without actuators (a URDF)
+    gets a position servo on every listed joint: the config's settings, else the defaults."""
+    mode = np.asarray([builder.joint_target_mode[d] for d in dof])
+    from_file = bool((mode != int(newton.JointTargetMode.NONE)).any())
+    actuated = mode != int(newton.JointTargetMode.NONE) if from_file else np.ones(len(dof), bool)
+    ranges = _actuator_force_ranges(builder) if from_file else {}
+    for name in ("ke", "kd", "effort"):
+        given = getattr(spec, name)
+        if given is None and from_file:
+            continue
+        values = _per_joint(spec, name, _DEFAULT_SERVO[name] if given is None else given)
+        for i, d in enumerate(dof):
+            if actuated[i]:
+                {"ke": builder.joint_target_ke, "kd": builder.joint_target_kd, "effort": builder.joint_effort_limit}[
+                    name
+                ][d] = values[i]
+    for i, d in enumerate(dof):
+        if not actuated[i]:
+            builder.joint_target_mode[d] = int(newton.JointTargetMode.NONE)
+            builder.joint_target_ke[d] = builder.joint_target_kd[d] = 0.0
+        elif not from_file:
+            builder.joint_target_mode[d] = int(newton.JointTargetMode.POSITION)
+        elif spec.effort is None and d in ranges:
+            builder.joint_effort_limit[d] = ranges[d]
+    return actuated
+
+
+_MUJOCO_OPTIONS = {"cone": ("pyramidal", ("pyramidal", "elliptic")), "impratio": (1.0, None),
+                   "integrator": ("euler", ("euler", "rk4", "implicit", "implicitfast"))}  # fmt: skip
+"""MuJoCo's own defaults for the options a file may state, and the names of their enum values."""
+
+
+def _file_options(builder: newton.ModelBuilder) -> dict:
+    """The options the MJCF states (its ``<option>``, as the importer read it), MuJoCo's defaults
+    for the rest: what MuJoCo C runs the file with."""
+    out = {}
+    for name, (default, names) in _MUJOCO_OPTIONS.items():
+        attr = builder.custom_attributes.get(f"mujoco:{name}")
+        values = attr.values if attr is not None else {}
+        stated = values.get(0) if isinstance(values, dict) else (values[0] if len(values) else None)
+        if stated is None:
+            out[name] = default
+        else:
+            out[name] = names[int(stated)] if names else float(stated)
+    return out
+
+
+def _actuator_force_ranges(builder: newton.ModelBuilder) -> dict[int, float]:
+    """The force range of each joint actuator the MJCF gives one, by the DOF it drives [N m or N]:
+    the servo's effort limit (the importer keeps it on the actuator only)."""
+    attr = builder.custom_attributes
+    if "mujoco:actuator_trnid" not in attr:
+        return {}
+    rows = zip(
+        *(attr[f"mujoco:actuator_{k}"].values for k in ("trnid", "trntype", "has_forcerange", "forcerange")),
+        strict=True,
+    )
+    return {int(t[0]): float(max(abs(r[0]), abs(r[1]))) for t, kind, has, r in rows if kind == 0 and has}
+
+
+def _per_joint(spec: FileRobotSpec, name: str, value) -> np.ndarray:
+    """A controller setting ``value`` of ``spec`` as one value per joint, (D,)."""
+    value = np.atleast_1d(np.asarray(value, dtype=np.float64))
     if value.shape not in ((1,), (len(spec.joints),)):
         raise ValueError(
             f"robot '{spec.name}' {name}: expected one value or {len(spec.joints)} (one per joint), got {value.size}"

@@ -68,7 +68,7 @@ class RobotLayout:
 
     name: str
     joint_names: tuple[str, ...]
-    """Actuated joints, shape (D,)."""
+    """The robot's joints, commanded and measured, in the order its frames carry them, shape (D,)."""
     coord_indices: np.ndarray
     """Index of each actuated joint in a world's ``joint_q``, shape (D,), int."""
     dof_indices: np.ndarray
@@ -94,6 +94,17 @@ class RobotLayout:
     """Body index of the link carrying each zone, shape (Z,), int."""
     zone_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), np.float32))
     """Each zone's box in its link's frame, shape (Z, 6): centre then half extents [m]."""
+    options: dict = field(default_factory=dict)
+    """The physics options the robot's file runs under, by PopulationConfig's names ("cone",
+    "impratio", "integrator"): an MJCF's ``<option>``, MuJoCo's defaults where it says none; empty
+    for a URDF and the procedural hand (:func:`.build.robot_contacts` states the precedence)."""
+    actuated: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    """Which joints the robot drives, shape (D,) bool (empty: all). A joint it does not drive (a
+    distal joint a tendon couples to the middle one) is measured and scored; its command is not used."""
+
+    def __post_init__(self) -> None:
+        if self.actuated.size == 0:
+            object.__setattr__(self, "actuated", np.ones(len(self.joint_names), bool))
 
     @property
     def dof_count(self) -> int:
@@ -179,12 +190,14 @@ class FileRobotSpec(ContactModel):
     joints: tuple[str, ...]
     sensor_links: tuple[str, ...]
     sensor_offsets: tuple[tuple[float, ...], ...] = ()
-    ke: float | tuple[float, ...] = 3.0
-    """Position gain of each joint's controller [N m/rad or N/m]: one value, or one per joint."""
-    kd: float | tuple[float, ...] = 0.1
-    """Damping gain [N m s/rad or N s/m]: one value, or one per joint."""
-    effort: float | tuple[float, ...] = 1.0
-    """Torque or force limit [N m or N]: one value, or one per joint."""
+    ke: float | tuple[float, ...] | None = None
+    """Position gain of each joint's controller [N m/rad or N/m]: one value, or one per joint.
+    None: the file's actuators' where it declares them, else 3."""
+    kd: float | tuple[float, ...] | None = None
+    """Damping gain [N m s/rad or N s/m]: one value, or one per joint. None: the file's, else 0.1."""
+    effort: float | tuple[float, ...] | None = None
+    """Torque or force limit [N m or N]: one value, or one per joint. None: the file's actuators'
+    force ranges, else 1."""
     floating: bool = False
     base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     """Pose of the robot's root in the world: position [m], quaternion (x, y, z, w)."""

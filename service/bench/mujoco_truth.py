@@ -68,8 +68,9 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
     """Write ``robot`` and ``obj`` over a ground plane as MJCF to ``xml`` (Newton's MuJoCo
     converter, so both engines start from one description) and load it back into MuJoCo C."""
     cpu = wp.get_device("cpu")
-    config = robot_contacts(robot, PopulationConfig(groups=1, worlds=1, device="cpu"))
+    config = PopulationConfig(groups=1, worlds=1, device="cpu")
     built = build_model(robot, obj, config, cpu)
+    config = robot_contacts(robot, config, built.layout)
     xml.parent.mkdir(parents=True, exist_ok=True)
     with wp.ScopedDevice(cpu):
         solver = newton.solvers.SolverMuJoCo(

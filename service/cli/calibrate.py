@@ -1,4 +1,5 @@
-"""`calibrate`: the robot's servos fitted to its own recordings, written as an overlay of its config."""
+"""The robot's model against its own data: `check-model` says how far one world of its config
+follows a recording and what to change; `calibrate` fits its servos and writes them as an overlay."""
 
 from __future__ import annotations
 
@@ -60,3 +61,49 @@ def calibrate(
     overlay = write_overlay(fit, robot, out, command_line(ctx))
     typer.echo(json.dumps(fit.summary(), indent=2) if json_ else calibration_report(fit))
     typer.echo(f"overlay: {overlay}\nreport: {overlay.with_suffix('.md')}", err=json_)
+
+
+@app.command("check-model")
+def check_model(
+    recordings: Annotated[list[Path], typer.Argument(help="recordings with truth: .traj (or the service's .mcap)")],
+    robot: Annotated[Path, typer.Option(help="the robot's config (TOML)")],
+    joint_noise: Annotated[
+        float, typer.Option(help="the measured joints' noise, a standard deviation [rad or m]: taken out of the RMS")
+    ] = 0.0,
+    variants: Annotated[bool, typer.Option(help="also try changes of the model and say which help")] = True,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set", metavar="NAME=VALUE", help="the physics the service runs, e.g. population.integrator=euler"
+        ),
+    ] = None,
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """Replay each recording open loop in one world of the robot's config from its true start, and
+    report per joint the RMS error net of noise, how hard the worlds press against what the robot
+    felt, the object's drift, the largest mismatches, and which change of the model brings the
+    worlds closest (impratio, the friction cone, a joint's servo). Run it before tracking."""
+    check_device(device, "check-model")
+    if not robot.is_file():
+        raise fail(f"check-model --robot: no such file '{robot}'")
+    if missing := [str(r) for r in recordings if not r.is_file()]:
+        raise fail(f"check-model: no such recording {missing[0]}")
+    gpu_stack()
+    from inhand_tracker.protocol.recording import load_trajectory
+    from inhand_tracker.service.calibration.model_check import check_model as check
+    from inhand_tracker.service.calibration.model_check import model_check_report
+    from inhand_tracker.service.tracker import settings
+    from inhand_tracker.sim_backend import load_robot
+
+    try:
+        physics = settings.split(
+            settings.parse(set_ or [], [n for n in settings.registry() if n.startswith("population.")])
+        )[1]
+        spec = load_robot(robot)
+        trajs = [load_trajectory(r) for r in recordings]
+        with contextlib.redirect_stdout(sys.stderr):
+            result = check(spec, trajs, device=device, joint_noise=joint_noise, variants=variants, physics=physics)
+    except ValueError as exc:
+        raise fail(f"check-model: {exc}") from None
+    typer.echo(json.dumps(result.summary(), indent=2) if json_ else model_check_report(result))
