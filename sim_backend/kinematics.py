@@ -29,6 +29,16 @@ class Kinematics:
         self._model = builder.finalize(device="cpu")
         self._state = self._model.state()
 
+    def servos(self) -> dict[str, np.ndarray]:
+        """The robot's servo settings as built ("ke", "kd", "effort": its config's, or its file's
+        actuators'), each (D,); a joint the robot does not drive has a gain of 0."""
+        arrays = {
+            "ke": self._model.joint_target_ke,
+            "kd": self._model.joint_target_kd,
+            "effort": self._model.joint_effort_limit,
+        }
+        return {name: a.numpy()[self.layout.dof_indices].astype(np.float64) for name, a in arrays.items()}
+
     def body_poses(self, q: np.ndarray) -> np.ndarray:
         """Poses of all robot bodies for joint positions ``q`` (D,), shape (B, 7) [m, quat xyzw]."""
         q = np.asarray(q, dtype=np.float32)

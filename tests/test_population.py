@@ -523,20 +523,30 @@ def test_ramped_targets_move_the_wrist_across_the_frame_from_where_it_stands(han
     assert 0.001 < moved[True] < 0.8 * moved[False], moved
 
 
-def test_the_contact_model_s_precedence_is_defaults_then_the_robot_then_the_user(hand):
-    """The defaults (elliptic, impratio 10) where nobody names one; the robot config's (the model
-    it was written for) over them; the service's ``[physics]`` or ``--set population.*`` over both."""
+def test_the_contact_model_s_precedence_is_defaults_then_the_file_then_the_robot_then_the_user(hand):
+    """The defaults (elliptic, impratio 10, implicitfast) where nobody names one; the robot file's
+    own options over them (an MJCF stating none runs MuJoCo's defaults, as MuJoCo C does); the robot
+    config's over the file's; the service's ``[physics]`` or ``--set population.*`` over all."""
+    from inhand_tracker.sim_backend import Kinematics
     from inhand_tracker.sim_backend.build import robot_contacts
 
     spec, _ = hand
     shadow = load_robot(CONFIGS / "robots/shadow_touch.toml")
-    assert (shadow.cone, shadow.impratio) == ("pyramidal", 1.0)  # typed fields of every robot spec
-    resolved = lambda robot, **cfg: (lambda c: (c.cone, c.impratio))(robot_contacts(robot, PopulationConfig(**cfg)))  # noqa: E731
-    assert resolved(spec) == ("elliptic", 10.0)
-    assert resolved(shadow) == ("pyramidal", 1.0)
-    assert resolved(shadow, impratio=30.0) == ("pyramidal", 30.0)
-    assert resolved(shadow, cone="elliptic") == ("elliptic", 1.0)
-    assert resolved(replace(spec, impratio=2.0), cone="pyramidal") == ("pyramidal", 2.0)
+    assert (shadow.cone, shadow.impratio) == (None, None)  # typed fields of every robot spec: here unset
+    layouts = {id(shadow): Kinematics(shadow).layout}
+
+    def resolved(robot, **cfg):
+        c = robot_contacts(robot, PopulationConfig(**cfg), layouts.get(id(robot)))
+        return c.cone, c.impratio, c.integrator
+
+    assert resolved(spec) == ("elliptic", 10.0, "implicitfast")
+    assert resolved(shadow) == ("pyramidal", 1.0, "euler")  # the file's
+    assert resolved(shadow, impratio=30.0) == ("pyramidal", 30.0, "euler")
+    assert resolved(shadow, cone="elliptic", integrator="implicitfast") == ("elliptic", 1.0, "implicitfast")
+    configured = replace(shadow, impratio=3.0)
+    layouts[id(configured)] = layouts[id(shadow)]
+    assert resolved(configured) == ("pyramidal", 3.0, "euler")  # the config over the file
+    assert resolved(replace(spec, impratio=2.0), cone="pyramidal") == ("pyramidal", 2.0, "implicitfast")
     with pytest.raises(ValueError, match="robot 'allegro' cone: expected one of"):
         replace(spec, cone="round")
     # The worlds' solver runs what the precedence resolved.

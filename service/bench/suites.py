@@ -5,11 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import numpy as np
-
 from inhand_tracker.client.replay import NOISE_LEVELS
 from inhand_tracker.service.paths import CONFIG_DIR
-from inhand_tracker.sim_backend import HandSpec, PopulationConfig, RobotSpec, load_robot
+from inhand_tracker.sim_backend import HandSpec, Kinematics, PopulationConfig, RobotSpec, load_robot
 
 from .allegro_motions import ALLEGRO_MOTION_KINDS
 from .demos import DEMO_KINDS
@@ -219,9 +217,11 @@ def robot_spec(name: str, finger_damping: float = 1.0, servo_scale: float = 1.0)
     spec = load_robot(CONFIG_DIR / "robots" / f"{name}.toml")
     if finger_damping == 1.0 and servo_scale == 1.0:
         return spec
-    # A robot from a file does not tell its fingers' joints from the others: all are scaled.
-    scaled = lambda v, by: tuple(float(x) * by for x in np.broadcast_to(v, len(spec.joints)))  # noqa: E731
+    # A robot from a file does not tell its fingers' joints from the others: all its servos (its
+    # config's, or its file's actuators') are scaled.
+    servos = Kinematics(spec).servos()
+    scaled = lambda name, by: tuple(float(x) * by for x in servos[name])  # noqa: E731
     return replace(
-        spec, ke=scaled(spec.ke, servo_scale), kd=scaled(spec.kd, finger_damping * servo_scale),
-        effort=scaled(spec.effort, servo_scale),
+        spec, ke=scaled("ke", servo_scale), kd=scaled("kd", finger_damping * servo_scale),
+        effort=scaled("effort", servo_scale),
     )  # fmt: skip
