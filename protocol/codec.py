@@ -84,8 +84,10 @@ def decode(payload: bytes, model: type[M]) -> M:
         raw = msgpack.unpackb(payload, object_hook=unpack_array, raw=False, strict_map_key=True)
     except DecodeError:
         raise
-    except Exception as exc:  # msgpack raises several kinds for malformed input
+    except (msgpack.exceptions.UnpackException, msgpack.exceptions.ExtraData) as exc:  # malformed bytes
         raise DecodeError(f"payload: not valid msgpack ({type(exc).__name__}: {exc})") from exc
+    except Exception as exc:  # well-formed msgpack that no message is: a map with non-string keys, ...
+        raise DecodeError(f"payload: valid msgpack but not a message ({type(exc).__name__}: {exc})") from exc
     if not isinstance(raw, dict):
         raise DecodeError(f"payload: expected a map, got {type(raw).__name__}")
     try:

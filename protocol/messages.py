@@ -70,8 +70,11 @@ def _within_reach(pose: np.ndarray) -> np.ndarray:
 
 
 class _Message(BaseModel):
-    # Field docstrings become the JSON Schema's descriptions (docs/protocol).
-    model_config = ConfigDict(arbitrary_types_allowed=True, frozen=True, extra="forbid", use_attribute_docstrings=True)
+    # Field docstrings become the JSON Schema's descriptions (docs/protocol). Strict: a wire value
+    # of the wrong type ("3" for a protocol version, "yes" for a flag) is refused, not coerced.
+    model_config = ConfigDict(
+        arbitrary_types_allowed=True, frozen=True, extra="forbid", use_attribute_docstrings=True, strict=True
+    )
 
 
 class ErrorCode(StrEnum):
@@ -85,7 +88,7 @@ class ErrorCode(StrEnum):
 
 
 class Error(_Message):
-    code: ErrorCode
+    code: Annotated[ErrorCode, Field(strict=False)]  # the wire carries its value, a string
     """What kind of refusal (:class:`ErrorCode`)."""
     message: str
     """What was wrong, naming the field and the numbers."""

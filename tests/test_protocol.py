@@ -133,3 +133,22 @@ def test_golden_payloads_decode_to_their_values_and_encode_to_their_bytes():
             for k, v in values.items()
         }
         assert encode(model(**rebuilt)) == payload, model.__name__
+
+
+def test_wire_values_of_the_wrong_type_are_refused_not_coerced():
+    """A string where a number or a flag belongs is a client's bug: it is named, never guessed."""
+    import msgpack
+
+    from inhand_tracker.protocol import OpenSession, RobotFrame
+    from inhand_tracker.protocol.codec import DecodeError, decode
+
+    good = {"robot": "allegro", "object": "foam_brick", "p0": [0.1, 0.0, 0.05, 0.0, 0.0, 0.0, 1.0]}
+    for field, value in (("protocol", "3"), ("allow_fewer", "yes"), ("worlds", 40.0)):
+        with pytest.raises(DecodeError, match=f"OpenSession.{field}"):
+            decode(msgpack.packb({**good, field: value}), OpenSession)
+    with pytest.raises(DecodeError, match=r"RobotFrame\.seq"):
+        decode(msgpack.packb({"session": "s", "seq": "5", "stamp": 0.0}), RobotFrame)
+    with pytest.raises(DecodeError, match="valid msgpack but not a message"):
+        decode(msgpack.packb({1: 2}), OpenSession)
+    with pytest.raises(DecodeError, match="not valid msgpack"):
+        decode(b"\xc1", OpenSession)

@@ -366,4 +366,4 @@ class TrackerConfig:
     cost: CostConfig = field(default_factory=CostConfig)
 
     def __post_init__(self) -> None:
-        _check(self, {"update_every": (1, 10_000, " frames")})
+        _check(self, {"update_every": (1, 10_000, " frames"), "seed": (0, 2**63 - 1, "")})
