@@ -862,3 +862,23 @@ def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sni
                 h.undeclare()
             attacker.close()
         assert sniffed == [] and caught == [] and forged == [], (len(sniffed), caught, len(forged))
+
+
+def test_a_silent_co_tenant_stops_costing_its_population_a_wait(traj):
+    """A session that opened and sends nothing is waited for a few steps, then no more: the robot
+    beside it steps as soon as its own frame arrives; once the silent one sends, it is awaited again."""
+    from inhand_tracker.service.server.pools import SILENT_AFTER
+
+    manager = _manager()
+    robot, quiet = (manager.open(_request(traj)) for _ in range(2))
+    pool = manager.sessions[robot.session].pool
+    assert manager.sessions[quiet.session].pool is pool  # one population, two groups
+    for seq in range(SILENT_AFTER + 2):
+        manager.submit(traj.frame(seq, robot.session, token=robot.token))
+        ready = manager.ready(max_wait=3600.0) == [pool]
+        assert ready == (seq >= SILENT_AFTER), seq  # waited for while it may still speak, then not
+        manager.step(pool)
+    manager.submit(traj.frame(0, quiet.session, token=quiet.token))
+    manager.step(pool)
+    manager.submit(traj.frame(SILENT_AFTER + 2, robot.session, token=robot.token))
+    assert manager.ready(max_wait=3600.0) == []  # it spoke: it is awaited again

@@ -19,10 +19,13 @@ from inhand_tracker.sim_backend import ObjectSpec, Population, RobotSpec
 
 from .config import PhysicsSettings
 
-__all__ = ["MEASURED_STEPS", "Pool", "PoolKey", "Session", "Turn", "build_pool", "idle_pose"]
+__all__ = ["MEASURED_STEPS", "SILENT_AFTER", "Pool", "PoolKey", "Session", "Turn", "build_pool", "idle_pose"]
 
 MEASURED_STEPS = 100
 """A population's own p99 replaces the prediction for it once it stepped this often."""
+SILENT_AFTER = 5
+"""Steps a session may miss before its population stops waiting for it (until it sends again): a
+co-tenant that opened and went quiet costs the others no wait."""
 
 
 @dataclass(frozen=True)
@@ -180,6 +183,9 @@ class Session:
     """Said to the robot with its next estimate, then cleared."""
     late_run: int = 0
     """Frames in a row that came behind the session's seq."""
+    missed: int = 0
+    """Steps of its population in a row that it sent no frame for: past :data:`SILENT_AFTER`, the
+    population steps without waiting for it."""
     overflow_said: bool = False
     """Whether the session was told its worlds ran out of contact room."""
     heard: float = field(default_factory=time.monotonic)

@@ -40,7 +40,7 @@ from .admission import Admission, Gate, ServiceError
 from .budget import STEP_TIME_MOTION, FrameTimes, device_name, measure_step_times
 from .config import ServiceConfig
 from .frames import frame_problem, in_order
-from .pools import MEASURED_STEPS, Pool, PoolKey, Session, Turn, build_pool, idle_pose
+from .pools import MEASURED_STEPS, SILENT_AFTER, Pool, PoolKey, Session, Turn, build_pool, idle_pose
 
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
 
@@ -302,15 +302,16 @@ class SessionManager:
         session.observed.append(observation)
 
     def ready(self, max_wait: float) -> list[Pool]:
-        """Populations to step now: every session has a frame, or the oldest has waited ``max_wait`` [s]."""
+        """Populations to step now: every session it waits for has a frame, or the oldest has waited
+        ``max_wait`` [s]. A session silent for :data:`.pools.SILENT_AFTER` steps is not waited for."""
         now = time.perf_counter()
         out = []
         for pool in self.pools.values():
             if pool.failed:
                 continue
-            active = pool.active
-            waiting = [s.pending[0][1] for s in active if s.pending]
-            if waiting and (len(waiting) == len(active) or now - min(waiting) >= max_wait):
+            waiting = [s.pending[0][1] for s in pool.active if s.pending]
+            awaited = sum(1 for s in pool.active if s.pending or s.missed < SILENT_AFTER)
+            if waiting and (len(waiting) >= awaited or now - min(waiting) >= max_wait):
                 out.append(pool)
         return out
 
@@ -324,7 +325,9 @@ class SessionManager:
                 s.pending.popleft()
                 s.stale += 1
             if not s.pending:
+                s.missed += 1
                 continue
+            s.missed = 0
             frame, received = s.pending.popleft()
             g = s.group
             for name, v in pool.sensing.items():
