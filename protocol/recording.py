@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,26 +71,26 @@ class SessionRecording:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SessionRecording:
-        from mcap.reader import make_reader
-
+        """The recording in ``path``; one cut short (the service killed, the disk full) is read up
+        to its last whole record."""
         path = Path(path)
-        with path.open("rb") as f:
-            reader = make_reader(f)
-            records = {m.name: m.metadata for m in reader.iter_metadata()}
-            if SESSION_METADATA not in records:
-                raise ValueError(f"recording '{path}': no '{SESSION_METADATA}' metadata: not a session recording")
-            opened = {k: json.loads(v) for k, v in records[SESSION_METADATA].items()}
-            frames, estimates, population = [], [], []
-            roles = {CHANNELS[k]: k for k in ("frame", "estimate", "population")}
-            for _, channel, message in reader.iter_messages(topics=list(roles), log_time_order=True):
-                role = roles[channel.topic]
-                doc = decode_record(role, message.data)
-                if role == "frame":
-                    frames.append(doc)
-                elif role == "estimate":
-                    estimates.append(Estimate.model_validate(doc))
-                else:
-                    population.append(PopulationSummary.model_validate(doc))
+        metadata, messages = _read_mcap(path)
+        if SESSION_METADATA not in metadata:
+            raise ValueError(f"recording '{path}': no '{SESSION_METADATA}' metadata: not a session recording")
+        opened = {k: json.loads(v) for k, v in metadata[SESSION_METADATA].items()}
+        frames, estimates, population = [], [], []
+        roles = {CHANNELS[k]: k for k in ("frame", "estimate", "population")}
+        for topic, data in messages:
+            role = roles.get(topic)
+            if role is None:
+                continue
+            doc = decode_record(role, data)
+            if role == "frame":
+                frames.append(doc)
+            elif role == "estimate":
+                estimates.append(Estimate.model_validate(doc))
+            else:
+                population.append(PopulationSummary.model_validate(doc))
         if not frames:
             raise ValueError(f"recording '{path}': no frames on {CHANNELS['frame']}")
         opened["p0"] = np.asarray(opened["p0"], np.float32)
@@ -108,6 +109,50 @@ class SessionRecording:
         )  # fmt: skip
         estimates.sort(key=lambda e: e.seq)
         return cls(opened, trajectory, estimates, population)
+
+
+def _read_mcap(path: Path) -> tuple[dict[str, dict[str, str]], list[tuple[str, bytes]]]:
+    """The metadata records by name and every message as (topic, data) in log-time order. A file
+    without its summary (written by a process that was killed, or cut by a full disk) is read
+    record by record up to where it breaks off: mcap's reader needs the summary, and no library
+    reads a truncated file, so the stream is walked here."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+    from mcap.records import Channel, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    try:
+        with path.open("rb") as f:
+            reader = make_reader(f)
+            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            messages = [(c.topic, m.data) for _, c, m in reader.iter_messages(log_time_order=True)]
+            return metadata, messages
+    except (McapError, EOFError, ValueError, KeyError, AssertionError, struct.error):
+        pass  # no summary: walk the records
+    metadata, channels, timed = {}, {}, []
+    with path.open("rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                if isinstance(record, Metadata):
+                    metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    timed.append((record.log_time, channels[record.channel_id], record.data))
+        except (McapError, EOFError, ValueError, KeyError, AssertionError, struct.error, zlib_errors()):
+            pass  # the file breaks off here: keep what came before
+    timed.sort(key=lambda t: t[0])
+    return metadata, [(topic, data) for _, topic, data in timed]
+
+
+def zlib_errors() -> type[Exception]:
+    """What a cut-off compressed chunk raises when decompressed."""
+    try:
+        import zstandard
+
+        return zstandard.ZstdError
+    except ImportError:  # pragma: no cover - mcap brings zstandard
+        return ValueError
 
 
 def load_trajectory(path: str | os.PathLike) -> Trajectory:
