@@ -79,7 +79,7 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
             use_mujoco_contacts=True,
             save_to_mjcf=str(xml),
             solver="newton",
-            integrator="implicitfast",
+            integrator=config.integrator,
             cone=config.cone,
             impratio=config.impratio,
             iterations=100,
