@@ -139,3 +139,21 @@ def test_check_model_names_a_halved_actuator_and_a_wrong_cone():
     report = model_check_report(strong)
     assert strong.changes()[0][0] == f"servo {names[j]} x0.5", report
     assert names[j] in report.split("mismatches:")[1]
+
+
+def test_check_model_on_the_command_line_reports_every_joint_or_names_what_is_missing(tmp_path):
+    from typer.testing import CliRunner
+
+    from inhand_tracker.service.cli import app
+
+    robot, traj = str(ROOT / "configs/robots/allegro.toml"), str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
+    missing = CliRunner().invoke(app, ["check-model", str(tmp_path / "none.traj"), "--robot", robot, "--device", "cpu"])
+    assert missing.exit_code == 2 and "check-model: no such recording" in missing.output
+    bad = CliRunner().invoke(
+        app, ["check-model", traj, "--robot", robot, "--device", "cpu", "--set", "population.cone=round"]
+    )
+    assert bad.exit_code == 2 and "population.cone: expected 'pyramidal' or 'elliptic'" in bad.output, bad.output
+    out = CliRunner().invoke(app, ["check-model", traj, "--robot", robot, "--device", "cpu", "--no-variants"])
+    assert out.exit_code == 0, out.output
+    names = Kinematics(HandSpec()).layout.joint_names
+    assert all(f"| {n} | yes |" in out.output for n in names) and "mismatches: none" in out.output, out.output

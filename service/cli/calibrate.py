@@ -14,6 +14,16 @@ import typer
 from .common import Device, Json, app, check_device, command_line, fail, gpu_stack, names
 
 
+def _files_exist(command: str, robot: Path, recordings: list[Path], device: str) -> None:
+    """Refuse a missing config or recording before the GPU stack loads (seconds), naming it."""
+    check_device(device, command)
+    if not robot.is_file():
+        raise fail(f"{command} --robot: no such file '{robot}'")
+    if missing := [str(r) for r in recordings if not r.is_file()]:
+        raise fail(f"{command}: no such recording {missing[0]}")
+    gpu_stack()
+
+
 @app.command()
 def calibrate(
     ctx: typer.Context,
@@ -37,12 +47,7 @@ def calibrate(
     """Fit the robot's position servos to its recordings (commands and measured joints) and write
     an overlay of its config with them, and a report: joint error before and after, the fitted
     values with their spread, and the joints the recordings did not excite."""
-    check_device(device, "calibrate")
-    if not robot.is_file():
-        raise fail(f"calibrate --robot: no such file '{robot}'")
-    if missing := [str(r) for r in recordings if not r.is_file()]:
-        raise fail(f"calibrate: no such recording {missing[0]}")
-    gpu_stack()
+    _files_exist("calibrate", robot, recordings, device)
     from inhand_tracker.protocol.recording import load_trajectory
     from inhand_tracker.service.calibration import calibration_report, fit_servos, write_overlay
     from inhand_tracker.sim_backend import catalog_object, load_robot
@@ -84,12 +89,7 @@ def check_model(
     report per joint the RMS error net of noise, how hard the worlds press against what the robot
     felt, the object's drift, the largest mismatches, and which change of the model brings the
     worlds closest (impratio, the friction cone, a joint's servo). Run it before tracking."""
-    check_device(device, "check-model")
-    if not robot.is_file():
-        raise fail(f"check-model --robot: no such file '{robot}'")
-    if missing := [str(r) for r in recordings if not r.is_file()]:
-        raise fail(f"check-model: no such recording {missing[0]}")
-    gpu_stack()
+    _files_exist("check-model", robot, recordings, device)
     from inhand_tracker.protocol.recording import load_trajectory
     from inhand_tracker.service.calibration.model_check import check_model as check
     from inhand_tracker.service.calibration.model_check import model_check_report
