@@ -173,10 +173,12 @@ def contact_points(contacts: newton.Contacts) -> list[wp.array]:
 def add_object(world: newton.ModelBuilder, obj: ObjectSpec) -> int:
     """Add ``obj`` as a free body of ``world``; returns its body index."""
     # The object's friction rules in contacts with the hand (MuJoCo takes the max otherwise).
-    attrs = {"mujoco:geom_priority": 1}
+    attrs = {"mujoco:geom_priority": 1, "mujoco:condim": obj.condim}
     body = world.add_body(label=f"object/{obj.name}")  # comes with a free joint
     volume = float(abs(obj.mesh.volume))
-    cfg = newton.ModelBuilder.ShapeConfig(density=obj.mass / volume, mu=obj.friction)
+    cfg = newton.ModelBuilder.ShapeConfig(
+        density=obj.mass / volume, mu=obj.friction, mu_torsional=obj.torsional_friction
+    )
     if obj.box_half_extents is not None:
         hx, hy, hz = obj.box_half_extents
         world.add_shape_box(body, hx=hx, hy=hy, hz=hz, cfg=cfg, label=obj.name, custom_attributes=attrs)

@@ -50,6 +50,11 @@ class ObjectSpec:
     friction: float = 0.8
     """Default Coulomb friction coefficient against the fingertips [1]."""
     friction_range: tuple[float, float] = (0.3, 1.5)
+    condim: int = 3
+    """MuJoCo's contact dimension of the object's contacts: 3 sliding friction, 4 with torsional
+    friction about the contact normal too (a box resisting a twist on a palm), 6 with rolling."""
+    torsional_friction: float = 0.005
+    """Torsional friction coefficient [m] (used with condim 4 or 6; MuJoCo's default)."""
     box_half_extents: tuple[float, float, float] | None = None
     """Collide as this box [m]."""
     capsules: tuple[tuple[float, ...], ...] = ()
@@ -63,6 +68,10 @@ class ObjectSpec:
         lo, hi = self.friction_range
         if not (0.0 <= lo <= self.friction <= hi):
             raise ValueError(f"object '{self.name}' friction: need 0 <= {lo} <= {self.friction} <= {hi}")
+        if self.condim not in (1, 3, 4, 6):
+            raise ValueError(f"object '{self.name}' condim: expected 1, 3, 4 or 6, got {self.condim}")
+        if not self.torsional_friction >= 0.0:
+            raise ValueError(f"object '{self.name}' torsional_friction: expected >= 0 m, got {self.torsional_friction}")
 
     def surface_points(self, count: int = 1024, seed: int = 0) -> np.ndarray:
         """``count`` points drawn uniformly by area over the surface, shape (count, 3) [m], for ADD."""
@@ -203,7 +212,7 @@ def load_catalog(path: str | os.PathLike = DEFAULT_CONFIG) -> dict[str, ObjectSp
         raise ValueError(f"objects config: cannot read '{path}': {exc}") from exc
     catalog = dict(_SHAPES)
     for name, entry in table.items():
-        physics = {k: entry[k] for k in ("mass", "friction") if k in entry}
+        physics = {k: entry[k] for k in ("mass", "friction", "condim", "torsional_friction") if k in entry}
         physics |= {k: tuple(entry[k]) for k in ("mass_range", "friction_range") if k in entry}
         if "box" in entry:
             size = tuple(float(v) for v in entry["box"])

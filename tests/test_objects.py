@@ -85,3 +85,23 @@ def test_a_mesh_object_in_the_default_objects_file_loads_at_import(tmp_path, mon
     monkeypatch.setitem(sys.modules, module.__name__, module)  # dataclasses look their module up
     exec(compile(source.replace(line, f"DEFAULT_CONFIG = Path({str(cfg)!r})"), objects.__file__, "exec"), vars(module))
     assert "block" in module.CATALOG
+
+
+_BLOCK = "[block]\nbox = [0.05, 0.05, 0.05]\nmass = 0.07\nmass_range = [0.04, 0.12]\n"
+
+
+def test_an_object_s_contact_dimension_and_torsional_friction_reach_its_worlds(tmp_path):
+    """A box that resists a twist on a palm (MuJoCo's condim 4) is said in the objects file; the
+    worlds' solver gives the object's contacts that dimension (the object's priority rules them)."""
+    objects = tmp_path / "objects.toml"
+    objects.write_text(_BLOCK + "condim = 4\ntorsional_friction = 0.01\n")
+    block = load_catalog(objects)["block"]
+    assert (block.condim, block.torsional_friction) == (4, 0.01)
+    assert (CATALOG["block"].condim, CATALOG["block"].torsional_friction) == (3, 0.005)  # MuJoCo's defaults
+    pop = Population(HandSpec(), block, PopulationConfig(worlds=1, device="cpu", use_graph=False))
+    geom_condim = pop.solver.mjw_model.geom_condim.numpy()
+    assert geom_condim.max() == 4 and (geom_condim == 4).sum() == 1  # the block's shape alone
+    bad = tmp_path / "bad.toml"
+    bad.write_text(_BLOCK + "condim = 5\n")
+    with pytest.raises(ValueError, match="object 'block' condim: expected 1, 3, 4 or 6, got 5"):
+        load_catalog(bad)
