@@ -3,7 +3,7 @@ pydantic only; never torch, warp or newton)."""
 
 from .replay import NOISE_LEVELS, ReplayResult, noisy_start, replay
 from .tracker_client import ServiceLost, StaleEstimate, TrackerClient, TrackerError
-from .zenoh_session import zenoh_config, zenoh_encoding
+from .zenoh_session import check_endpoints, zenoh_config, zenoh_encoding
 
 __all__ = [
     "NOISE_LEVELS",
@@ -12,6 +12,7 @@ __all__ = [
     "StaleEstimate",
     "TrackerClient",
     "TrackerError",
+    "check_endpoints",
     "noisy_start",
     "replay",
     "zenoh_config",

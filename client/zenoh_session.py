@@ -4,12 +4,28 @@ from __future__ import annotations
 
 import functools
 import os
+import re
+from collections.abc import Iterable
 
 import zenoh
 
 from inhand_tracker.protocol import encoding_of
 
-__all__ = ["zenoh_config", "zenoh_encoding"]
+__all__ = ["check_endpoints", "zenoh_config", "zenoh_encoding"]
+
+_ENDPOINT = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/[^\s/#?][^\s]*")
+"""A Zenoh locator: a transport, then its address (``tcp/127.0.0.1:7447``), optionally ``#`` options."""
+
+
+def check_endpoints(endpoints: Iterable[str], what: str) -> list[str]:
+    """``endpoints`` as given; a ValueError in one line naming the first that is no Zenoh endpoint
+    (Zenoh itself answers ``127.0.0.1:7447`` with a long traceback, and only once it opens)."""
+    out = list(endpoints)
+    for e in out:
+        if not _ENDPOINT.fullmatch(e):
+            hint = f"tcp/{e}" if re.fullmatch(r"[\w.\-\[\]:]+:\d+", e) else "tcp/HOST:PORT"
+            raise ValueError(f"{what}: '{e}' is not a Zenoh endpoint; write it as {hint}")
+    return out
 
 
 @functools.cache
@@ -22,6 +38,7 @@ def zenoh_config(listen=(), connect=(), scouting: bool = False, file: str | os.P
     """A peer config: listen and connect endpoints, multicast scouting on or off; on top of the
     Zenoh config ``file`` when given (TLS certificates, access control rules, ``mode: "client"``
     behind a router)."""
+    listen, connect = check_endpoints(listen, "listen"), check_endpoints(connect, "connect")
     conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
     if conf.get_json("mode") == "null":
         conf.insert_json5("mode", '"peer"')

@@ -131,3 +131,38 @@ def test_a_simulating_command_without_the_gpu_stack_says_what_to_install(monkeyp
     out = _run("bench", "sim", "--worlds", "2", "--device", "cpu")  # as on the robot side's light install
     assert out.exit_code == 2 and "(missing: newton)" in out.stderr, out.stderr
     assert "pip install 'inhand-tracker[service]'" in out.stderr
+
+
+def test_an_endpoint_without_its_transport_is_answered_in_one_line_within_a_second(tmp_path):
+    """The likeliest typo of all, `127.0.0.1:7447` for `tcp/127.0.0.1:7447`: one line, the spelling
+    to use, exit 2, before torch or warp load (a real process, timed)."""
+    import subprocess
+    import sys
+    import time
+
+    from inhand_tracker.service.paths import DATA_DIR
+
+    traj = str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
+    for args, said in [
+        (
+            ["serve", "--listen", "127.0.0.1:7447"],
+            "serve --listen: '127.0.0.1:7447' is not a Zenoh endpoint; write it as tcp/127.0.0.1:7447",
+        ),
+        (["replay", traj, "--connect", "127.0.0.1:7447"], "replay --connect: '127.0.0.1:7447' is not a Zenoh endpoint"),
+        (
+            ["watch", "--connect", "localhost"],
+            "watch --connect: 'localhost' is not a Zenoh endpoint; write it as tcp/HOST:PORT",
+        ),
+    ]:
+        began = time.monotonic()
+        out = subprocess.run(
+            [sys.executable, "-m", "inhand_tracker.service.cli", *args], capture_output=True, text=True, cwd=tmp_path
+        )
+        seconds = time.monotonic() - began
+        lines = [line for line in out.stderr.splitlines() if line.strip()]
+        assert out.returncode == 2 and lines == [lines[0]] and said in lines[0], (args, out.stderr)
+        assert seconds < 3.0, (args, seconds)  # under a second here; a loaded CI core gets room
+    from inhand_tracker.service.server.config import load_config
+
+    with pytest.raises(ValueError, match=r"service config connect: .*'router:7447' is not a Zenoh endpoint"):
+        load_config(connect=("router:7447",))

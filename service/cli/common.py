@@ -18,6 +18,7 @@ __all__ = [
     "check_device",
     "check_listen",
     "command_line",
+    "endpoints",
     "fail",
     "gpu_stack",
     "names",
@@ -56,6 +57,17 @@ def int_list(text: str | None) -> list[int] | None:
 
 def names(text: str | None) -> list[str] | None:
     return None if text is None else [t for t in text.split(",") if t]
+
+
+def endpoints(text: str | None, option: str, command: str) -> list[str] | None:
+    """Comma-separated Zenoh endpoints; one that is not (``127.0.0.1:7447`` without ``tcp/``)
+    exits 2 with one line naming it and the spelling, before anything loads."""
+    from inhand_tracker.client.zenoh_session import check_endpoints
+
+    try:
+        return None if text is None else check_endpoints(names(text), f"{command} --{option}")
+    except ValueError as exc:
+        raise fail(str(exc)) from None
 
 
 IntList = Annotated[str | None, typer.Option(callback=int_list, metavar="N,N,...")]

@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from .common import Device, app, check_device, check_listen, fail, gpu_stack, names, started
+from .common import Device, app, check_device, check_listen, endpoints, fail, gpu_stack, names, started
 
 log = logging.getLogger("inhand_tracker")
 
@@ -34,7 +34,8 @@ def serve(
     if device is not None:
         check_device(device, "serve")
     given = listen if listen is not None else os.environ.get("INHAND_LISTEN", "tcp/127.0.0.1:7447")
-    check_listen(names(given), "serve")
+    check_listen(endpoints(given, "listen", "serve"), "serve")
+    endpoints(connect if connect is not None else os.environ.get("INHAND_CONNECT"), "connect", "serve")
     gpu_stack()
     from inhand_tracker.service.server import TrackerNode, load_config
 
@@ -86,7 +87,7 @@ def replay(
     from inhand_tracker.client import TrackerClient
     from inhand_tracker.client.report import replay_file
 
-    with TrackerClient(connect=names(connect), service=name) as client:
+    with TrackerClient(connect=endpoints(connect, "connect", "replay"), service=name) as client:
         try:
             code = replay_file(client, file, method, worlds, rate, noise, say=typer.echo, score=_catalog_add)
         except ValueError as exc:
@@ -124,7 +125,7 @@ def watch(
         if count and seen[0] >= count:
             done.set()
 
-    with TrackerClient(connect=names(connect), service=name) as client:
+    with TrackerClient(connect=endpoints(connect, "connect", "watch"), service=name) as client:
         try:
             client.wait_ready(timeout=3600, absent=3.0)  # a service that is not there is said within seconds
         except TimeoutError as exc:

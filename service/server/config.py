@@ -24,6 +24,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from inhand_tracker.client.zenoh_session import check_endpoints
 from inhand_tracker.service.paths import CONFIG_DIR
 from inhand_tracker.sim_backend import PopulationConfig
 
@@ -216,6 +217,11 @@ class ServiceConfig(BaseSettings):
         if isinstance(value, str):
             return tuple(v for v in value.split(",") if v)
         return value
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...], info) -> tuple[str, ...]:
+        return tuple(check_endpoints(value, info.field_name))
 
     @classmethod
     def settings_customise_sources(
