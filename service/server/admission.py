@@ -24,8 +24,6 @@ __all__ = ["Admission", "Gate", "ServiceError"]
 
 _TUNABLE = sorted(name for name, s in registry().items() if s.session and s.kind is not str)
 """What a session's overrides may change, by dotted name (numbers and flags: the wire carries floats)."""
-"""Tracker settings a session may override, by name, with their types; the optimizer's numbers by
-their own names too (every name is unique)."""
 
 
 class ServiceError(Exception):
