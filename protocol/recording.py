@@ -139,13 +139,13 @@ def _read_mcap(path: Path) -> tuple[dict[str, dict[str, str]], list[tuple[str, b
                     channels[record.id] = record.topic
                 elif isinstance(record, Message) and record.channel_id in channels:
                     timed.append((record.log_time, channels[record.channel_id], record.data))
-        except (McapError, EOFError, ValueError, KeyError, AssertionError, struct.error, zlib_errors()):
+        except (McapError, EOFError, ValueError, KeyError, AssertionError, struct.error, _chunk_error()):
             pass  # the file breaks off here: keep what came before
     timed.sort(key=lambda t: t[0])
     return metadata, [(topic, data) for _, topic, data in timed]
 
 
-def zlib_errors() -> type[Exception]:
+def _chunk_error() -> type[Exception]:
     """What a cut-off compressed chunk raises when decompressed."""
     try:
         import zstandard

@@ -112,7 +112,7 @@ def contact_capacity(built: BuiltModel, cfg: PopulationConfig) -> PopulationConf
     return replace(cfg, contacts_per_world=contacts, constraints_per_world=cfg.constraints_per_world or 5 * contacts)
 
 
-def robot_contacts(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout | None = None) -> PopulationConfig:
+def resolve_physics(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout | None = None) -> PopulationConfig:
     """``cfg`` with the physics options it leaves open resolved: the friction cone, impratio and
     integrator. Precedence, each later source winning: the defaults (elliptic, impratio 10,
     implicitfast); the robot's file (``layout.options``: an MJCF's ``<option>``, MuJoCo's defaults

@@ -56,10 +56,10 @@ class PopulationConfig:
     the sparse Jacobian keeps cheap (docs/benchmarks.md)."""
     integrator: str | None = None
     """MuJoCo integrator: "implicitfast" treats the joint PD damping implicitly, "euler"; None: the
-    robot file's, else implicitfast (:func:`.build.robot_contacts` states the precedence)."""
+    robot file's, else implicitfast (:func:`.build.resolve_physics` states the precedence)."""
     cone: str | None = None
     """Friction cone: "elliptic" (accurate sticking) or "pyramidal"; None: the robot's, else
-    elliptic (:func:`.build.robot_contacts` states the precedence)."""
+    elliptic (:func:`.build.resolve_physics` states the precedence)."""
     impratio: float | None = None
     """Frictional-to-normal impedance ratio; above 1 makes sticking contacts stiffer. None: the
     robot's, else 10."""

@@ -19,7 +19,7 @@ import torch
 import warp as wp
 
 from . import observe
-from .build import DROPPED, build_model, contact_capacity, make_physics, robot_contacts
+from .build import DROPPED, build_model, contact_capacity, make_physics, resolve_physics
 from .config import PopulationConfig, resolve_device
 from .objects import ObjectSpec
 from .params import ObjectParams
@@ -62,7 +62,7 @@ class Population:
 
         self.built = built = build_model(robot, obj, cfg, self.device, turn)
         """The replicated model and what one world of it holds (static)."""
-        self.config = cfg = robot_contacts(robot, contact_capacity(built, cfg), built.layout)
+        self.config = cfg = resolve_physics(robot, contact_capacity(built, cfg), built.layout)
         self.model = built.model
         self.layout: RobotLayout = built.layout
         self.object_body, self.bodies, self.coords, self._dofs = (

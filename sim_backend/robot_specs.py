@@ -97,7 +97,7 @@ class RobotLayout:
     options: dict = field(default_factory=dict)
     """The physics options the robot's file runs under, by PopulationConfig's names ("cone",
     "impratio", "integrator"): an MJCF's ``<option>``, MuJoCo's defaults where it says none; empty
-    for a URDF and the procedural hand (:func:`.build.robot_contacts` states the precedence)."""
+    for a URDF and the procedural hand (:func:`.build.resolve_physics` states the precedence)."""
     actuated: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     """Which joints the robot drives, shape (D,) bool (empty: all). A joint it does not drive (a
     distal joint a tendon couples to the middle one) is measured and scored; its command is not used."""
@@ -126,7 +126,7 @@ CONES = ("pyramidal", "elliptic")
 @dataclass(frozen=True, kw_only=True)
 class ContactModel:
     """The contact model a robot's model was written for, which its worlds run unless the service's
-    physics or a benchmark's ``--set`` name another (:func:`.build.robot_contacts`)."""
+    physics or a benchmark's ``--set`` name another (:func:`.build.resolve_physics`)."""
 
     cone: str | None = None
     """The friction cone, "pyramidal" or "elliptic" (an MJCF's ``<option cone>``, MuJoCo's default

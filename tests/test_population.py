@@ -528,7 +528,7 @@ def test_the_contact_model_s_precedence_is_defaults_then_the_file_then_the_robot
     own options over them (an MJCF stating none runs MuJoCo's defaults, as MuJoCo C does); the robot
     config's over the file's; the service's ``[physics]`` or ``--set population.*`` over all."""
     from inhand_tracker.sim_backend import Kinematics
-    from inhand_tracker.sim_backend.build import robot_contacts
+    from inhand_tracker.sim_backend.build import resolve_physics
 
     spec, _ = hand
     shadow = load_robot(CONFIGS / "robots/shadow_touch.toml")
@@ -536,7 +536,7 @@ def test_the_contact_model_s_precedence_is_defaults_then_the_file_then_the_robot
     layouts = {id(shadow): Kinematics(shadow).layout}
 
     def resolved(robot, **cfg):
-        c = robot_contacts(robot, PopulationConfig(**cfg), layouts.get(id(robot)))
+        c = resolve_physics(robot, PopulationConfig(**cfg), layouts.get(id(robot)))
         return c.cone, c.impratio, c.integrator
 
     assert resolved(spec) == ("elliptic", 10.0, "implicitfast")

@@ -23,7 +23,7 @@ from inhand_tracker.sim_backend import (
     catalog_object,
     load_robot,
 )
-from inhand_tracker.sim_backend.build import robot_contacts
+from inhand_tracker.sim_backend.build import resolve_physics
 
 ROOT = Path(__file__).resolve().parents[1]
 GRIPPER = ROOT / "tests" / "data" / "tendon_gripper.xml"
@@ -111,7 +111,7 @@ def test_every_shipped_file_robot_runs_its_file_s_actuators_and_contact_model():
     assert passive == ["FFJ0", "MFJ0", "RFJ0", "LFJ0"]
     for name in ("shadow_hand", "shadow_touch", "allegro_palm", "allegro_palm_grid"):
         robot = load_robot(ROOT / f"configs/robots/{name}.toml")
-        physics = robot_contacts(robot, PopulationConfig(), Kinematics(robot).layout)
+        physics = resolve_physics(robot, PopulationConfig(), Kinematics(robot).layout)
         # The files state no <option>: MuJoCo's defaults, as MuJoCo C runs them.
         assert (physics.cone, physics.impratio, physics.integrator) == ("pyramidal", 1.0, "euler"), name
 

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from inhand_tracker.protocol import SENSING
 from inhand_tracker.sim_backend import PopulationConfig, RobotSpec, observe
-from inhand_tracker.sim_backend.build import build_model, robot_contacts
+from inhand_tracker.sim_backend.build import build_model, resolve_physics
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
@@ -70,7 +70,7 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
     cpu = wp.get_device("cpu")
     config = PopulationConfig(groups=1, worlds=1, device="cpu")
     built = build_model(robot, obj, config, cpu)
-    config = robot_contacts(robot, config, built.layout)
+    config = resolve_physics(robot, config, built.layout)
     xml.parent.mkdir(parents=True, exist_ok=True)
     with wp.ScopedDevice(cpu):
         solver = newton.solvers.SolverMuJoCo(

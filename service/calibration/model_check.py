@@ -23,7 +23,7 @@ import torch
 
 from inhand_tracker.protocol import Trajectory
 from inhand_tracker.sim_backend import Kinematics, Population, PopulationConfig, RobotSpec, catalog_object
-from inhand_tracker.sim_backend.build import robot_contacts
+from inhand_tracker.sim_backend.build import resolve_physics
 
 __all__ = ["ModelCheck", "check_model", "model_check_report"]
 
@@ -76,7 +76,7 @@ class ModelCheck:
     def score(self, r: Replay) -> float:
         """One number to rank variants by: the mean squared joint error net of noise [rad^2] plus
         the object's mean squared drift [m^2], so that 1 cm of drift weighs as 10 mrad on a joint."""
-        return float(np.mean(self.net(r.joint_rms) ** 2) + np.mean(r.drift**2) * 1.0)
+        return float(np.mean(self.net(r.joint_rms) ** 2) + np.mean(r.drift**2))
 
     def summary(self) -> dict:
         """As JSON-able numbers."""
@@ -125,7 +125,7 @@ def check_model(
     n = len(trajectories)
     layout = Kinematics(robot).layout
     base = PopulationConfig(groups=n, worlds=1, device=device, use_graph=False, **(physics or {}))
-    cfg = robot_contacts(robot, base, layout)
+    cfg = resolve_physics(robot, base, layout)
     ratios = [1.0, _IMPRATIO, 1.0 / _IMPRATIO] if variants else [1.0]
     first = _replay(Population(robot, obj, replace(cfg, groups=n * len(ratios))), trajectories, impratio=ratios)
     out = {"as configured": first[0]}
@@ -203,6 +203,11 @@ def _replay(
     if servos is not None:
         pop.set_servos(**servos)
     controls = np.stack([pad(t.controls) for t in trajectories], axis=1)  # (F, n, D)
+    felt = {  # what the robot felt per frame, (F, n, ...), for the kinds it sensed
+        k: np.stack([pad(getattr(t, k)) for t in trajectories], axis=1)
+        for k in ("force", "touch")
+        if getattr(trajectories[0], k) is not None  # present for all or none: one robot, one recorder
+    }
     q_true = np.stack([pad(t.q) for t in trajectories], axis=1)
     pose_true = np.stack([pad(t.pose) for t in truth], axis=1)
     within = np.arange(f)[:, None] < lengths[None]  # (F, n)
@@ -218,13 +223,11 @@ def _replay(
         pos = pop.obs.object_pose[:, 0, :3].cpu().numpy().reshape(v, n, 3)
         drift += np.linalg.norm(pos - pose_true[i, :, :3], axis=-1) * w
         for k, sim in (("force", pop.obs.force), ("touch", pop.obs.touch)):
-            real = getattr(trajectories[0], k)  # present for all or none: one robot, one recorder
-            if real is None or sim.shape[-1] == 0:
+            if k not in felt or sim.shape[-1] == 0:
                 continue
             got = sim[:, 0].reshape(v, n, -1).cpu().numpy()
             mag = np.linalg.norm(got.reshape(v, n, -1, 3), axis=-1) if k == "force" else got
-            real_i = np.stack([pad(getattr(t, k))[i] for t in trajectories])
-            real_mag = np.linalg.norm(real_i, axis=-1) if k == "force" else real_i
+            real_mag = np.linalg.norm(felt[k][i], axis=-1) if k == "force" else felt[k][i]
             pressed[k][:, 0] += (mag.sum(-1) * w).sum(-1)
             pressed[k][:, 1] += float((real_mag.sum(-1) * w).sum())
     frames = within.sum()
