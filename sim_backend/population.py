@@ -289,9 +289,10 @@ class Population:
             raise ValueError(f"displacement: expected shape ({self.G}, {self.K}, 6), got {tuple(displacement.shape)}")
         with self.on_stream():
             free = self.state_views["joint_q"](self.state_0)[..., self.free_coords]
-            rot = quat_multiply(free[..., 3:], quat_exp(displacement[..., 3:]))
+            rot = torch.nn.functional.normalize(quat_multiply(free[..., 3:], quat_exp(displacement[..., 3:])), dim=-1)
             free[..., :3] += displacement[..., :3]
-            free[..., 3:] = torch.nn.functional.normalize(rot, dim=-1)
+            # A world not displaced keeps its state to the bit: renormalising would move it by rounding.
+            free[..., 3:] = torch.where(displacement[..., 3:].ne(0).any(-1, keepdim=True), rot, free[..., 3:])
 
     @property
     def object_coords(self) -> torch.Tensor:

@@ -16,6 +16,7 @@ __all__ = [
     "HandSpec",
     "RobotLayout",
     "RobotSpec",
+    "SensorNoise",
     "TouchZone",
     "joint_coord_dof",
     "load_robot",
@@ -141,10 +142,32 @@ class ContactModel:
             raise ValueError(f"robot '{name}' cone: expected one of {CONES}, got {self.cone!r}")
         if self.impratio is not None and not self.impratio > 0:
             raise ValueError(f"robot '{name}' impratio: expected > 0, got {self.impratio}")
+        super().__post_init__()
+
+
+@dataclass(frozen=True, kw_only=True)
+class SensorNoise:
+    """The noise of the robot's sensing as its maker or a user measured it, a standard deviation per
+    reading: the tracker's updates never move the worlds on cost differences this noise could make
+    (:func:`inhand_tracker.service.tracker.optimizers.separation`). 0: the noise the worlds' own
+    frame-to-frame scatter shows."""
+
+    joint_noise: float = 0.0
+    """Measured joint positions [rad or m]."""
+    force_noise: float = 0.0
+    """Each fingertip force's magnitude [N]."""
+    touch_noise: float = 0.0
+    """Each touch zone's normal force [N]."""
+
+    def __post_init__(self) -> None:
+        for name in ("joint_noise", "force_noise", "touch_noise"):
+            value = getattr(self, name)
+            if not 0.0 <= value < 1e3:
+                raise ValueError(f"robot '{getattr(self, 'name', '')}' {name}: expected >= 0, got {value}")
 
 
 @dataclass(frozen=True)
-class HandSpec(ContactModel):
+class HandSpec(ContactModel, SensorNoise):
     """The procedural Allegro-like hand on a 6-DoF position-controlled wrist.
 
     The wrist stands in for the arm: one joint of six axes, sliding along world x, y, z, then
@@ -178,7 +201,7 @@ class HandSpec(ContactModel):
 
 
 @dataclass(frozen=True)
-class FileRobotSpec(ContactModel):
+class FileRobotSpec(ContactModel, SensorNoise):
     """A user's robot from a local URDF or MJCF file.
 
     ``joints`` names the actuated joints in control order; ``sensor_links`` the links that carry

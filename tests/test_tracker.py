@@ -3,6 +3,8 @@ frame that is a fixed number of torch ops whatever G and K are."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import mujoco_warp as mjw
 import numpy as np
 import pytest
@@ -527,3 +529,41 @@ def test_a_group_held_back_for_want_of_separation_keeps_gathering_its_window(han
     tr._update_ops()
     assert tr.windows.sum[0, 3] < HELD_COST and tr.windows.sum[0, 3] in before[0, [0, 1, 2, *range(4, 12)]]
     assert torch.equal(tr.windows.sum[1], before[1]) and tr.windows.frames.min() > 10
+
+
+def test_a_robot_whose_declared_noise_explains_every_difference_is_tracked_open_loop(hand, recording):
+    """Under ``optimizer.full_evidence`` the robot's declared sensor noise bounds what its cost
+    differences can mean. Where that noise dwarfs every difference the worlds show, no update
+    replaces or perturbs a world: they run as EYE's worlds do (which never resample), the estimate
+    is the plain mean of those that hold the object, and the reported strength is 0. The same hand
+    declaring exact sensing is updated: the grasp's forces tell its worlds apart."""
+    spec, _ = hand
+    obj = catalog_object(OBJECT)
+    worlds, runs, holds = {}, {}, {}
+    for name, robot, method in (
+        ("exact", spec, "REPS"),
+        ("noisy", replace(spec, joint_noise=5.0, force_noise=500.0), "REPS"),
+        ("eye", spec, "EYE"),
+    ):
+        pop = Population(robot, obj, PopulationConfig(groups=2, worlds=12, device="cpu"))
+        optimizer = OptimizerConfig(method=method, full_evidence=10.0)
+        tr = Tracker(pop, TrackerConfig(optimizer=optimizer, seed=5, update_every=5))
+        tr.start(_noisy_start(recording), recording.initial_q)
+        runs[name], plain = [], []
+        for f in range(recording.frames):
+            runs[name].append(tr.step(_frame(recording, f)))
+            held = (tr.scored() < HELD_COST)[..., None]  # the plain mean of the worlds that hold the object
+            plain.append(((tr.pop.obs.object_pose[..., :3] * held).sum(1) / held.sum(1)).numpy())
+        worlds[name] = tr.pop.obs.object_pose.clone()
+        holds[name] = tr.scored() < HELD_COST
+        if name == "noisy":  # but on update frames, which replace worlds that lost the object after the estimate
+            said = np.array([e.pose[:, :3] for e in runs[name]])
+            between = np.arange(recording.frames) % 5 != 4
+            assert np.allclose(said[between], np.array(plain)[between], atol=1e-6)
+    strengths = {name: np.array([e.evidence for e in est]) for name, est in runs.items()}
+    assert (strengths["noisy"] == 0).all() and (np.array([e.separation for e in runs["noisy"]])[5:] > 0).all()
+    assert strengths["exact"].max() > 0.5, strengths["exact"].max(0)
+    # Where EYE's worlds still hold the object: a group held back still replaces those that lost it.
+    held = holds["eye"] & holds["noisy"]
+    apart = {name: (worlds[name] - worlds["eye"])[..., :3].norm(dim=-1)[held].max().item() for name in worlds}
+    assert apart["noisy"] < 1e-4 and apart["exact"] > 1e-2, apart

@@ -13,7 +13,10 @@ from inhand_tracker.service.tracker.cost import Cost, CostConfig, RealObservatio
 from inhand_tracker.service.tracker.optimizers import (
     HELD_COST,
     OptimizerConfig,
+    duplicates,
     estimate_pmf,
+    evidence_strength,
+    noise_bound,
     pose_evidence,
     pose_sources,
     reps_eta,
@@ -224,12 +227,40 @@ def test_separation_is_about_one_on_noise_and_large_where_a_world_stays_better()
         OptimizerConfig(min_separation=-1.0)
 
 
+@pytest.mark.parametrize("method", ["WRS", "REPS", "PBO"])
+def test_an_update_is_as_strong_as_the_evidence_for_it(method):
+    """A group whose worlds separate no more than noise alone would make them keeps
+    every world and explores none, and is held back; one at full evidence is updated as without the
+    setting; in between fewer worlds are replaced, the more so the weaker the evidence."""
+    gen = torch.Generator().manual_seed(3)
+    g, k = 300, 40
+    cost = torch.rand(g, k, generator=gen) * 10.0
+    f = torch.cat([torch.full((100,), 1.2), torch.full((100,), 4.0), torch.full((100,), 50.0)])
+    bound = noise_bound(torch.full((g,), float(k)), torch.full((g,), 15.0))
+    assert 1.3 < bound[0] < 1.5 and noise_bound(torch.tensor([1024.0]), torch.tensor([15.0])) < 1.1
+    strength = evidence_strength(f, bound, 10.0)
+    expected = torch.tensor([0.0, (4 - bound[0]) / (10 - bound[0]), 1.0]).repeat_interleave(100)
+    assert torch.allclose(strength[:, 0], expected)
+    config = OptimizerConfig(method=method, min_spread=0.0, full_evidence=10.0)
+    upd = update(cost, config, torch.Generator().manual_seed(4), separated=f, strength=strength)
+    identity = torch.arange(k).expand(100, k)
+    assert torch.equal(upd.index[:100], identity) and not upd.explore[:100].any() and upd.held_back[:100].all()
+    full = update(cost, OptimizerConfig(method=method, min_spread=0.0), torch.Generator().manual_seed(4))
+    copies = duplicates(upd.index).float().sum(-1)
+    strong, weak = copies[200:].mean(), copies[100:200].mean()
+    assert 0.0 < weak < 0.8 * strong, (weak, strong)
+    assert abs(strong - duplicates(full.index).float().sum(-1)[200:].mean()) < 0.1 * strong
+    assert upd.explore[100:, 1:].all() and not upd.held_back[100:].any()
+    with pytest.raises(ValueError, match=r"full_evidence: expected 0 \(off\) or > 1, got 1.0"):
+        OptimizerConfig(full_evidence=1.0)
+
+
 def test_a_held_back_group_keeps_its_cost_window_through_a_restart():
     """:meth:`CostWindow.restart`: the groups whose update was held back keep their window (sums and
     frame counts), the others start again; :meth:`CostWindow.clear` empties a re-seeded group's."""
     gen = torch.Generator().manual_seed(1)
     g, k = 6, 5
-    window = CostWindow(g, k, torch.device("cpu"), scatters=True)
+    window = CostWindow(g, k, torch.device("cpu"))
     for _ in range(30):
         window.add(torch.randn(g, k, generator=gen) + 5.0)
     keep = torch.arange(g) < 3

@@ -150,6 +150,9 @@ def _collect(run: AccuracyRun, results: list[TrackResult], t_truth: float, t_tra
         for n, rs in by_noise.items():
             fig2[m][n]["add_s_mean_mm"] = float(np.mean([r.add_s.mean() for r in rs]) * 1e3)
             fig2[m][n]["coverage_95"] = float(np.mean([r.covered.mean() for r in rs]))
+            if medians := [r.evidence() for r in rs if r.evidence()]:  # how far the sensing told the worlds apart
+                for key in medians[0]:
+                    fig2[m][n][key] = float(np.median([e[key] for e in medians]))
             onsets, said = np.sum([r.flagged() for r in rs], axis=0)
             fig2[m][n]["error_onsets"], fig2[m][n]["flagged_within_1s"] = int(onsets), int(said)
             if events := [r.after_event() for r in rs if r.event is not None]:  # a loss suite

@@ -27,6 +27,8 @@ from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, robot_spec
 __all__ = ["TrackResult", "TrackSetting", "per_frame", "plan_tracks", "run_tracks", "save_frames"]
 
 _ADDS_EVERY = 10
+_KEPT = ("cost", "lost", "separation", "evidence")
+"""What :func:`_follow` said per frame that a track keeps beside its errors."""
 """ADD-S is scored on every tenth frame (a nearest-point search per surface point)."""
 
 _CONTACT_TERMS = (3, 4, 5, 10, 11)  # fingertips: contact, force magnitude, direction; touch zones: contact, force
@@ -73,7 +75,20 @@ class TrackResult:
     frames: dict[str, np.ndarray] | None = field(default=None, repr=False)
     """What the estimate said each frame against the truth (:func:`save_frames`): ``error`` (F, 6)
     the true pose seen from the estimate [m, rad], ``covariance`` (F, 6, 6) as reported, ``cost``
-    (F,) the lowest window cost and ``lost`` (F,) the share of worlds that lost the object."""
+    (F,) the lowest window cost, ``lost`` (F,) the share of worlds that lost the object,
+    ``separation`` (F,) and ``evidence`` (F,) the last update's F ratio and strength."""
+
+    def evidence(self) -> dict[str, float]:
+        """The median over the track's updates of their separation F ratio and strength (after the
+        first update; empty where the frames were not kept)."""
+        if not self.frames or "separation" not in self.frames:
+            return {}
+        f, s = self.frames["separation"], self.frames["evidence"]
+        after = np.flatnonzero(f > 0)
+        if after.size == 0:
+            return {}
+        first = after[0]
+        return {"separation_median": float(np.median(f[first:])), "evidence_median": float(np.median(s[first:]))}
 
     def after_event(self, within: float = 0.01, hold: int = 15) -> tuple[float | None, float | None]:
         """Seconds from the loss to the status first saying anything but tracking, and to the
@@ -123,6 +138,7 @@ class TrackResult:
             "add_max_mm": float(self.add.max() * 1e3),
             "best_world_add_mean_mm": float(self.add_best.mean() * 1e3),
             "diverged_frames": self.diverged,
+            **self.evidence(),
             **({} if self.contacts_explored is None else {"contacts_explored": self.contacts_explored}),
             **({} if self.servo_strength is None else {"servo_strength": self.servo_strength}),
             **({} if self.add_s is None else {"add_s_mean_mm": float(self.add_s.mean() * 1e3)}),
@@ -260,6 +276,8 @@ def _follow(
         "status": np.empty((frames, groups), np.int64),
         "cost": np.empty((frames, groups), np.float32),
         "lost": np.empty((frames, groups), np.float32),
+        "separation": np.empty((frames, groups), np.float32),
+        "evidence": np.empty((frames, groups), np.float32),
     }
     diverged = np.zeros(groups, np.int64)
     seen = _observed(rec, run.observations)[:, rows]  # (F, G)
@@ -300,7 +318,7 @@ def _score(
     out = []
     for g, t in enumerate(group):
         n = int(rec.lengths[t.trajectory])
-        frames = {"error": error, "covariance": covariances, "cost": said["cost"], "lost": said["lost"]}
+        frames = {"error": error, "covariance": covariances} | {k: said[k] for k in _KEPT}
         frames = {k: v[:n, g] for k, v in frames.items()}
         out.append(
             TrackResult(t, rec.names[t.trajectory], obj, add[:n, g], add_best[:n, g], int(said["diverged"][g]),

@@ -88,6 +88,8 @@ ESTIMATE = Columns.of(
         "mode_weights": (2,),
         "contacts_explored": (),
         "overflow": (),
+        "separation": (),
+        "evidence": (),
     }
 )
 """The packed estimate: what one device-to-host copy per frame carries for every group."""
@@ -183,6 +185,13 @@ class GroupEstimates:
     joint_rms: np.ndarray | None = None
     """How far the worlds' joints run from the robot's, RMS over the last seconds, (G, D) [rad or
     m]: the model check (:class:`.joint_check.JointCheck`)."""
+    separation: np.ndarray | None = None
+    """How far each group's last update window told its worlds apart beyond their noise, (G,): the
+    F ratio of :func:`.optimizers.separation`, about 1 on noise alone (0 before the first update)."""
+    evidence: np.ndarray | None = None
+    """How strongly each group's last update moved its worlds, (G,): 0 (open loop: the sensing told
+    them apart no better than noise) to 1 (full strength); 0 before the first update, and always 1
+    where every update runs at full strength (``optimizer.full_evidence`` 0)."""
     reseeded: np.ndarray | None = None
     """Whether each group was re-seeded after this frame, (G,) bool (never an open-loop group)."""
 
@@ -206,4 +215,6 @@ class GroupEstimates:
             mode_weights=v("mode_weights"),
             contacts_explored=v("contacts_explored") > 0.5,
             overflow=v("overflow") > 0.5,
+            separation=v("separation"),
+            evidence=v("evidence"),
         )

@@ -22,7 +22,9 @@ __all__ = [
     "Update",
     "duplicates",
     "estimate_pmf",
+    "evidence_strength",
     "method_rows",
+    "noise_bound",
     "pose_evidence",
     "pose_sources",
     "reps_eta",
@@ -65,6 +67,15 @@ class OptimizerConfig:
     The cost is scale-free to the optimizers, so without it a group resamples on whatever differs,
     signal or not."""
 
+    full_evidence: float = 0.0
+    """Scale every update with the evidence for it: the separation F ratio (:func:`separation`) at
+    which a group's update runs at full strength. Below it the selection (REPS's KL bound, WRS's
+    lambda, how many worlds PBO replaces), the parameter and wrench noise, the roughening and the
+    estimate's weighting all scale with the evidence beyond what noise alone gives
+    (:func:`evidence_strength`); where the worlds are no further apart than their own frame-to-frame
+    noise would make them, the group runs open loop and its window goes on gathering. 0: every
+    update at full strength, as the paper."""
+
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
     physics parameters explain (:func:`pose_evidence`, an F ratio, over this); elsewhere only the
@@ -81,6 +92,8 @@ class OptimizerConfig:
             raise ValueError(f"optimizer.pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
         if self.min_pose_evidence < 0:
             raise ValueError(f"optimizer.min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
+        if self.full_evidence != 0 and not self.full_evidence > 1:
+            raise ValueError(f"optimizer.full_evidence: expected 0 (off) or > 1, got {self.full_evidence}")
         if self.min_separation < 0:
             raise ValueError(f"optimizer.min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
@@ -97,13 +110,15 @@ class Update:
     explore: torch.Tensor
     """Worlds to perturb (parameters and wrench), (G, K) bool."""
     held_back: torch.Tensor | None = None
-    """Groups whose costs spread but did not separate their worlds beyond noise (``min_separation``),
-    (G,) bool: they keep their worlds, and their window goes on gathering evidence."""
+    """Groups whose costs spread but did not separate their worlds beyond noise (``min_separation``,
+    or no evidence under ``full_evidence``), (G,) bool: they keep their worlds, and their window
+    goes on gathering evidence."""
 
 
-def wrs_pmf(cost: torch.Tensor, lam: float) -> torch.Tensor:
-    """Eq. (4): softmax of -lambda (C_i - min C), (G, K). Costs are scaled by their spread in the
-    group so that lambda keeps its meaning whatever the cost's units."""
+def wrs_pmf(cost: torch.Tensor, lam: float | torch.Tensor) -> torch.Tensor:
+    """Eq. (4): softmax of -lambda (C_i - min C), (G, K); ``lam`` one, or one per group (G, 1).
+    Costs are scaled by their spread in the group so that lambda keeps its meaning whatever the
+    cost's units."""
     spread = (cost.amax(-1, keepdim=True) - cost.amin(-1, keepdim=True)).clamp_min(1e-12)
     return torch.softmax(-lam * (cost - cost.amin(-1, keepdim=True)) / spread, dim=-1)
 
@@ -122,8 +137,9 @@ def estimate_pmf(cost: torch.Tensor, lam: float | torch.Tensor) -> torch.Tensor:
     return torch.softmax(torch.where(held, -lam * (cost - low) / std, -torch.inf), dim=-1)
 
 
-def reps_eta(cost: torch.Tensor, epsilon: float, iterations: int = 60) -> torch.Tensor:
-    """eta* of eq. (5) per group, (G,), by bisection on log eta.
+def reps_eta(cost: torch.Tensor, epsilon: float | torch.Tensor, iterations: int = 60) -> torch.Tensor:
+    """eta* of eq. (5) per group, (G,), by bisection on log eta; ``epsilon`` one bound, or one per
+    group (G,).
 
     With rewards R_i = max C + min C - C_i, the dual's derivative is g'(eta) = epsilon - KL(P_eta || U),
     and the KL falls monotonically as eta grows, so eta* is where the KL meets epsilon. A group
@@ -144,17 +160,20 @@ def reps_eta(cost: torch.Tensor, epsilon: float, iterations: int = 60) -> torch.
     return (0.5 * (lo + hi)).exp()
 
 
-def reps_pmf(cost: torch.Tensor, epsilon: float) -> torch.Tensor:
-    """Eq. (6): softmax of R_i / eta*, (G, K)."""
+def reps_pmf(cost: torch.Tensor, epsilon: float | torch.Tensor) -> torch.Tensor:
+    """Eq. (6): softmax of R_i / eta*, (G, K); ``epsilon`` one bound, or one per group (G,)."""
     reward = cost.amax(-1, keepdim=True) + cost.amin(-1, keepdim=True) - cost
     return torch.softmax(reward / reps_eta(cost, epsilon)[:, None], dim=-1)
 
 
-def separation(mean: torch.Tensor, scatter: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+def separation(
+    mean: torch.Tensor, scatter: torch.Tensor, frames: torch.Tensor, floor: torch.Tensor | float = 0.0
+) -> torch.Tensor:
     """How far a window's costs separate the worlds, per group, (G,): the variance of the worlds'
     window means ``mean`` (G, K) over the mean squared standard error of each, from ``scatter``
     (G, K), each world's mean squared deviation from its group's per-frame mean cost over the
-    window's ``frames`` (a 0-d tensor). A one-way analysis of variance's F ratio, frames as the
+    window's ``frames`` (G,), and at least ``floor`` (G,) or one number: the scatter the robot's
+    declared sensor noise can make. A one-way analysis of variance's F ratio, frames as the
     replicates: about 1 where worlds differ only by noise (more where the noise is correlated from
     frame to frame), large where some world explains the robot better and stays so. Lost worlds
     (cost from :data:`HELD_COST` up) are left out; a group with fewer than two held worlds gives 0."""
@@ -165,8 +184,26 @@ def separation(mean: torch.Tensor, scatter: torch.Tensor, frames: torch.Tensor) 
     between = offset.square().sum(-1) / (n - 1).clamp_min(1)
     # The deviations' own mean is the world's offset from the group: what is left is its scatter.
     within = torch.where(held, (scatter - offset.square()).clamp_min(0.0), 0.0).sum(-1) / n
+    within = torch.maximum(within, torch.as_tensor(floor, dtype=within.dtype, device=within.device))
     f = between / (within / frames.clamp_min(1)).clamp_min(1e-12)
     return torch.where(held.sum(-1) >= 2, f, 0.0)
+
+
+def noise_bound(worlds: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+    """The F ratio of :func:`separation` that noise alone stays below in about 95 % of windows, for
+    ``worlds`` (G,) held worlds scored over ``frames`` (G,): 1 + 1.645 standard deviations of an F
+    ratio of K - 1 and K (n - 1) degrees of freedom (its normal approximation: the quantile itself
+    has no closed form, and this one is torch ops a captured graph can hold). About 1.8 for 12 worlds
+    over 5 frames, 1.4 for 40 over 15, 1.08 for 1024 over 15."""
+    k, n = worlds.clamp_min(2), frames.clamp_min(2)
+    return 1.0 + 1.645 * (2.0 / (k - 1) + 2.0 / (k * (n - 1))).sqrt()
+
+
+def evidence_strength(separated: torch.Tensor, bound: torch.Tensor, full: float) -> torch.Tensor:
+    """How strongly to update each group, (G, 1) in [0, 1], from its separation F ratio (G,): 0
+    where the worlds differ no more than noise alone would make them (``bound`` (G,),
+    :func:`noise_bound`), 1 from ``full`` up, linear in between."""
+    return ((separated - bound) / (full - bound).clamp_min(1e-6)).clamp(0.0, 1.0)[:, None]
 
 
 def _quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -260,12 +297,15 @@ def update(
     methods: tuple[str, ...] | None = None,
     rows: dict[str, torch.Tensor] | None = None,
     separated: torch.Tensor | None = None,
+    strength: torch.Tensor | None = None,
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
     ``separated`` (G,) is each group's :func:`separation`; a group below ``config.min_separation``
     keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``,
-    but for those that lost their object, and is named in :attr:`Update.held_back`.
+    but for those that lost their object, and is named in :attr:`Update.held_back`. ``strength``
+    (G, 1) in [0, 1] (:func:`evidence_strength`) weakens each group's selection; at 0 the group is
+    held back as well. None: every group at full strength.
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
@@ -275,15 +315,18 @@ def update(
     held_back = torch.zeros_like(informative)
     if separated is not None and config.min_separation > 0:
         held_back = informative & (separated <= config.min_separation)
-        informative = informative & ~held_back
+    if strength is not None:
+        held_back = held_back | (informative & (strength[:, 0] <= 0))
+    informative = informative & ~held_back
     if methods is None or len(set(methods)) == 1:
-        part = _update(cost, config.method if methods is None else methods[0], config, gen, informative)
+        method = config.method if methods is None else methods[0]
+        part = _update(cost, method, config, gen, informative, strength)
         return Update(index=part.index, explore=part.explore, held_back=held_back)
     if rows is None:
         rows = method_rows(methods, cost.device)
     index = explore = None
     for method in sorted(set(methods)):
-        part = _update(cost, method, config, gen, informative)
+        part = _update(cost, method, config, gen, informative, strength)
         mine = rows[method][:, None]
         index = part.index if index is None else torch.where(mine, part.index, index)
         explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
@@ -296,32 +339,33 @@ def method_rows(methods: tuple[str, ...], device: torch.device) -> dict[str, tor
 
 
 def _update(
-    cost: torch.Tensor, method: str, config: OptimizerConfig, gen: torch.Generator, informative: torch.Tensor
+    cost: torch.Tensor,
+    method: str,
+    config: OptimizerConfig,
+    gen: torch.Generator,
+    informative: torch.Tensor,
+    strength: torch.Tensor | None = None,
 ) -> Update:
-    """One method's update of every group; groups not ``informative`` (G,) keep their worlds."""
+    """One method's update of every group; groups not ``informative`` (G,) keep their worlds, and
+    ``strength`` (G, 1) in [0, 1] weakens each group's selection (None: full)."""
     g, k = cost.shape
     dev = cost.device
     identity = torch.arange(k, device=dev).expand(g, k)
     if method in ("OLP", "EYE"):
         return Update(index=identity.clone(), explore=torch.zeros(g, k, dtype=torch.bool, device=dev))
     if method == "PBO":
-        keep = max(1, round(config.pbo_keep * k))
-        order = torch.argsort(cost, dim=-1)
-        best = order[:, :keep]
-        # p = 0 makes every weight 1: the paper's uniform draw is the same path.
-        weight = (keep - torch.arange(keep, device=dev, dtype=cost.dtype)) ** config.pbo_rank_power
-        cdf = torch.cumsum(weight, 0) / weight.sum()
-        # Inverse CDF rather than torch.multinomial: the same capture-safe ops as systematic_resample.
-        u = torch.rand((g, k - keep), generator=gen, device=dev, dtype=cost.dtype)
-        pick = torch.searchsorted(cdf, u).clamp_(max=keep - 1)
-        index = torch.cat([best, torch.gather(best, 1, pick)], dim=-1)
+        index = _pbo_index(cost, config, gen, strength)
     else:
         # Eq. 4 and 6 scale the costs by their spread: a lost world's 1e9 would make every world
         # that still holds the object weigh alike. They are scored among themselves; the lost draw none.
         held = cost < HELD_COST
         held = held | ~held.any(-1, keepdim=True)
         among = torch.where(held, cost, torch.where(held, cost, -torch.inf).amax(-1, keepdim=True))
-        pmf = wrs_pmf(among, config.wrs_lambda) if method == "WRS" else reps_pmf(among, config.reps_epsilon)
+        full = torch.ones(g, 1, device=dev) if strength is None else strength
+        if method == "WRS":
+            pmf = wrs_pmf(among, config.wrs_lambda * full)
+        else:  # a KL bound that shrinks to 0 with the evidence: the uniform draw, every world kept once
+            pmf = reps_pmf(among, config.reps_epsilon * full[:, 0])
         index = systematic_resample(torch.where(held, pmf, 0.0), gen)
         # Put the best world in slot 0 so that keep_best protects it.
         index[:, 0] = cost.argmin(-1)
@@ -332,3 +376,26 @@ def _update(
     lost = cost >= HELD_COST
     go = informative[:, None] | (lost & ~lost.all(-1, keepdim=True))
     return Update(index=torch.where(go, index, identity), explore=explore & go)
+
+
+def _pbo_index(cost: torch.Tensor, config: OptimizerConfig, gen: torch.Generator, strength: torch.Tensor | None):
+    """PBO's sources (G, K): the K_best lowest-cost worlds stay, the others are replaced by copies
+    drawn over them with weight (K_best - rank) ** p. ``strength`` (G, 1) keeps more worlds where
+    the evidence is weak: K - strength (K - K_best), all of them at 0."""
+    g, k = cost.shape
+    dev = cost.device
+    keep = max(1, round(config.pbo_keep * k))
+    order = torch.argsort(cost, dim=-1)
+    if strength is None:
+        kept = torch.full((g, 1), keep, device=dev, dtype=cost.dtype)
+    else:
+        kept = torch.round(k - strength * (k - keep)).clamp(keep, k)
+    rank = torch.arange(k, device=dev, dtype=cost.dtype).expand(g, k)
+    # p = 0 makes every weight 1: the paper's uniform draw is the same path.
+    weight = torch.where(rank < kept, (kept - rank).clamp_min(0) ** config.pbo_rank_power, 0.0)
+    cdf = torch.cumsum(weight, -1)
+    cdf = cdf / cdf[:, -1:]
+    # Inverse CDF rather than torch.multinomial: the same capture-safe ops as systematic_resample.
+    u = torch.rand((g, k), generator=gen, device=dev, dtype=cost.dtype)
+    pick = torch.searchsorted(cdf, u.contiguous()).clamp_(max=k - 1)
+    return torch.where(rank < kept, order, torch.gather(order, 1, pick))

@@ -34,7 +34,7 @@ from .estimate import pose_statistics, unresolved_variance
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver, draw_around
-from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, pose_sources, update
+from .optimizers import METHODS, duplicates, estimate_pmf, evidence_strength, method_rows, pose_sources, update
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
@@ -98,8 +98,7 @@ class Tracker:
         self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
         self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
         self._allocate_io()
-        self._separates = cfg.optimizer.min_separation > 0
-        self.windows = CostWindow(self.G, self.K, dev, scatters=self._separates)
+        self.windows = CostWindow(self.G, self.K, dev)
         self.window_frames = 0
         """Frames since the last update, on the host, which schedules the next."""
         self.frame = 0
@@ -115,7 +114,11 @@ class Tracker:
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._sharpness = torch.ones(self.G, 1, device=dev)
-        """Each group's factor on the estimate's weights, (G, 1): 0 while its poses explain none of its costs."""
+        """Each group's factor on the estimate's weights, (G, 1): the last update's evidence
+        strength, and 0 while its poses explain none of its costs."""
+        self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
+        """Each group's evidence at its last update, (G, 2): the separation F ratio of its window
+        (:func:`.optimizers.separation`) and the update's strength in [0, 1]."""
         self._bandwidth = cfg.exploration.jitter_bandwidth * silverman_bandwidth(self.K)
         shrinks = 0 < cfg.exploration.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
         self._shrink = 1.0 - math.sqrt(1.0 - self._bandwidth**2) if shrinks else 0.0
@@ -157,7 +160,11 @@ class Tracker:
         self.joints.start(started)
         self.contacts.start(started, self.olp)
         self.servos.start(started)
-        self._sharpness.masked_fill_(started[:, None], 1.0)
+        # Under evidence scaling a group's first estimate weighs its worlds alike: nothing has told them apart yet.
+        scaled = cfg.optimizer.full_evidence > 0
+        self._sharpness.masked_fill_(started[:, None], 0.0 if scaled else 1.0)
+        self._evidence[:, 0].masked_fill_(started, 0.0)
+        self._evidence[:, 1].masked_fill_(started, 0.0 if scaled else 1.0)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
@@ -381,17 +388,25 @@ class Tracker:
                 "hand": self.real.sensor_pos.mean(1),
                 "contacts_explored": self.contacts.open.float(),
                 "overflow": pop.dropped().any(-1).float(),
+                "separation": self._evidence[:, 0],
+                "evidence": self._evidence[:, 1],
             }
         )
 
     def _update_ops(self) -> None:
-        """The captured update: the optimizer's resample and perturbation; the window starts again."""
+        """The captured update: the optimizer's resample and perturbation, as strong as the window's
+        evidence for it; the window starts again."""
         cfg = self.config
-        separated = None
-        if self._separates:  # worlds apart from noise: the window's mean scatter against its means
-            separated = self.windows.separation()
+        # Worlds apart from noise: the window's mean scatter against its means.
+        separated = self.windows.separation(self._declared_scatter())
+        self._evidence[:, 0].copy_(separated)
         cost = self.scored()
-        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated)
+        scale, sharpness, strength = self._exploration[:, None], torch.ones_like(self._sharpness), None
+        if cfg.optimizer.full_evidence > 0:  # parameter noise, wrench and roughening as strong as the selection
+            strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.full_evidence)
+            scale, sharpness = scale * strength, strength
+            self._evidence[:, 1:].copy_(strength)
+        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
@@ -400,10 +415,11 @@ class Tracker:
             params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
             state, posed = pose_sources(upd.index, cost, self.pop.obs.object_pose, params, cfg.optimizer)
             # Costs that rank the worlds by their physics say nothing of their poses: weigh them alike.
-            self._sharpness.copy_(posed.all(-1, keepdim=True))
+            sharpness = sharpness * posed.all(-1, keepdim=True)
+        self._sharpness.copy_(sharpness)
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
-            explore, scale, ex = upd.explore, self._exploration[:, None], cfg.exploration
+            explore, ex = upd.explore, cfg.exploration
             mass = self._explore(self.pop.mass, ex.mass_sigma * scale, self._mass_range, explore)
             friction = self._explore(self.pop.friction, ex.friction_sigma * scale, self._friction_range, explore)
             contacts = () if opens is None else self.contacts.explored(explore, scale, opens)
@@ -414,7 +430,21 @@ class Tracker:
             # The wrench and the roughening explore the poses: only where the poses were resampled.
             self.pop.set_wrench(wrench * ((explore & posed)[..., None] * scale[..., None]))
             self._move_copies(state, explore & posed, scale)
-        self.windows.restart(upd.held_back if self._separates else None, upd.index)
+        self.windows.restart(upd.held_back, upd.index)
+
+    def _declared_scatter(self) -> torch.Tensor:
+        """The per-frame scatter of a world's cost that the robot's declared sensor noise can make,
+        (G,): each term's weight times how far that noise moves what it reads, squared, summed over
+        the joints, the fingertips' force magnitudes and contact flags, and the touch zones' forces
+        and contact flags. A bound, not a model: where noise moves a reading by sigma, no world's
+        term moves by more than that, and a contact flag flips at most once."""
+        robot, w = self.pop.robot_spec, self.cost.weights()
+        threshold = self.config.cost.contact_threshold
+        flips = lambda sigma: min(1.0, sigma / threshold)  # noqa: E731 - a flag's share of frames flipped, at most
+        joints = (w[:, 0] * robot.joint_noise).square()
+        forces = (w[:, 4] * robot.force_noise).square() + (w[:, 3] * flips(robot.force_noise)).square()
+        zones = (w[:, 11] * robot.touch_noise).square() + (w[:, 10] * flips(robot.touch_noise)).square()
+        return joints + self.L * forces + self.pop.Z * zones
 
     def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor) -> None:
         """Roughen the object poses of the resampled worlds' extra copies (of ``state`` (G, K), where

@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import torch
 
-from .optimizers import HELD_COST, separation
+from .optimizers import HELD_COST, noise_bound, separation
 
 __all__ = ["CostWindow"]
 
 
 class CostWindow:
-    """The cost window of every group, state with a leading group axis. ``scatters``: also keep each
-    world's frame-to-frame scatter, which :meth:`separation` needs (``min_separation``); without it
-    :meth:`separation` is undefined."""
+    """The cost window of every group, state with a leading group axis, and each world's
+    frame-to-frame scatter, which :meth:`separation` weighs the window's evidence by."""
 
-    def __init__(self, groups: int, worlds: int, device: torch.device, scatters: bool) -> None:
+    def __init__(self, groups: int, worlds: int, device: torch.device) -> None:
         self.sum = torch.zeros(groups, worlds, device=device)
         """Sum of each world's cost since its group's last update, (G, K)."""
         self.scatter = torch.zeros(groups, worlds, device=device)
@@ -27,15 +26,13 @@ class CostWindow:
         self.frames = torch.zeros(groups, 1, device=device)
         """Frames in each group's window, (G, 1). A group whose update was held back keeps its
         window over the next, so the counts differ between groups."""
-        self.scatters = scatters
 
     def add(self, cost: torch.Tensor) -> None:
         """One frame's cost (G, K); a world that lost its object scores from :data:`HELD_COST` up."""
         self.sum += cost
-        if self.scatters:
-            held = cost < HELD_COST
-            centre = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)
-            self.scatter += torch.where(held, cost - centre, 0.0).square()
+        held = cost < HELD_COST
+        centre = torch.where(held, cost, 0.0).sum(-1, keepdim=True) / held.sum(-1, keepdim=True).clamp_min(1)
+        self.scatter += torch.where(held, cost - centre, 0.0).square()
         self.frames += 1
 
     def means(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -47,11 +44,17 @@ class CostWindow:
         bottom = torch.where(held, mean, torch.inf).amin(-1, keepdim=True)
         return mean, top, bottom
 
-    def separation(self) -> torch.Tensor:
+    def separation(self, floor: torch.Tensor | float = 0.0) -> torch.Tensor:
         """How far the window's costs separate each group's worlds beyond noise, (G,): the F ratio
-        of :func:`.optimizers.separation`."""
+        of :func:`.optimizers.separation`, the scatter at least ``floor`` (G,) per frame."""
         frames = self.frames.clamp_min(1)
-        return separation(self.means()[0], self.scatter / frames, frames[:, 0])
+        return separation(self.means()[0], self.scatter / frames, frames[:, 0], floor)
+
+    def noise_bound(self) -> torch.Tensor:
+        """The separation noise alone stays below in about 95 % of windows of this many frames and
+        held worlds, (G,) (:func:`.optimizers.noise_bound`)."""
+        held = (self.means()[0] < HELD_COST).sum(-1)
+        return noise_bound(held.to(self.frames.dtype), self.frames[:, 0])
 
     def restart(self, keep: torch.Tensor | None = None, index: torch.Tensor | None = None) -> None:
         """Start the windows again after an update, but in the groups ``keep`` (G,) bool, whose update
