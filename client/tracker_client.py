@@ -91,6 +91,8 @@ class TrackerClient:
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file))
         self.info: SessionInfo | None = None
         self._seq = 0
+        self._epoch = 0
+        """Restarts of the seq counter in this session: the service re-synchronises only to a newer one."""
         self._publisher: zenoh.Publisher | None = None
         self._token = None
         self._subscriber = None
@@ -220,7 +222,7 @@ class TrackerClient:
         self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
                             method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides,
                             name=name)  # fmt: skip
-        self._seq = 0
+        self._seq = self._epoch = 0
         self._latest = None
         self._sent_stamp = None
         self.service_lost = False
@@ -296,9 +298,7 @@ class TrackerClient:
             q=q,
             **{name: value for name, value in touch.items() if value is not None},
         )
-        self._publisher.put(encode(sign(frame, self.info.token)))  # the token itself never travels
-        self._seq = max(self._seq, seq + 1)
-        self._sent_stamp = frame.stamp
+        self.send(frame)
         return seq
 
     def observe_pose(self, pose, covariance, stamp: float | None = None) -> None:
@@ -318,9 +318,14 @@ class TrackerClient:
         self._observer.put(encode(sign(observation, self.info.token)))
 
     def send(self, frame: RobotFrame) -> None:
-        """Send a prepared frame (its session is replaced by this client's, and it is signed)."""
-        self._publisher.put(encode(sign(frame.model_copy(update={"session": self.info.session}), self.info.token)))
-        self._seq = max(self._seq, frame.seq + 1)
+        """Send a prepared frame (its session and epoch are replaced by this client's, and it is
+        signed). A seq below the last one sent restarts the counter: a new epoch, which the service
+        follows, while a replay of the old frames is refused (the last seq again is a duplicate)."""
+        if frame.seq < self._seq - 1:
+            self._epoch += 1
+        update = {"session": self.info.session, "epoch": self._epoch}
+        self._publisher.put(encode(sign(frame.model_copy(update=update), self.info.token)))  # the token never travels
+        self._seq = frame.seq + 1
         self._sent_stamp = frame.stamp
 
     def _on_pose(self, sample: zenoh.Sample) -> None:

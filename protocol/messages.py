@@ -45,8 +45,8 @@ __all__ = [
     "check_version",
 ]
 
-PROTOCOL_VERSION = 3
-"""Bumped, with the key prefix's ``v3``, when a message changes incompatibly."""
+PROTOCOL_VERSION = 4
+"""Bumped, with the key prefix's ``v4``, when a message changes incompatibly."""
 DEFAULT_WORLDS = 40
 """K, the paper's: a session's worlds where no frame budget decides (``worlds="auto"`` on a
 service without one, benchmarks)."""
@@ -108,7 +108,7 @@ class ServiceInfo(_Message):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     name: str
-    """The service's name: its keys live under ``inhand/v3/{name}``."""
+    """The service's name: its keys live under ``inhand/v4/{name}``."""
     device: str
     """Where its simulations run (``cuda:0``, ``cpu``)."""
     robots: list[str]
@@ -214,7 +214,7 @@ class SessionInfo(_Message):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     session: str
-    """The session's id: its keys are ``inhand/v3/{service}/s/{session}/...``."""
+    """The session's id: its keys are ``inhand/v4/{service}/s/{session}/...``."""
     token: str
     """The session's secret: every frame, close, status and pose query must carry it. Zenoh's
     access control (or mTLS) decides who may connect and read; the token keeps peers that may
@@ -244,6 +244,10 @@ class _FrameHeader(_Message):
     """The session this frame belongs to (also in its key)."""
     seq: int = Field(ge=0)
     """Frame counter, consecutive from 0; the service applies frames in seq order."""
+    epoch: int = Field(0, ge=0)
+    """How often the robot restarted its seq counter in this session. A signed frame of a newer
+    epoch re-synchronises the session to its seq; one of an older epoch, or of the same epoch and
+    behind what was applied, is never applied: a relay that replays recorded frames steers nothing."""
     stamp: float = Field(ge=0.0, le=1e10, allow_inf_nan=False)
     """Robot clock when the frame was sensed [s]: 0 to 1e10 (seconds since boot, or since 1970)."""
     token: str = ""
@@ -363,6 +367,10 @@ class Estimate(_Message):
     heaviest world's away from it (within 0.5 rad and 2 cm of it is the same mode)."""
     mode_weights: Vector | None = None
     """The share of the cost weights in each mode, (2,): ambiguous when the second's is 0.25 or more."""
+    evidence: float = 1.0
+    """How strongly the session's last update moved its worlds: 0, the sensing told them apart no
+    better than its noise and the worlds run open loop, to 1, full strength (always 1 unless the
+    session's ``optimizer.by_evidence`` is on)."""
     latency_ms: float
     """From the frame's arrival at the service to this estimate [ms]."""
     notice: str | None = None
@@ -413,6 +421,9 @@ class SessionStatus(_Message):
     or they waited longer than the service's bound."""
     resyncs: int = 0
     """Times the robot's seq jumped beyond the service's window and the session re-synchronised to it."""
+    replays: int = 0
+    """Signed frames, observations and queries refused as replays: a frame of an older epoch, or
+    far behind in the same; an observation or query not newer than one already accepted."""
     latency_p50_ms: float
     """Median of the last 1000 frames' latencies, arrival to estimate [ms]."""
     latency_p99_ms: float
@@ -438,6 +449,15 @@ class SessionStatus(_Message):
     """Whether the session's worlds explore their contacts' softness and impratio: their lowest
     cost said the model's contacts are wrong (a session of 1024 worlds or more; the tracker's
     ``contact_gate_cost``)."""
+    evidence: float = 1.0
+    """How strongly the last update moved the session's worlds, 0 (open loop) to 1 (full strength):
+    the latest estimate's ``evidence``."""
+    residuals: dict[str, float] = Field(default_factory=dict)
+    """What the lowest-cost world leaves unexplained over the last second, per sensing: ``joints``
+    (RMS per joint) [rad or m], ``force`` (each fingertip force's magnitude) [N], ``touch`` (each
+    touch zone's force) [N], for what the robot sends. It holds the sensors' noise and the model's
+    mismatch: at most the noise to declare in the robot config (``joint_noise``, ``force_noise``,
+    ``touch_noise``)."""
     joints_off: dict[str, float] = Field(default_factory=dict)
     """The model check: joints whose simulated motion runs from the measured one by more than the
     service's ``model_check`` over the last seconds, by name: their RMS difference [rad or m]. The

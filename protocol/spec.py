@@ -80,13 +80,14 @@ def examples() -> dict[str, BaseModel]:
         "Estimate": Estimate(
             session="3fa9c01b2d4e", seq=42, stamp=1.4, pose=pose, mean_pose=pose, covariance=cov, cost=0.125,
             mass=0.03, friction=0.8, status="ambiguous", modes=np.stack([pose, pose]),
-            mode_weights=np.array([0.625, 0.375], np.float32), latency_ms=12.5, notice=None,
+            mode_weights=np.array([0.625, 0.375], np.float32), evidence=0.75, latency_ms=12.5, notice=None,
         ),
         "SessionStatus": SessionStatus(
             session="3fa9c01b2d4e", frames=43, gaps=0, duplicates=1, late=0, errors=1, stale=0, resyncs=0,
             latency_p50_ms=11.5, latency_p99_ms=19.25, cost=0.125, spread_m=0.004,
             last_error="RobotFrame.q: expected shape (22,), got (21,) (seq 17)", observations=2,
-            observations_stale=0, reseeds_by_observation=0, budget_ms=26.7, load_ms=14.2,
+            observations_stale=0, reseeds_by_observation=0, budget_ms=26.7, load_ms=14.2, evidence=0.75,
+            residuals={"joints": 0.004, "force": 0.25},
         ),
         "Error": Error(code=ErrorCode.CAPACITY, message="worlds: at most 512 fit now", others=["gpu1"]),
     }  # fmt: skip

@@ -39,6 +39,7 @@ from inhand_tracker.protocol import (
     decode,
     encode,
 )
+from inhand_tracker.protocol.auth import sign, signed_query
 from inhand_tracker.service.paths import DATA_DIR
 from inhand_tracker.service.server.config import ServiceConfig
 from inhand_tracker.service.server.sessions import ServiceError, SessionManager
@@ -133,6 +134,51 @@ def test_a_stray_seq_within_the_window_never_silences_the_robot(traj):
     assert (status.late, status.resyncs) == (4, 1), status
     assert [e.seq for e in estimates] == list(range(8, 20)), "tracked again from the fifth frame behind"
     assert "5 frames in a row behind it: re-synchronised" in estimates[0].notice
+
+
+def test_a_relay_replaying_a_robot_s_signed_messages_applies_none_of_them(traj):
+    """Everything a signed robot sends is fresh or refused: recorded frames replayed behind the
+    session (near, far, or many in a row) never re-synchronise it, a restart of the robot's own
+    counter (a new epoch) does and the old epoch's frames stay refused, and a replayed observation
+    or status query is refused and counted."""
+    manager = _manager(seq_window=100, late_resync=5)
+    info = manager.open(_request(traj))
+    pool = manager.sessions[info.session].pool
+    signed = lambda i, seq=None, epoch=0: sign(  # noqa: E731
+        traj.frame(i, info.session, seq=seq).model_copy(update={"epoch": epoch}), info.token
+    )
+    recorded = [signed(i) for i in range(10)]
+    for frame in recorded:
+        manager.submit(frame)
+        manager.step(pool)
+    for frame in recorded * 2:  # a relay plays its recording back, twenty frames behind in a row
+        manager.submit(frame)
+    status = manager.status_of(manager.sessions[info.session])
+    assert not manager.ready(0.0) and (status.frames, status.resyncs) == (10, 0), status
+    assert status.replays == 16 and "refused as a replay" in status.last_error, status
+    manager.submit(signed(10, seq=500))  # the robot's own counter jumps ahead: followed
+    (est,) = manager.step(pool)
+    assert est.seq == 500 and "beyond the service's window" in est.notice
+    manager.submit(recorded[3])  # far behind in the same epoch: a replay, not a re-sync
+    assert not manager.ready(0.0)
+    manager.submit(signed(11, seq=0, epoch=1))  # the robot restarts its counter: a new epoch
+    (est,) = manager.step(pool)
+    assert est.seq == 0 and "epoch 1: the robot restarted its counter" in est.notice
+    for frame in recorded[:3]:  # the old epoch's frames, replayed
+        manager.submit(frame)
+    observation = sign(
+        PoseObservation(session=info.session, stamp=1.0, pose=traj.truth.pose[0], covariance=np.eye(6) * 1e-4),
+        info.token,
+    )
+    manager.observe(observation)
+    manager.observe(observation)  # the same again
+    query = signed_query(CloseSession(session=info.session), info.token, "status")
+    manager.authorize_query(query, "status")
+    with pytest.raises(ServiceError, match=r"not newer than .* accepted: refused as a replay"):
+        manager.authorize_query(query, "status")
+    status = manager.status_of(manager.sessions[info.session])
+    assert (status.frames, status.resyncs, status.replays) == (12, 2, 22), status
+    assert len(manager.sessions[info.session].observed) == 1
 
 
 def test_one_far_future_stamp_does_not_make_later_observations_stale(traj):
@@ -527,7 +573,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
     acl = {"access_control": {
         "enabled": True, "default_permission": "allow",
         "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                   "key_exprs": ["inhand/v3/default/**"]}],
+                   "key_exprs": ["inhand/v4/default/**"]}],
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip
@@ -588,8 +634,9 @@ def test_a_peer_without_the_session_token_can_neither_steer_query_status_nor_clo
 
 def test_a_peer_that_reads_every_frame_and_catches_every_query_learns_no_secret(service, traj):
     """A sniffer subscribed to every session key, and a peer answering status and close queries in
-    the service's place: after the open the token never travels, so neither sees it, and frames the
-    sniffer re-signs with what it saw are refused."""
+    the service's place: after the open the token never travels, so neither sees it, frames the
+    sniffer re-signs with what it saw are refused, and those it replays as they were apply none;
+    the robot restarting its own counter is followed."""
     with TrackerClient(connect=[service.endpoint]) as robot, TrackerClient(connect=[service.endpoint]) as peer:
         keys, seen = Keys("default"), []
         peer._zenoh.declare_subscriber(keys.every("*"), lambda s: seen.append(bytes(s.payload.to_bytes())))
@@ -617,6 +664,16 @@ def test_a_peer_that_reads_every_frame_and_catches_every_query_learns_no_secret(
         while (after := robot.status()).errors <= status.errors and time.monotonic() < deadline:
             time.sleep(0.05)
         assert after.errors == status.errors + 1 and after.frames == status.frames
+        for payload in frames * 4:  # the sniffer replays what it recorded, signed by the robot
+            peer._zenoh.put(keys.frame(info.session), payload)
+        replayed = lambda s: s.late + s.duplicates + s.replays  # noqa: E731
+        while replayed(after := robot.status()) < replayed(status) + 4 * len(frames) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert after.frames == status.frames and after.replays >= 4 * len(frames) - 15, after
+        robot.send(traj.frame(0, info.session))  # the robot restarts its own counter: followed
+        while (after := robot.status()).frames == status.frames and time.monotonic() < deadline + 30:
+            time.sleep(0.05)
+        assert (after.frames, after.resyncs) == (status.frames + 1, status.resyncs + 1), after
         for q in rogue:
             q.undeclare()
         robot.close_session()

@@ -532,7 +532,7 @@ def test_a_group_held_back_for_want_of_separation_keeps_gathering_its_window(han
 
 
 def test_a_robot_whose_declared_noise_explains_every_difference_is_tracked_open_loop(hand, recording):
-    """Under ``optimizer.full_evidence`` the robot's declared sensor noise bounds what its cost
+    """Under ``optimizer.by_evidence`` the robot's declared sensor noise bounds what its cost
     differences can mean. Where that noise dwarfs every difference the worlds show, no update
     replaces or perturbs a world: they run as EYE's worlds do (which never resample), the estimate
     is the plain mean of those that hold the object, and the reported strength is 0. The same hand
@@ -546,7 +546,7 @@ def test_a_robot_whose_declared_noise_explains_every_difference_is_tracked_open_
         ("eye", spec, "EYE"),
     ):
         pop = Population(robot, obj, PopulationConfig(groups=2, worlds=12, device="cpu"))
-        optimizer = OptimizerConfig(method=method, full_evidence=10.0)
+        optimizer = OptimizerConfig(method=method, by_evidence=True)
         tr = Tracker(pop, TrackerConfig(optimizer=optimizer, seed=5, update_every=5))
         tr.start(_noisy_start(recording), recording.initial_q)
         runs[name], plain = [], []

@@ -238,10 +238,10 @@ def test_an_update_is_as_strong_as_the_evidence_for_it(method):
     f = torch.cat([torch.full((100,), 1.2), torch.full((100,), 4.0), torch.full((100,), 50.0)])
     bound = noise_bound(torch.full((g,), float(k)), torch.full((g,), 15.0))
     assert 1.3 < bound[0] < 1.5 and noise_bound(torch.tensor([1024.0]), torch.tensor([15.0])) < 1.1
-    strength = evidence_strength(f, bound, 10.0)
-    expected = torch.tensor([0.0, (4 - bound[0]) / (10 - bound[0]), 1.0]).repeat_interleave(100)
+    strength = evidence_strength(f, bound, 1.0)
+    expected = torch.tensor([0.0, 0.5 * math.log(4 / bound[0]), 1.0]).repeat_interleave(100)
     assert torch.allclose(strength[:, 0], expected)
-    config = OptimizerConfig(method=method, min_spread=0.0, full_evidence=10.0)
+    config = OptimizerConfig(method=method, min_spread=0.0, by_evidence=True)
     upd = update(cost, config, torch.Generator().manual_seed(4), separated=f, strength=strength)
     identity = torch.arange(k).expand(100, k)
     assert torch.equal(upd.index[:100], identity) and not upd.explore[:100].any() and upd.held_back[:100].all()
@@ -251,8 +251,6 @@ def test_an_update_is_as_strong_as_the_evidence_for_it(method):
     assert 0.0 < weak < 0.8 * strong, (weak, strong)
     assert abs(strong - duplicates(full.index).float().sum(-1)[200:].mean()) < 0.1 * strong
     assert upd.explore[100:, 1:].all() and not upd.held_back[100:].any()
-    with pytest.raises(ValueError, match=r"full_evidence: expected 0 \(off\) or > 1, got 1.0"):
-        OptimizerConfig(full_evidence=1.0)
 
 
 def test_a_held_back_group_keeps_its_cost_window_through_a_restart():

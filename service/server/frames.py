@@ -17,7 +17,7 @@ from inhand_tracker.sim_backend import RobotLayout
 if TYPE_CHECKING:
     from .pools import Session
 
-__all__ = ["frame_problem", "in_order"]
+__all__ = ["frame_problem", "fresh", "in_order"]
 
 _SLACK = 0.5
 """How far past a joint's limits a measured joint or a target may lie, as a share of its range
@@ -57,21 +57,26 @@ def in_order(session: Session, frame: RobotFrame, window: int, late_resync: int)
     """Whether ``frame`` comes next in seq order: a duplicate or late one is counted and said,
     a gap counted. A seq beyond the window either way, or frames behind the session's for
     ``late_resync`` frames in a row (a robot that restarted its counter after a stray frame
-    ran it ahead), re-synchronise the session to the robot's counter, with a notice."""
+    ran it ahead), re-synchronise the session to the robot's counter, with a notice. A signed
+    frame re-synchronises only forward or in a newer epoch (:attr:`protocol.RobotFrame.epoch`):
+    only the robot can sign those, while any relay can replay what it recorded."""
     last = session.pending[-1][0].seq if session.pending else session.next_seq - 1
+    signed = bool(frame.mac)
+    if signed and frame.epoch != session.epoch:
+        if frame.epoch < session.epoch:
+            return _replayed(session, frame, f"epoch {frame.epoch}, the session's is {session.epoch}")
+        why = f"epoch {frame.epoch}: the robot restarted its counter"
+        session.epoch = frame.epoch
+        return _resync(session, frame, last, why)
     behind = frame.seq <= last
     session.late_run = session.late_run + 1 if behind else 0
     far = abs(frame.seq - last) > window
+    if signed and behind and (far or session.late_run >= late_resync):
+        return _replayed(session, frame, f"behind the session's {last} in its epoch {session.epoch}")
     if far or session.late_run >= late_resync:
-        session.resyncs += 1
-        session.stale += len(session.pending)
-        session.pending.clear()
         why = f"beyond the service's window of {window}" if far else f"{session.late_run} frames in a row behind it"
-        session.last_error = session.notice = (
-            f"RobotFrame.seq: {frame.seq} after {last}, {why}: re-synchronised to the robot's counter"
-        )
-        session.next_seq, last, session.late_run = frame.seq, frame.seq - 1, 0
-    elif behind:
+        return _resync(session, frame, last, why)
+    if behind:
         if frame.seq == last:
             session.duplicates += 1
         else:
@@ -79,4 +84,37 @@ def in_order(session: Session, frame: RobotFrame, window: int, late_resync: int)
             session.last_error = f"RobotFrame.seq: {frame.seq} is behind the session's {last}: dropped as late"
         return False
     session.gaps += frame.seq - last - 1
+    return True
+
+
+def _resync(session: Session, frame: RobotFrame, last: int, why: str) -> bool:
+    """Take the robot's counter from ``frame`` on, dropping what was queued; said once."""
+    session.resyncs += 1
+    session.stale += len(session.pending)
+    session.pending.clear()
+    session.last_error = session.notice = (
+        f"RobotFrame.seq: {frame.seq} after {last}, {why}: re-synchronised to the robot's counter"
+    )
+    session.next_seq, session.late_run = frame.seq, 0
+    return True
+
+
+def _replayed(session: Session, frame: RobotFrame, why: str) -> bool:
+    session.replays += 1
+    session.last_error = f"RobotFrame.seq: {frame.seq}, {why}: refused as a replay"
+    return False
+
+
+def fresh(session: Session, kind: str, stamp: float, mac: str) -> bool:
+    """Whether a signed ``kind`` message ("observation", "status", "close") stamped ``stamp`` [s]
+    is new: newer than the last accepted, or (observations, several of which may share a frame's
+    stamp) as new and not seen. A replay is counted; the accepted stamp and MAC are kept."""
+    newest = session.fresh_after.get(kind, -1.0)
+    if stamp < newest or (stamp == newest and (kind != "observation" or mac in session.seen_macs)):
+        session.replays += 1
+        session.last_error = f"{kind}: stamp {stamp:.6f} s, not newer than {newest:.6f} s accepted: refused as a replay"
+        return False
+    session.fresh_after[kind] = stamp
+    if kind == "observation":
+        session.seen_macs.append(mac)
     return True

@@ -157,6 +157,15 @@ class Session:
     peer: str = ""
     """The name its robot opened under ("" for none): per-peer caps count it."""
     next_seq: int = 0
+    epoch: int = 0
+    """The robot's seq epoch (:attr:`protocol.RobotFrame.epoch`) the session follows."""
+    replays: int = 0
+    """Signed messages refused as replays."""
+    fresh_after: dict[str, float] = field(default_factory=dict)
+    """The newest stamp accepted per signed kind ("observation", "status", "close") [s]: a signed
+    one not newer is a replay. Observations sharing a stamp are told apart by :attr:`seen_macs`."""
+    seen_macs: deque = field(default_factory=lambda: deque(maxlen=64))
+    """The MACs of the latest signed observations accepted."""
     pending: deque = field(default_factory=deque)
     """Accepted frames not yet stepped, in seq order: (frame, receive time)."""
     frames: int = 0
@@ -192,6 +201,8 @@ class Session:
     """When the session last received a frame (or opened) [s, monotonic]."""
     joints_off: dict[str, float] = field(default_factory=dict)
     """The model check: joints the worlds hold away from the robot's, by name: RMS [rad or m]."""
+    residuals: dict[str, float] = field(default_factory=dict)
+    """What the lowest-cost world leaves unexplained, per sensing the robot sends (:meth:`estimate`)."""
 
     def check_model(self, rms: np.ndarray, joints: tuple[str, ...], threshold: float) -> str | None:
         """Take the model check's latest RMS per joint (D,); once the session has a second of
@@ -224,6 +235,7 @@ class Session:
             late=s.late,
             stale=s.stale,
             resyncs=s.resyncs,
+            replays=s.replays,
             errors=s.errors,
             latency_p50_ms=float(np.percentile(lat, 50)),
             latency_p99_ms=float(np.percentile(lat, 99)),
@@ -236,6 +248,8 @@ class Session:
             budget_ms=budget_ms,
             load_ms=load_ms,
             contacts_explored=s.contacts_explored,
+            evidence=float(s.latest.evidence) if s.latest else 1.0,
+            residuals=s.residuals,
             joints_off=s.joints_off,
         )
 
@@ -243,6 +257,8 @@ class Session:
         """The session's estimate for ``frame``, from its group's row of a step's estimates."""
         s = self
         g = s.group
+        sensed = {"joints": True, "force": frame.force is not None, "touch": frame.touch is not None}
+        s.residuals = {k: round(float(r), 6) for (k, on), r in zip(sensed.items(), est.residual[g], strict=True) if on}
         return Estimate(
             session=s.id,
             seq=frame.seq,
@@ -256,6 +272,7 @@ class Session:
             status=TrackState(int(est.status[g])).name.lower(),
             modes=est.modes[g],
             mode_weights=est.mode_weights[g],
+            evidence=float(est.evidence[g]),
             latency_ms=latency,
             notice=s.notice,
         )

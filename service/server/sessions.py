@@ -39,7 +39,7 @@ from inhand_tracker.sim_backend.kinematics import Kinematics
 from .admission import Admission, Gate, ServiceError
 from .budget import STEP_TIME_MOTION, FrameTimes, device_name, measure_step_times
 from .config import ServiceConfig
-from .frames import frame_problem, in_order
+from .frames import frame_problem, fresh, in_order
 from .pools import MEASURED_STEPS, SILENT_AFTER, Pool, PoolKey, Session, Turn, build_pool, idle_pose
 
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
@@ -198,6 +198,8 @@ class SessionManager:
         session = self.sessions.get(request.session)
         if session is None or not verify_query(request, session.token, purpose):
             raise ServiceError(ErrorCode.FORBIDDEN, f"session '{request.session}': not open, or not yours")
+        if request.mac and not fresh(session, purpose, request.stamp, request.mac):
+            raise ServiceError(ErrorCode.FORBIDDEN, f"session '{request.session}': {session.last_error}")
         return session
 
     def drop(self, session_id: str) -> None:
@@ -289,6 +291,8 @@ class SessionManager:
         session = self.sessions.get(observation.session)
         if session is None or not verify(observation, session.token):
             raise ServiceError(ErrorCode.FORBIDDEN, f"session '{observation.session}': not open, or not yours")
+        if observation.mac and not fresh(session, "observation", observation.stamp, observation.mac):
+            return
         if session.failed is not None:
             raise ServiceError(ErrorCode.INTERNAL, f"session '{session.id}' failed: {session.failed}; open a new one")
         limit = self.config.max_observation_age_s

@@ -90,6 +90,7 @@ ESTIMATE = Columns.of(
         "overflow": (),
         "separation": (),
         "evidence": (),
+        "residual": (3,),
     }
 )
 """The packed estimate: what one device-to-host copy per frame carries for every group."""
@@ -191,7 +192,12 @@ class GroupEstimates:
     evidence: np.ndarray | None = None
     """How strongly each group's last update moved its worlds, (G,): 0 (open loop: the sensing told
     them apart no better than noise) to 1 (full strength); 0 before the first update, and always 1
-    where every update runs at full strength (``optimizer.full_evidence`` 0)."""
+    where every update runs at full strength (``optimizer.by_evidence`` off)."""
+    residual: np.ndarray | None = None
+    """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
+    (G, 3): joints (RMS per joint) [rad or m], each fingertip force's magnitude [N], each touch
+    zone's force [N]. It holds the sensors' noise and the model's mismatch: an upper bound on the
+    noise a robot config declares (``joint_noise``, ``force_noise``, ``touch_noise``)."""
     reseeded: np.ndarray | None = None
     """Whether each group was re-seeded after this frame, (G,) bool (never an open-loop group)."""
 
@@ -217,4 +223,5 @@ class GroupEstimates:
             overflow=v("overflow") > 0.5,
             separation=v("separation"),
             evidence=v("evidence"),
+            residual=v("residual"),
         )

@@ -67,14 +67,13 @@ class OptimizerConfig:
     The cost is scale-free to the optimizers, so without it a group resamples on whatever differs,
     signal or not."""
 
-    full_evidence: float = 0.0
-    """Scale every update with the evidence for it: the separation F ratio (:func:`separation`) at
-    which a group's update runs at full strength. Below it the selection (REPS's KL bound, WRS's
+    by_evidence: bool = False
+    """Make every update only as strong as the evidence for it: the selection (REPS's KL bound, WRS's
     lambda, how many worlds PBO replaces), the parameter and wrench noise, the roughening and the
-    estimate's weighting all scale with the evidence beyond what noise alone gives
-    (:func:`evidence_strength`); where the worlds are no further apart than their own frame-to-frame
-    noise would make them, the group runs open loop and its window goes on gathering. 0: every
-    update at full strength, as the paper."""
+    estimate's weighting all scale with the information the window's costs hold about which worlds
+    are better beyond what noise alone gives (:func:`evidence_strength`). Where the worlds are no
+    further apart than their own frame-to-frame noise would make them, the group runs open loop and
+    its window goes on gathering. Off: every update at full strength, as the paper."""
 
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
@@ -92,8 +91,6 @@ class OptimizerConfig:
             raise ValueError(f"optimizer.pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
         if self.min_pose_evidence < 0:
             raise ValueError(f"optimizer.min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
-        if self.full_evidence != 0 and not self.full_evidence > 1:
-            raise ValueError(f"optimizer.full_evidence: expected 0 (off) or > 1, got {self.full_evidence}")
         if self.min_separation < 0:
             raise ValueError(f"optimizer.min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
@@ -111,7 +108,7 @@ class Update:
     """Worlds to perturb (parameters and wrench), (G, K) bool."""
     held_back: torch.Tensor | None = None
     """Groups whose costs spread but did not separate their worlds beyond noise (``min_separation``,
-    or no evidence under ``full_evidence``), (G,) bool: they keep their worlds, and their window
+    or no evidence under ``by_evidence``), (G,) bool: they keep their worlds, and their window
     goes on gathering evidence."""
 
 
@@ -199,11 +196,14 @@ def noise_bound(worlds: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
     return 1.0 + 1.645 * (2.0 / (k - 1) + 2.0 / (k * (n - 1))).sqrt()
 
 
-def evidence_strength(separated: torch.Tensor, bound: torch.Tensor, full: float) -> torch.Tensor:
-    """How strongly to update each group, (G, 1) in [0, 1], from its separation F ratio (G,): 0
-    where the worlds differ no more than noise alone would make them (``bound`` (G,),
-    :func:`noise_bound`), 1 from ``full`` up, linear in between."""
-    return ((separated - bound) / (full - bound).clamp_min(1e-6)).clamp(0.0, 1.0)[:, None]
+def evidence_strength(separated: torch.Tensor, bound: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """How strongly to update each group, (G, 1) in [0, 1], from its separation F ratio (G,): the
+    information its window holds about which worlds are better, 1/2 ln(F / ``bound``) nats (the
+    Gaussian channel's, with F - 1 the signal-to-noise ratio, counted from what noise alone gives:
+    ``bound`` (G,), :func:`noise_bound`), as a share of the KL ``epsilon`` a full update moves the
+    worlds by (REPS's bound). 0 where noise explains the differences, 1 from ``bound`` e^(2 epsilon) up."""
+    information = 0.5 * torch.log(separated.clamp_min(1e-12) / bound)
+    return (information / epsilon).clamp(0.0, 1.0)[:, None]
 
 
 def _quadratic(x: torch.Tensor) -> torch.Tensor:

@@ -52,6 +52,10 @@ __all__ = ["Tracker"]
 
 log = logging.getLogger(__name__)
 
+_RESIDUAL_TERMS = [0, 4, 11]
+"""The cost terms whose lowest-cost values say how noisy each sensing is: joints, fingertip force
+magnitudes, touch zone forces (:data:`.cost.TERM_NAMES`)."""
+
 
 def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
@@ -117,6 +121,14 @@ class Tracker:
         """Each group's factor on the estimate's weights, (G, 1): the last update's evidence
         strength, and 0 while its poses explain none of its costs."""
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
+        self._residual = torch.zeros(self.G, 3, device=dev)
+        """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
+        (G, 3): joints (RMS per joint) [rad or m], fingertip force magnitude per sensor [N], touch
+        zone force per zone [N]: an upper bound on the sensors' noise (:attr:`GroupEstimates.residual`)."""
+        self._residual_frames = torch.zeros(self.G, 1, device=dev)
+        per = [math.sqrt(max(self.D, 1)), max(self.L, 1), max(pop.Z, 1)]
+        self._residual_per = torch.tensor(per, device=dev)
+        self._residual_terms = torch.tensor(_RESIDUAL_TERMS, device=dev)
         """Each group's evidence at its last update, (G, 2): the separation F ratio of its window
         (:func:`.optimizers.separation`) and the update's strength in [0, 1]."""
         self._bandwidth = cfg.exploration.jitter_bandwidth * silverman_bandwidth(self.K)
@@ -161,10 +173,11 @@ class Tracker:
         self.contacts.start(started, self.olp)
         self.servos.start(started)
         # Under evidence scaling a group's first estimate weighs its worlds alike: nothing has told them apart yet.
-        scaled = cfg.optimizer.full_evidence > 0
+        scaled = cfg.optimizer.by_evidence
         self._sharpness.masked_fill_(started[:, None], 0.0 if scaled else 1.0)
         self._evidence[:, 0].masked_fill_(started, 0.0)
         self._evidence[:, 1].masked_fill_(started, 0.0 if scaled else 1.0)
+        self._residual_frames.masked_fill_(started[:, None], 0.0)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
@@ -377,6 +390,10 @@ class Tracker:
         pop = self.pop
         best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, self._sharpness)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
+        terms = self.cost.last_terms.gather(1, best[:, None, None].expand(-1, 1, TERMS))[:, 0]
+        self._residual_frames += 1
+        rate = (1.0 / self._residual_frames).clamp_min(1.0 / 30.0)
+        self._residual.lerp_(terms.index_select(-1, self._residual_terms) / self._residual_per, rate)
         return ESTIMATE.pack(
             {
                 **poses,
@@ -390,6 +407,7 @@ class Tracker:
                 "overflow": pop.dropped().any(-1).float(),
                 "separation": self._evidence[:, 0],
                 "evidence": self._evidence[:, 1],
+                "residual": self._residual,
             }
         )
 
@@ -402,8 +420,8 @@ class Tracker:
         self._evidence[:, 0].copy_(separated)
         cost = self.scored()
         scale, sharpness, strength = self._exploration[:, None], torch.ones_like(self._sharpness), None
-        if cfg.optimizer.full_evidence > 0:  # parameter noise, wrench and roughening as strong as the selection
-            strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.full_evidence)
+        if cfg.optimizer.by_evidence:  # parameter noise, wrench and roughening as strong as the selection
+            strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.reps_epsilon)
             scale, sharpness = scale * strength, strength
             self._evidence[:, 1:].copy_(strength)
         upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
