@@ -4,6 +4,7 @@ the MuJoCo-Warp solver and collision pipeline that step it. Static once built.""
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
@@ -17,7 +18,9 @@ from .config import DEFAULT_CONE, DEFAULT_IMPRATIO, DEFAULT_INTEGRATOR, Populati
 from .objects import ObjectSpec
 from .robots import RobotLayout, RobotSpec, add_robot
 
-__all__ = ["DROPPED", "BuiltModel", "Physics", "build_model", "make_physics"]
+__all__ = ["DROPPED", "BuiltModel", "Physics", "build_model", "make_physics", "resolve_physics", "say_timestep"]
+
+log = logging.getLogger(__name__)
 
 
 DROPPED = ~int(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
@@ -125,6 +128,27 @@ def resolve_physics(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout
     impratio = cfg.impratio or robot.impratio or file.get("impratio") or DEFAULT_IMPRATIO
     integrator = cfg.integrator or file.get("integrator") or DEFAULT_INTEGRATOR
     return replace(cfg, cone=cone, impratio=impratio, integrator=integrator)
+
+
+_SAID: set[tuple[str, float, float]] = set()
+"""The robots, file timesteps and substeps :func:`say_timestep` has said, so it says each once."""
+
+
+def say_timestep(name: str, layout: RobotLayout, cfg: PopulationConfig) -> None:
+    """Say, once per robot and setting, where the worlds' step differs from the one the robot's file
+    was written for by more than a quarter: each frame is ``cfg.substeps`` equal steps, and a servo
+    or contact tuned at the file's step behaves otherwise at another (the substeps that come closest
+    are named)."""
+    file_dt = layout.options.get("timestep")
+    dt = cfg.frame_dt / cfg.substeps
+    if file_dt is None or abs(dt / file_dt - 1.0) <= 0.25 or (name, file_dt, dt) in _SAID:
+        return
+    _SAID.add((name, file_dt, dt))
+    closest = max(2, 2 * round(cfg.frame_dt / file_dt / 2))
+    log.info(
+        "robot '%s': its file steps at %.2f ms, the worlds at %.2f ms (%d substeps of a %g Hz frame);"
+        " population.substeps=%d comes closest", name, file_dt * 1e3, dt * 1e3, cfg.substeps, cfg.frame_rate, closest,
+    )  # fmt: skip
 
 
 def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:

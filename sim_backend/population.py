@@ -19,7 +19,7 @@ import torch
 import warp as wp
 
 from . import observe
-from .build import DROPPED, build_model, contact_capacity, make_physics, resolve_physics
+from .build import DROPPED, build_model, contact_capacity, make_physics, resolve_physics, say_timestep
 from .config import PopulationConfig, resolve_device
 from .objects import ObjectSpec
 from .params import ObjectParams
@@ -63,6 +63,7 @@ class Population:
         self.built = built = build_model(robot, obj, cfg, self.device, turn)
         """The replicated model and what one world of it holds (static)."""
         self.config = cfg = resolve_physics(robot, contact_capacity(built, cfg), built.layout)
+        say_timestep(robot.name, built.layout, cfg)
         self.model = built.model
         self.layout: RobotLayout = built.layout
         self.object_body, self.bodies, self.coords, self._dofs = (

@@ -13,6 +13,7 @@ import re
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from xml.etree import ElementTree
 
 import newton
 import numpy as np
@@ -121,7 +122,7 @@ def add_file_robot(builder: newton.ModelBuilder, spec: FileRobotSpec) -> RobotLa
         sensor_offsets=offsets,
         carries_on_palm=spec.carries_on_palm,
         actuated=actuated,
-        options=_file_options(builder) if ext in (".xml", ".mjcf") else {},
+        options=_file_options(builder) | _file_timestep(spec.path) if ext in (".xml", ".mjcf") else {},
         zone_names=zones,
         zone_bodies=zone_bodies,
         zone_boxes=zone_boxes,
@@ -217,6 +218,16 @@ def _file_options(builder: newton.ModelBuilder) -> dict:
         else:
             out[name] = names[int(stated)] if names else float(stated)
     return out
+
+
+def _file_timestep(path: str) -> dict:
+    """The MJCF's ``<option timestep>`` [s], MuJoCo's 0.002 where it states none. Newton's importer
+    does not keep it (the worlds step each frame in substeps), so it is read here to be said."""
+    try:
+        option = ElementTree.parse(path).getroot().find("option")
+    except (ElementTree.ParseError, OSError):
+        option = None
+    return {"timestep": float(option.get("timestep", 0.002)) if option is not None else 0.002}
 
 
 def _actuator_force_ranges(builder: newton.ModelBuilder) -> dict[int, float]:

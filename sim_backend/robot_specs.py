@@ -97,8 +97,9 @@ class RobotLayout:
     """Each zone's box in its link's frame, shape (Z, 6): centre then half extents [m]."""
     options: dict = field(default_factory=dict)
     """The physics options the robot's file runs under, by PopulationConfig's names ("cone",
-    "impratio", "integrator"): an MJCF's ``<option>``, MuJoCo's defaults where it says none; empty
-    for a URDF and the procedural hand (:func:`.build.resolve_physics` states the precedence)."""
+    "impratio", "integrator"), and its "timestep" [s]: an MJCF's ``<option>``, MuJoCo's defaults
+    where it says none; empty for a URDF and the procedural hand (:func:`.build.resolve_physics`
+    states the precedence; the timestep is said where the worlds' differs, :func:`.build.say_timestep`)."""
     actuated: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     """Which joints the robot drives, shape (D,) bool (empty: all). A joint it does not drive (a
     distal joint a tendon couples to the middle one) is measured and scored; its command is not used."""
