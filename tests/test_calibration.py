@@ -80,7 +80,7 @@ def test_calibrate_recovers_known_gains_of_a_synthetic_robot_and_writes_an_overl
 def test_calibrate_names_a_bad_setting_and_a_missing_recording(gripper_recording, tmp_path):
     recording, config = gripper_recording
     result = CliRunner().invoke(app, ["calibrate", str(tmp_path / "none.traj"), "--robot", str(config)])
-    assert result.exit_code == 2 and "no such recording" in result.output
+    assert result.exit_code == 4 and "no such recording" in result.output
     noisy = ["calibrate", str(recording), "--robot", str(config), "--joint-noise", "-1", "--device", "cpu"]
     result = CliRunner().invoke(app, noisy)
     assert result.exit_code == 2 and "joint_noise: expected 0 to 1 rad or m, got -1" in result.output

@@ -50,15 +50,26 @@ def test_a_mistake_is_answered_within_seconds_in_one_line(args, words):
     assert words.format(port=port) in _one_line(out.stderr), out.stderr
 
 
-def test_a_taken_port_is_answered_with_the_fix():
+def test_a_taken_port_and_an_unwritable_record_folder_are_answered_in_one_line_with_their_exit_codes(tmp_path):
+    """Each before the GPU stack loads, timed: a taken Zenoh port and a taken view port exit 3, a
+    record folder that cannot be made exits 4 (docs/operations.md lists the codes)."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
         out, seconds = _cli("serve", "--listen", f"tcp/127.0.0.1:{port}", "--device", "cpu")
-    line = _one_line(out.stderr)
-    assert out.returncode == 2 and seconds < 5.0, (seconds, out.stderr)
-    assert f"cannot listen on tcp/127.0.0.1:{port}: the address is taken" in line and "--listen" in line
+        line = _one_line(out.stderr)
+        assert out.returncode == 3 and seconds < 5.0, (seconds, out.stderr)
+        assert f"cannot listen on tcp/127.0.0.1:{port}: the address is taken" in line and "--listen" in line
+        free = f"tcp/127.0.0.1:{free_port()}"
+        out, seconds = _cli("serve", "--listen", free, "--view-port", str(port), "--device", "cpu")
+        assert out.returncode == 3 and seconds < 5.0, (seconds, out.stderr)
+        assert f"serve --view-port: port {port} on 127.0.0.1 is taken" in _one_line(out.stderr)
+    out, seconds = _cli("serve", "--listen", free, "--record", str(blocker / "recordings"), "--device", "cpu")
+    assert out.returncode == 4 and seconds < 5.0, (seconds, out.stderr)
+    assert f"serve --record: cannot write to '{blocker / 'recordings'}'" in _one_line(out.stderr)
 
 
 @pytest.mark.slow

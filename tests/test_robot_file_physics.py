@@ -148,7 +148,7 @@ def test_check_model_on_the_command_line_reports_every_joint_or_names_what_is_mi
 
     robot, traj = str(ROOT / "configs/robots/allegro.toml"), str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
     missing = CliRunner().invoke(app, ["check-model", str(tmp_path / "none.traj"), "--robot", robot, "--device", "cpu"])
-    assert missing.exit_code == 2 and "check-model: no such recording" in missing.output
+    assert missing.exit_code == 4 and "check-model: no such recording" in missing.output
     bad = CliRunner().invoke(
         app, ["check-model", traj, "--robot", robot, "--device", "cpu", "--set", "population.cone=round"]
     )

@@ -11,16 +11,16 @@ from typing import Annotated
 
 import typer
 
-from .common import Device, Json, app, check_device, command_line, fail, gpu_stack, names
+from .common import Device, ExitCode, Json, app, check_device, command_line, fail, gpu_stack, names
 
 
 def _files_exist(command: str, robot: Path, recordings: list[Path], device: str) -> None:
     """Refuse a missing config or recording before the GPU stack loads (seconds), naming it."""
     check_device(device, command)
     if not robot.is_file():
-        raise fail(f"{command} --robot: no such file '{robot}'")
+        raise fail(f"{command} --robot: no such file '{robot}'", ExitCode.FILES)
     if missing := [str(r) for r in recordings if not r.is_file()]:
-        raise fail(f"{command}: no such recording {missing[0]}")
+        raise fail(f"{command}: no such recording {missing[0]}", ExitCode.FILES)
     gpu_stack()
 
 

@@ -5,18 +5,23 @@ from __future__ import annotations
 import contextlib
 import re
 import shlex
+from enum import IntEnum
+from pathlib import Path
 from typing import Annotated
 
 import typer
 
 __all__ = [
     "Device",
+    "ExitCode",
     "IntList",
     "Json",
     "app",
     "bench",
     "check_device",
+    "check_folder",
     "check_listen",
+    "check_port",
     "command_line",
     "endpoints",
     "fail",
@@ -120,9 +125,25 @@ def command_line(ctx: typer.Context) -> str:
     return " ".join(words)
 
 
-def fail(message: str, code: int = 2) -> typer.Exit:
+class ExitCode(IntEnum):
+    """What a command's exit status says (docs/operations.md lists them)."""
+
+    FAILED = 1
+    """A failure inside the service, logged; or a replayed track that did not pass."""
+    USAGE = 2
+    """An option, a setting or a file's content is wrong."""
+    TAKEN = 3
+    """An address or port to listen on is taken."""
+    FILES = 4
+    """A file or folder cannot be read, made or written."""
+    UNREACHABLE = 5
+    """No service answered where it was looked for."""
+
+
+def fail(message: str, code: int = ExitCode.USAGE) -> typer.Exit:
+    """One line on stderr and the exit status ``code`` (:class:`ExitCode`)."""
     typer.echo(message, err=True)
-    return typer.Exit(code)
+    return typer.Exit(int(code))
 
 
 def version_callback(show: bool) -> None:
@@ -162,25 +183,46 @@ def _taken_message(command: str, where: str) -> str:
     )
 
 
-def check_listen(endpoints: list[str], command: str) -> None:
-    """Exit 2 with one line when a TCP endpoint to listen on is taken, before the GPU stack loads
-    (a service on another's port would only fail once it opens its Zenoh session)."""
+def _taken(host: str, port: int) -> bool:
+    """Whether a TCP ``port`` on ``host`` is taken: bound as Zenoh and the live view bind it (a port
+    whose last connections linger in TIME_WAIT is free to listen on)."""
     import socket
 
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            return exc.errno == 98 or "in use" in str(exc).lower()
+    return False
+
+
+def check_listen(endpoints: list[str], command: str) -> None:
+    """Exit 3 with one line when a TCP endpoint to listen on is taken, before the GPU stack loads
+    (a service on another's port would only fail once it opens its Zenoh session)."""
     for endpoint in endpoints:
         match = re.fullmatch(r"tcp/(\[[^\]]+\]|[^:]+):(\d+)", endpoint)
-        if match is None:
-            continue
-        host, port = match.group(1).strip("[]"), int(match.group(2))
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        with socket.socket(family) as probe:
-            # As Zenoh binds: a port whose last connections linger in TIME_WAIT is free to listen on.
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                probe.bind((host, port))
-            except OSError as exc:
-                if exc.errno == 98 or "in use" in str(exc).lower():
-                    raise fail(_taken_message(command, endpoint)) from None
+        if match is not None and _taken(match.group(1).strip("[]"), int(match.group(2))):
+            raise fail(_taken_message(command, endpoint), ExitCode.TAKEN)
+
+
+def check_port(host: str, port: int, option: str) -> None:
+    """Exit 3 with one line when the live view's ``port`` on ``host`` is taken, before anything loads."""
+    if _taken(host, port):
+        raise fail(f"{option}: port {port} on {host} is taken (another service's view?): give another", ExitCode.TAKEN)
+
+
+def check_folder(folder: Path, option: str) -> None:
+    """Exit 4 with one line when ``folder`` cannot be made or written to, before anything loads: a
+    recording that could not be written would otherwise fail at the first session's open."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise fail(f"{option}: cannot write to '{folder}': {exc.strerror or exc}", ExitCode.FILES) from None
 
 
 @contextlib.contextmanager
@@ -192,7 +234,7 @@ def started(node, command: str):
         node.close()
         if "address already in use" not in str(exc).lower():
             raise
-        raise fail(_taken_message(command, ", ".join(node.config.listen))) from None
+        raise fail(_taken_message(command, ", ".join(node.config.listen)), ExitCode.TAKEN) from None
     try:
         yield node
     finally:

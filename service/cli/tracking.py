@@ -9,7 +9,20 @@ from typing import Annotated
 
 import typer
 
-from .common import Device, app, check_device, check_listen, endpoints, fail, gpu_stack, names, started
+from .common import (
+    Device,
+    ExitCode,
+    app,
+    check_device,
+    check_folder,
+    check_listen,
+    check_port,
+    endpoints,
+    fail,
+    gpu_stack,
+    names,
+    started,
+)
 
 log = logging.getLogger("inhand_tracker")
 
@@ -36,6 +49,10 @@ def serve(
     given = listen if listen is not None else os.environ.get("INHAND_LISTEN", "tcp/127.0.0.1:7447")
     check_listen(endpoints(given, "listen", "serve"), "serve")
     endpoints(connect if connect is not None else os.environ.get("INHAND_CONNECT"), "connect", "serve")
+    if view_port is not None:
+        check_port("127.0.0.1", view_port, "serve --view-port")
+    if record is not None:
+        check_folder(record, "serve --record")
     gpu_stack()
     from inhand_tracker.service.server import TrackerNode, load_config
 
@@ -47,6 +64,10 @@ def serve(
     except ValueError as exc:
         raise fail(f"serve: {exc}") from None
     check_device(settings.device, "serve")  # before the rest of the GPU stack loads
+    if settings.view_port is not None and view_port is None:  # from the config file
+        check_port(settings.view_host, settings.view_port, "serve: view_port")
+    if settings.record is not None and record is None:
+        check_folder(Path(settings.record), "serve: record")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -129,7 +150,7 @@ def watch(
         try:
             client.wait_ready(timeout=3600, absent=3.0)  # a service that is not there is said within seconds
         except TimeoutError as exc:
-            raise fail(f"watch: {exc}") from None
+            raise fail(f"watch: {exc}", ExitCode.UNREACHABLE) from None
         watcher = client.watch(show)
         typer.echo(f"watching service '{name}'")
         try:
@@ -170,7 +191,7 @@ def demo(
         raise fail(f"demo: --method: expected one of {', '.join(METHODS)}, got '{method}'")
     file = file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
     if not file.is_file():
-        raise fail(f"demo: --file: no such file '{file}'")
+        raise fail(f"demo: --file: no such file '{file}'", ExitCode.FILES)
     check_device(device, "demo")
     gpu_stack()
     from inhand_tracker.client import TrackerClient
