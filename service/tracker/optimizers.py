@@ -23,10 +23,13 @@ __all__ = [
     "duplicates",
     "estimate_pmf",
     "evidence_strength",
+    "f_bound",
+    "in_place",
     "method_rows",
     "noise_bound",
     "pose_evidence",
     "pose_sources",
+    "pose_strength",
     "reps_eta",
     "reps_pmf",
     "separation",
@@ -188,12 +191,29 @@ def separation(
 
 def noise_bound(worlds: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
     """The F ratio of :func:`separation` that noise alone stays below in about 95 % of windows, for
-    ``worlds`` (G,) held worlds scored over ``frames`` (G,): 1 + 1.645 standard deviations of an F
-    ratio of K - 1 and K (n - 1) degrees of freedom (its normal approximation: the quantile itself
-    has no closed form, and this one is torch ops a captured graph can hold). About 1.8 for 12 worlds
-    over 5 frames, 1.4 for 40 over 15, 1.08 for 1024 over 15."""
+    ``worlds`` (G,) held worlds scored over ``frames`` (G,): :func:`f_bound` of K - 1 and K (n - 1)
+    degrees of freedom. About 1.8 for 12 worlds over 5 frames, 1.4 for 40 over 15, 1.08 for 1024."""
     k, n = worlds.clamp_min(2), frames.clamp_min(2)
-    return 1.0 + 1.645 * (2.0 / (k - 1) + 2.0 / (k * (n - 1))).sqrt()
+    return f_bound(k - 1, k * (n - 1))
+
+
+def f_bound(d1: torch.Tensor | float, d2: torch.Tensor) -> torch.Tensor:
+    """About the 95th percentile of an F ratio of ``d1`` and ``d2`` degrees of freedom under its null:
+    1 + 1.645 of its standard deviations, sqrt(2 / d1 + 2 / d2) for large d2 (the normal
+    approximation: the quantile itself has no closed form, and this is torch ops a graph can hold)."""
+    return 1.0 + 1.645 * (2.0 / d1 + 2.0 / d2.clamp_min(1)).sqrt()
+
+
+def pose_strength(cost: torch.Tensor, pose: torch.Tensor, params: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """How strongly the worlds' object poses (G, K, 7) may be resampled, (G, 1) in [0, 1]: the
+    information in :func:`pose_evidence`'s F ratio, how far they explain the window costs ``cost``
+    (G, K) beyond the physics ``params`` (G, K, P), against what noise alone gives it
+    (:func:`evidence_strength`). Costs that rank the worlds by mass alone (an object lying on a palm,
+    felt through its weight) give poses no strength."""
+    f = pose_evidence(cost, pose, params)
+    extra, reduced = 12, 2 * params.shape[-1]  # quadratics in the pose (6 and their squares), in the params
+    dof = (cost < HELD_COST).sum(-1) - extra - reduced - 1
+    return evidence_strength(f, f_bound(float(extra), dof.float()), epsilon)
 
 
 def evidence_strength(separated: torch.Tensor, bound: torch.Tensor, epsilon: float) -> torch.Tensor:
@@ -279,6 +299,23 @@ def systematic_resample(pmf: torch.Tensor, gen: torch.Generator) -> torch.Tensor
     cdf = torch.cumsum(pmf, dim=-1)
     cdf = cdf / cdf[:, -1:]
     return torch.searchsorted(cdf, points).clamp_(max=k - 1)
+
+
+def in_place(index: torch.Tensor) -> torch.Tensor:
+    """The resample ``index`` (G, K) with every surviving world in its own slot: each source keeps
+    its slot, and its second and later copies fill the slots of the worlds it dropped, in order.
+    The same worlds and copies, so a world an update keeps is left as it was, state and physics
+    together. Scatters and cumulative sums, without a sync."""
+    g, k = index.shape
+    slots = torch.arange(k, device=index.device).expand(g, k)
+    dropped = torch.zeros(g, k, dtype=torch.bool, device=index.device).scatter(1, index, True).logical_not()
+    extra = duplicates(index)  # as many per group as the worlds dropped
+    pad = torch.full((g, k + 1), k, dtype=index.dtype, device=index.device)
+    # The r-th extra copy's source and the r-th dropped slot; everything else to the pad column k.
+    sources = pad.scatter(1, torch.where(extra, extra.cumsum(-1) - 1, k), index)
+    targets = pad.scatter(1, torch.where(dropped, dropped.cumsum(-1) - 1, k), slots)
+    out = torch.cat([slots, pad[:, :1]], -1).scatter(1, targets[:, :k], sources[:, :k])
+    return out[:, :k]
 
 
 def duplicates(index: torch.Tensor) -> torch.Tensor:
@@ -367,11 +404,11 @@ def _update(
         else:  # a KL bound that shrinks to 0 with the evidence: the uniform draw, every world kept once
             pmf = reps_pmf(among, config.reps_epsilon * full[:, 0])
         index = systematic_resample(torch.where(held, pmf, 0.0), gen)
-        # Put the best world in slot 0 so that keep_best protects it.
-        index[:, 0] = cost.argmin(-1)
-    explore = torch.ones(g, k, dtype=torch.bool, device=dev)
-    if config.keep_best:
-        explore[:, 0] = False
+    index = in_place(index)
+    # The best world survives in its own slot, where keep_best leaves it unperturbed.
+    best = cost.argmin(-1, keepdim=True)
+    index = index.scatter(1, best, best)
+    explore = identity != best if config.keep_best else torch.ones(g, k, dtype=torch.bool, device=dev)
     # A group held back still replaces the worlds that lost their object, from those that did not.
     lost = cost >= HELD_COST
     go = informative[:, None] | (lost & ~lost.all(-1, keepdim=True))

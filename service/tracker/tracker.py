@@ -34,7 +34,16 @@ from .estimate import pose_statistics, unresolved_variance
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver, draw_around
-from .optimizers import METHODS, duplicates, estimate_pmf, evidence_strength, method_rows, pose_sources, update
+from .optimizers import (
+    HELD_COST,
+    METHODS,
+    estimate_pmf,
+    evidence_strength,
+    method_rows,
+    pose_sources,
+    pose_strength,
+    update,
+)
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
@@ -428,12 +437,7 @@ class Tracker:
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
-        state, posed = upd.index, torch.ones_like(upd.explore)
-        if cfg.optimizer.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
-            params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
-            state, posed = pose_sources(upd.index, cost, self.pop.obs.object_pose, params, cfg.optimizer)
-            # Costs that rank the worlds by their physics say nothing of their poses: weigh them alike.
-            sharpness = sharpness * posed.all(-1, keepdim=True)
+        state, posed, pose_scale, sharpness = self._pose_sources(upd.index, cost, strength, scale, sharpness)
         self._sharpness.copy_(sharpness)
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
@@ -446,9 +450,31 @@ class Tracker:
                 self.servos.explored(upd.index, explore, scale, servo_opens)
             wrench = sample_wrenches((self.G, self.K), ex.wrench_force, ex.wrench_torque, self.gen, self.device)
             # The wrench and the roughening explore the poses: only where the poses were resampled.
-            self.pop.set_wrench(wrench * ((explore & posed)[..., None] * scale[..., None]))
-            self._move_copies(state, explore & posed, scale)
+            self.pop.set_wrench(wrench * ((explore & posed)[..., None] * pose_scale[..., None]))
+            self._move_copies(state, explore & posed, pose_scale)
         self.windows.restart(upd.held_back, upd.index)
+
+    def _pose_sources(
+        self, index: torch.Tensor, cost: torch.Tensor, strength: torch.Tensor | None, scale, sharpness
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Where each world's state comes from in an update whose worlds take their physics from
+        ``index`` (G, K), which worlds took another's pose, how far to explore the poses, and the
+        estimate's sharpness. Under ``by_evidence`` a replaced world takes its source's pose as
+        often as the poses explain the window ``cost`` beyond the physics
+        (:func:`.optimizers.pose_strength`), at most the update's ``strength``; under
+        ``min_pose_evidence`` all or none of a group's do; else all (the paper)."""
+        cfg, own = self.config.optimizer, torch.arange(self.K, device=self.device)
+        params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
+        if strength is not None:
+            chance = torch.minimum(pose_strength(cost, self.pop.obs.object_pose, params, cfg.reps_epsilon), strength)
+            posed = torch.rand(index.shape, generator=self.gen, device=self.device) < chance
+            posed = posed | (cost >= HELD_COST)  # a world that lost its object takes its source's state
+            return torch.where(posed, index, own), posed, self._exploration[:, None] * chance, chance
+        if cfg.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
+            state, posed = pose_sources(index, cost, self.pop.obs.object_pose, params, cfg)
+            # Costs that rank the worlds by their physics say nothing of their poses: weigh them alike.
+            return state, posed, scale, sharpness * posed.all(-1, keepdim=True)
+        return index, torch.ones_like(index, dtype=torch.bool), scale, sharpness
 
     def _declared_scatter(self) -> torch.Tensor:
         """The per-frame scatter of a world's cost that the robot's declared sensor noise can make,
@@ -465,11 +491,12 @@ class Tracker:
         return joints + self.L * forces + self.pop.Z * zones
 
     def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor) -> None:
-        """Roughen the object poses of the resampled worlds' extra copies (of ``state`` (G, K), where
-        ``explore``), then move them together to keep the estimate's mean (``keep_mean``). Only extra
-        copies move: each surviving world keeps one copy where it was, so the estimate does not jitter
+        """Roughen the object poses of the resampled worlds' copies (of ``state`` (G, K), where
+        ``explore``), then move them together to keep the estimate's mean (``keep_mean``). Only the
+        copies move: each surviving world stays in its own slot, so the estimate does not jitter
         with the spread it buys."""
-        cfg, moved = self.config.exploration, explore & duplicates(state)
+        # Only worlds that took another's state: an update leaves a world it keeps in its own slot.
+        cfg, moved = self.config.exploration, explore & (state != torch.arange(self.K, device=self.device))
         if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
             unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
             pose = self.pop.obs.object_pose.gather(1, state[..., None].expand(-1, -1, 7))  # resampled
