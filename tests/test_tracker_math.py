@@ -16,6 +16,7 @@ from inhand_tracker.service.tracker.optimizers import (
     duplicates,
     estimate_pmf,
     evidence_strength,
+    in_place,
     noise_bound,
     pose_evidence,
     pose_sources,
@@ -163,16 +164,14 @@ def test_pbo_keeps_the_best_and_copies_them_uniformly_at_rank_power_0():
     cost = 10.0 * torch.rand(g, k, generator=gen)  # spreads well above min_spread: every group updates
     upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25, pbo_rank_power=0.0), gen)
     best = torch.argsort(cost, -1)[:, :3]
-    kept = torch.zeros(g, k, dtype=torch.bool).scatter(1, best, True)
-    slots = torch.arange(k).expand(g, k)
-    assert torch.equal(upd.index[kept], slots[kept])  # the K_best survive, each in its own slot
-    copies = upd.index[~kept].view(g, k - 3)
+    assert torch.equal(upd.index[:, :3], best)  # the K_best survive, best first
+    copies = upd.index[:, 3:]
     assert all(torch.isin(copies[i], best[i]).all() for i in range(50))
     rank = (copies[..., None] == best[:, None, :]).float().argmax(-1)  # which of the 3 was copied
     observed = torch.nn.functional.one_hot(rank, 3).sum((0, 1)).float()
     expected = observed.sum() / 3
     assert (((observed - expected) ** 2) / expected).sum().item() < 13.8  # 2 dof, p = 0.001
-    assert torch.equal(upd.explore, slots != best[:, :1])  # all but the best world explore
+    assert not upd.explore[:, 0].any() and upd.explore[:, 1:].all()
 
 
 def test_pbo_rank_power_copies_the_better_kept_worlds_more_often():
@@ -181,8 +180,8 @@ def test_pbo_rank_power_copies_the_better_kept_worlds_more_often():
     cost = 10.0 * torch.rand(g, k, generator=gen)
     upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.25, pbo_rank_power=1.0), gen)
     best = torch.argsort(cost, -1)[:, :3]
-    kept = torch.zeros(g, k, dtype=torch.bool).scatter(1, best, True)
-    rank = (upd.index[~kept].view(g, k - 3)[..., None] == best[:, None, :]).float().argmax(-1)
+    assert torch.equal(upd.index[:, :3], best)
+    rank = (upd.index[:, 3:, None] == best[:, None, :]).float().argmax(-1)
     observed = torch.nn.functional.one_hot(rank, 3).sum((0, 1)).float()
     expected = observed.sum() * torch.tensor([3.0, 2.0, 1.0]) / 6.0  # weights K_best - rank
     assert (((observed - expected) ** 2) / expected).sum().item() < 13.8  # 2 dof, p = 0.001
@@ -194,7 +193,7 @@ def test_groups_whose_costs_do_not_differ_are_left_alone():
     cost = torch.tensor([[1.0, 1.1, 1.2, 1.3], [0.0, 5.0, 9.0, 9.0]])
     upd = update(cost, OptimizerConfig(method="PBO", pbo_keep=0.5, min_spread=0.5), torch.Generator())
     assert upd.index[0].tolist() == [0, 1, 2, 3] and not upd.explore[0].any()
-    assert upd.index[1].tolist() == [0, 1, 0, 1] and upd.explore[1].tolist() == [False, True, True, True]
+    assert upd.index[1, :2].tolist() == [0, 1] and upd.explore[1, 1:].all()
 
 
 def test_separation_is_about_one_on_noise_and_large_where_a_world_stays_better():
@@ -558,3 +557,22 @@ def test_a_sudden_cost_that_no_world_explains_is_uncertain_for_a_while():
     ]:
         with pytest.raises(ValueError, match=words):
             tracker_config(bad)
+
+
+def test_a_resample_in_place_leaves_every_kept_world_in_its_own_slot():
+    """:func:`in_place`: the same sources and copies, each surviving world in its own slot and the
+    copies in the slots of the worlds dropped; an update at partial strength keeps its worlds so."""
+    gen = torch.Generator().manual_seed(5)
+    index = torch.sort(torch.randint(0, 9, (400, 9), generator=gen), -1).values
+    placed = in_place(index)
+    assert torch.equal(torch.sort(placed, -1).values, index)
+    kept = torch.zeros_like(index, dtype=torch.bool).scatter(1, index, True)
+    assert torch.equal(placed[kept], torch.arange(9).expand(400, 9)[kept])
+    cost = torch.rand(400, 9, generator=gen) * 10.0
+    upd = update(cost, OptimizerConfig(method="PBO", min_spread=0.0), gen, strength=torch.full((400, 1), 0.5))
+    survived = torch.zeros_like(index, dtype=torch.bool).scatter(1, upd.index, True)
+    assert torch.equal(upd.index[survived], torch.arange(9).expand(400, 9)[survived])
+    best = cost.argmin(-1)
+    assert (
+        torch.equal(upd.index.gather(1, best[:, None])[:, 0], best) and not upd.explore.gather(1, best[:, None]).any()
+    )

@@ -212,7 +212,7 @@ def pose_strength(cost: torch.Tensor, pose: torch.Tensor, params: torch.Tensor, 
     felt through its weight) give poses no strength."""
     f = pose_evidence(cost, pose, params)
     extra, reduced = 12, 2 * params.shape[-1]  # quadratics in the pose (6 and their squares), in the params
-    dof = (cost < HELD_COST).sum(-1) - extra - reduced - 1
+    dof = ((cost < HELD_COST) & torch.isfinite(pose).all(-1)).sum(-1) - extra - reduced - 1
     return evidence_strength(f, f_bound(float(extra), dof.float()), epsilon)
 
 
@@ -223,7 +223,8 @@ def evidence_strength(separated: torch.Tensor, bound: torch.Tensor, epsilon: flo
     ``bound`` (G,), :func:`noise_bound`), as a share of the KL ``epsilon`` a full update moves the
     worlds by (REPS's bound). 0 where noise explains the differences, 1 from ``bound`` e^(2 epsilon) up."""
     information = 0.5 * torch.log(separated.clamp_min(1e-12) / bound)
-    return (information / epsilon).clamp(0.0, 1.0)[:, None]
+    # NaN (no F ratio could be formed) is no evidence: a NaN strength would poison the estimate's weights.
+    return torch.nan_to_num(information / epsilon, nan=0.0).clamp(0.0, 1.0)[:, None]
 
 
 def _quadratic(x: torch.Tensor) -> torch.Tensor:
@@ -261,7 +262,10 @@ def pose_evidence(cost: torch.Tensor, pose: torch.Tensor, params: torch.Tensor) 
     where the costs do not depend on the pose, large where they do (a bowl around the poses the
     robot's sensing favours). Lost worlds (cost from :data:`HELD_COST` up) are left out; a group with
     too few held worlds for the fit gives inf, so that it resamples as it would without the test."""
-    held = (cost < HELD_COST).float()
+    # A world gone NaN neither holds nor enters the fit: one NaN would make every sum NaN.
+    finite = torch.isfinite(pose).all(-1, keepdim=True)
+    held = ((cost < HELD_COST) & finite[..., 0]).float()
+    pose = torch.where(finite, pose, torch.eye(7, device=pose.device, dtype=pose.dtype)[6])
     quat = pose[..., 3:]
     turn = quat_log(quat_multiply(quat_conjugate(quat[:, :1]).expand_as(quat), quat))
     reduced = _quadratic(params)
@@ -384,7 +388,9 @@ def _update(
     strength: torch.Tensor | None = None,
 ) -> Update:
     """One method's update of every group; groups not ``informative`` (G,) keep their worlds, and
-    ``strength`` (G, 1) in [0, 1] weakens each group's selection (None: full)."""
+    ``strength`` (G, 1) in [0, 1] weakens each group's selection (None: full), whose kept worlds
+    then stay in their own slots (:func:`in_place`): a world replaced only in part, taking another's
+    physics and keeping its pose, must be told from one the update left alone."""
     g, k = cost.shape
     dev = cost.device
     identity = torch.arange(k, device=dev).expand(g, k)
@@ -404,11 +410,14 @@ def _update(
         else:  # a KL bound that shrinks to 0 with the evidence: the uniform draw, every world kept once
             pmf = reps_pmf(among, config.reps_epsilon * full[:, 0])
         index = systematic_resample(torch.where(held, pmf, 0.0), gen)
-    index = in_place(index)
-    # The best world survives in its own slot, where keep_best leaves it unperturbed.
     best = cost.argmin(-1, keepdim=True)
-    index = index.scatter(1, best, best)
-    explore = identity != best if config.keep_best else torch.ones(g, k, dtype=torch.bool, device=dev)
+    if strength is None:  # the paper's: the best world to slot 0, where keep_best leaves it unperturbed
+        index = torch.cat([best, index[:, 1:]], -1) if method != "PBO" else index
+        explore = identity != 0
+    else:  # a world the update keeps stays in its own slot, its state and physics together: the best too
+        index = in_place(index).scatter(1, best, best)
+        explore = identity != best
+    explore = explore if config.keep_best else torch.ones(g, k, dtype=torch.bool, device=dev)
     # A group held back still replaces the worlds that lost their object, from those that did not.
     lost = cost >= HELD_COST
     go = informative[:, None] | (lost & ~lost.all(-1, keepdim=True))

@@ -37,6 +37,7 @@ from .observations import PoseObserver, draw_around
 from .optimizers import (
     HELD_COST,
     METHODS,
+    duplicates,
     estimate_pmf,
     evidence_strength,
     method_rows,
@@ -451,7 +452,7 @@ class Tracker:
             wrench = sample_wrenches((self.G, self.K), ex.wrench_force, ex.wrench_torque, self.gen, self.device)
             # The wrench and the roughening explore the poses: only where the poses were resampled.
             self.pop.set_wrench(wrench * ((explore & posed)[..., None] * pose_scale[..., None]))
-            self._move_copies(state, explore & posed, pose_scale)
+            self._move_copies(state, explore & posed, pose_scale, in_place=strength is not None)
         self.windows.restart(upd.held_back, upd.index)
 
     def _pose_sources(
@@ -490,13 +491,15 @@ class Tracker:
         zones = (w[:, 11] * robot.touch_noise).square() + (w[:, 10] * flips(robot.touch_noise)).square()
         return joints + self.L * forces + self.pop.Z * zones
 
-    def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor) -> None:
+    def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor, in_place: bool) -> None:
         """Roughen the object poses of the resampled worlds' copies (of ``state`` (G, K), where
         ``explore``), then move them together to keep the estimate's mean (``keep_mean``). Only the
-        copies move: each surviving world stays in its own slot, so the estimate does not jitter
+        copies move: each surviving world keeps one copy where it was, so the estimate does not jitter
         with the spread it buys."""
-        # Only worlds that took another's state: an update leaves a world it keeps in its own slot.
-        cfg, moved = self.config.exploration, explore & (state != torch.arange(self.K, device=self.device))
+        # In place (:func:`.optimizers.in_place`) a world that took another's state is a copy; else
+        # each source's first slot holds the original.
+        copies = state != torch.arange(self.K, device=self.device) if in_place else duplicates(state)
+        cfg, moved = self.config.exploration, explore & copies
         if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
             unit = torch.randn((self.G, self.K, 6), generator=self.gen, device=self.device)
             pose = self.pop.obs.object_pose.gather(1, state[..., None].expand(-1, -1, 7))  # resampled
