@@ -368,9 +368,9 @@ class Estimate(_Message):
     mode_weights: Vector | None = None
     """The share of the cost weights in each mode, (2,): ambiguous when the second's is 0.25 or more."""
     evidence: float = 1.0
-    """How strongly the session's last update moved its worlds: 0, the sensing told them apart no
-    better than its noise and the worlds run open loop, to 1, full strength (always 1 unless the
-    session's ``optimizer.by_evidence`` is on)."""
+    """How strongly the session's last update moved its worlds' poses: 0, the sensing told them
+    apart no better than its noise (or by their physics alone) and the worlds run open loop, to 1,
+    full strength (always 1 unless the session's ``optimizer.by_evidence`` is on)."""
     latency_ms: float
     """From the frame's arrival at the service to this estimate [ms]."""
     notice: str | None = None

@@ -190,9 +190,10 @@ class GroupEstimates:
     """How far each group's last update window told its worlds apart beyond their noise, (G,): the
     F ratio of :func:`.optimizers.separation`, about 1 on noise alone (0 before the first update)."""
     evidence: np.ndarray | None = None
-    """How strongly each group's last update moved its worlds, (G,): 0 (open loop: the sensing told
-    them apart no better than noise) to 1 (full strength); 0 before the first update, and always 1
-    where every update runs at full strength (``optimizer.by_evidence`` off)."""
+    """How strongly each group's last update moved its worlds' poses, (G,): 0 (open loop: the
+    sensing told them apart no better than noise, or ranked them by their physics alone) to 1 (full
+    strength); 0 before the first update, and always 1 where every update runs at full strength
+    (``optimizer.by_evidence`` off)."""
     residual: np.ndarray | None = None
     """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
     (G, 3): joints (RMS per joint) [rad or m], each fingertip force's magnitude [N], each touch

@@ -433,12 +433,13 @@ class Tracker:
         if cfg.optimizer.by_evidence:  # parameter noise, wrench and roughening as strong as the selection
             strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.reps_epsilon)
             scale, sharpness = scale * strength, strength
-            self._evidence[:, 1:].copy_(strength)
         upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
         state, posed, pose_scale, sharpness = self._pose_sources(upd.index, cost, strength, scale, sharpness)
+        if strength is not None:  # what the update did to the poses, and so to the estimate
+            self._evidence[:, 1:].copy_(sharpness)
         self._sharpness.copy_(sharpness)
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
