@@ -16,18 +16,15 @@ from .messages import (
     CloseSession,
     Error,
     ErrorCode,
-    Estimate,
     OpenSession,
-    PopulationSummary,
     PoseObservation,
     RobotFrame,
     ServiceInfo,
     SessionInfo,
-    SessionStatus,
-    TrackState,
     check_version,
 )
 from .recording import CHANNELS, SessionRecording
+from .reports import Estimate, PopulationSummary, SessionStatus, TrackState
 from .sensing import PRESENCE, SENSING, SensingAttributes, SensingField, check_sensing, sensing_field
 from .trajectory import TRAJECTORY_FORMAT, TRAJECTORY_VERSION, GroundTruth, Trajectory
 

@@ -8,20 +8,19 @@ against the session it opened.
 from __future__ import annotations
 
 import math
-from enum import IntEnum, StrEnum
+from enum import StrEnum
 from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     StrictInt,
     create_model,
     field_validator,
 )
 
-from .arrays import Matrix6, Pose, Poses, Vector, array_field
+from .arrays import Matrix6, Pose, Vector, array_field
+from .base import WireMessage
 from .sensing import SENSING
 
 __all__ = [
@@ -33,15 +32,11 @@ __all__ = [
     "CloseSession",
     "Error",
     "ErrorCode",
-    "Estimate",
     "OpenSession",
-    "PopulationSummary",
     "PoseObservation",
     "RobotFrame",
     "ServiceInfo",
     "SessionInfo",
-    "SessionStatus",
-    "TrackState",
     "check_version",
 ]
 
@@ -69,14 +64,6 @@ def _within_reach(pose: np.ndarray) -> np.ndarray:
     return pose
 
 
-class _Message(BaseModel):
-    # Field docstrings become the JSON Schema's descriptions (docs/protocol). Strict: a wire value
-    # of the wrong type ("3" for a protocol version, "yes" for a flag) is refused, not coerced.
-    model_config = ConfigDict(
-        arbitrary_types_allowed=True, frozen=True, extra="forbid", use_attribute_docstrings=True, strict=True
-    )
-
-
 class ErrorCode(StrEnum):
     BAD_REQUEST = "bad_request"
     VERSION_MISMATCH = "version_mismatch"
@@ -87,7 +74,7 @@ class ErrorCode(StrEnum):
     INTERNAL = "internal"
 
 
-class Error(_Message):
+class Error(WireMessage):
     code: Annotated[ErrorCode, Field(strict=False)]  # the wire carries its value, a string
     """What kind of refusal (:class:`ErrorCode`)."""
     message: str
@@ -102,7 +89,7 @@ def check_version(version: int) -> None:
         raise ValueError(f"protocol version mismatch: client speaks v{version}, service speaks v{PROTOCOL_VERSION}")
 
 
-class ServiceInfo(_Message):
+class ServiceInfo(WireMessage):
     """What the service's info queryable answers."""
 
     protocol: int = PROTOCOL_VERSION
@@ -143,7 +130,7 @@ class ServiceInfo(_Message):
     needs a build waits."""
 
 
-class OpenSession(_Message):
+class OpenSession(WireMessage):
     """Ask the service to track one object in one robot's hand."""
 
     protocol: int = PROTOCOL_VERSION
@@ -193,7 +180,7 @@ class OpenSession(_Message):
         return overrides
 
 
-class CloseSession(_Message):
+class CloseSession(WireMessage):
     """Close a session; also the payload of a session's status query. Only its robot may close or
     query it: the request carries ``mac`` and ``stamp`` (protocol.auth.signed_query), or the token."""
 
@@ -208,7 +195,7 @@ class CloseSession(_Message):
     """HMAC-SHA256 of the request's purpose, session and stamp, keyed by the token (protocol.auth)."""
 
 
-class SessionInfo(_Message):
+class SessionInfo(WireMessage):
     """The service's answer to OpenSession."""
 
     protocol: int = PROTOCOL_VERSION
@@ -227,7 +214,7 @@ class SessionInfo(_Message):
     """The robot's joints in the order of every (D,) array: ``q``, ``controls``, ``q0``."""
     sensor_names: list[str]
     """The robot's fingertip sensors in the order of every (L, ...) array: ``force``, ``slip``, ..."""
-    zone_names: list[str] = []
+    zone_names: list[str] = Field(default=[])  # pydantic copies it per model; the schema shows it
     """The robot's touch zones in the order of the (Z,) ``touch`` array; empty when it has none."""
     worlds: int
     """K, the worlds granted."""
@@ -239,7 +226,7 @@ class SessionInfo(_Message):
     """The session's name (:attr:`OpenSession.name`): its ROS 2 topics and TF frame follow it."""
 
 
-class _FrameHeader(_Message):
+class _FrameHeader(WireMessage):
     session: str
     """The session this frame belongs to (also in its key)."""
     seq: int = Field(ge=0)
@@ -275,7 +262,7 @@ RobotFrame = create_model(
 )
 
 
-class PoseObservation(_Message):
+class PoseObservation(WireMessage):
     """The object's pose as another sensor saw it (a camera's pose estimator: FoundationPose,
     PoseRBPF), sent at any rate on the session's ``observation`` key. The tracker scores its worlds
     against it, and re-seeds them around it when none agrees with a confident one."""
@@ -313,152 +300,3 @@ class PoseObservation(_Message):
         if smallest <= 0:
             raise ValueError(f"expected positive-definite, smallest eigenvalue {smallest:.3g}")
         return cov
-
-
-class TrackState(IntEnum):
-    """How far an estimate is to be trusted; :attr:`Estimate.status` carries its lower-case name."""
-
-    TRACKING = 0
-    """The worlds agree with the robot and with each other."""
-    UNCERTAIN = 1
-    """The object's surface points spread across the cost-weighted worlds (position and rotation
-    together) more than the tracker's ``uncertain_spread``."""
-    DIVERGED = 2
-    """The worlds lost the object, or the best world and the real hand disagree about contact: the
-    hypotheses were re-seeded this frame around the last trusted estimate."""
-    RECOVERING = 3
-    """Re-seeded recently; not trusted until ``recover_frames`` have passed."""
-    AMBIGUOUS = 4
-    """The worlds that agree with the robot fall into two pose modes (``Estimate.modes``) that
-    contact cannot tell apart, e.g. a brick turned end for end: the estimate may be either."""
-
-
-class Estimate(_Message):
-    """The tracker's answer to one frame. Poses are in the robot's world frame (the frame of the
-    robot config's base), position [m] and unit quaternion (x, y, z, w)."""
-
-    session: str
-    """The session this estimate belongs to."""
-    seq: int
-    """The seq of the frame this estimate answers."""
-    stamp: float
-    """That frame's robot clock [s]."""
-    pose: Pose
-    """The estimate of the object's pose, (7,): by default the cost-weighted mean over the worlds of
-    the lowest-cost world's mode (``modes``), which is ``mean_pose`` wherever the worlds agree, else
-    the lowest-cost world's (setting ``mean_estimate``)."""
-    mean_pose: Pose
-    """The cost-weighted mean object pose over the session's worlds, (7,)."""
-    covariance: Matrix6
-    """Cost-weighted covariance of (position [m^2], rotation vector [rad^2], world frame) about
-    ``mean_pose``, (6, 6), plus what that spread cannot show: the model's mismatch (a floor that
-    grows with ``cost``) and how coarsely the worlds sample the start region: the truth should lie
-    in its 95 % region on about 95 % of frames."""
-    cost: float
-    """The best world's mean cost since the last optimizer update (eq. 3, dimensionless)."""
-    mass: float
-    """The best world's object mass [kg]."""
-    friction: float
-    """The best world's object friction coefficient (dimensionless)."""
-    status: str
-    """A :class:`TrackState` name in lower case: tracking, uncertain, diverged, recovering or ambiguous."""
-    modes: Poses | None = None
-    """The two heaviest pose modes of the worlds, (2, 7): the lowest-cost world's pose, then the
-    heaviest world's away from it (within 0.5 rad and 2 cm of it is the same mode)."""
-    mode_weights: Vector | None = None
-    """The share of the cost weights in each mode, (2,): ambiguous when the second's is 0.25 or more."""
-    evidence: float = 1.0
-    """How strongly the session's last update moved its worlds' poses: 0, the sensing told them
-    apart no better than its noise (or by their physics alone) and the worlds run open loop, to 1,
-    full strength (always 1 unless the session's ``optimizer.by_evidence`` is on)."""
-    latency_ms: float
-    """From the frame's arrival at the service to this estimate [ms]."""
-    notice: str | None = None
-    """What the robot should know about this frame, once: e.g. that its seq jumped and the
-    session re-synchronised to it."""
-
-
-class PopulationSummary(_Message):
-    """The session's worlds after a frame, as a recording keeps them: what the estimate rests on."""
-
-    seq: int
-    """The seq of the frame."""
-    stamp: float
-    """That frame's robot clock [s]."""
-    worlds: int
-    """K, the session's worlds."""
-    cost: float
-    """The best world's window cost (dimensionless)."""
-    spread_m: float
-    """RMS position spread of the weighted worlds [m]."""
-    mass: float
-    """The best world's object mass [kg]."""
-    friction: float
-    """The best world's object friction coefficient."""
-    status: str
-    """The track state."""
-    mode_weights: Vector | None = None
-    """The two pose modes' shares of the weights, (2,)."""
-
-
-class SessionStatus(_Message):
-    """A session's counters since it opened."""
-
-    session: str
-    """The session."""
-    frames: int
-    """Frames tracked."""
-    gaps: int
-    """Frames skipped over: seq numbers that never arrived before a later one."""
-    duplicates: int
-    """Frames dropped because their seq was the last one applied."""
-    late: int
-    """Frames dropped because their seq was older than the last one applied."""
-    errors: int
-    """Frames refused (malformed, wrong shape, non-finite)."""
-    stale: int = 0
-    """Frames dropped unapplied under overload: the session's queue was full (the newest are kept)
-    or they waited longer than the service's bound."""
-    resyncs: int = 0
-    """Times the robot's seq jumped beyond the service's window and the session re-synchronised to it."""
-    replays: int = 0
-    """Signed frames, observations and queries refused as replays: a frame of an older epoch, or
-    far behind in the same; an observation or query not newer than one already accepted."""
-    latency_p50_ms: float
-    """Median of the last 1000 frames' latencies, arrival to estimate [ms]."""
-    latency_p99_ms: float
-    """99th percentile of the same [ms]."""
-    cost: float
-    """The latest estimate's cost (dimensionless)."""
-    spread_m: float
-    """sqrt(trace) of the latest estimate's position covariance (the worlds' spread about the mean
-    pose, with the reported floor) [m]."""
-    last_error: str | None = None
-    """The last refused frame's error, naming the field and the numbers."""
-    observations: int = 0
-    """Pose observations used."""
-    observations_stale: int = 0
-    """Pose observations dropped: older than the service's ``max_observation_age_s``."""
-    reseeds_by_observation: int = 0
-    """Times no world agreed with a confident pose observation and the worlds were re-seeded around it."""
-    budget_ms: float = 0.0
-    """The service's frame budget [ms] (0: none)."""
-    load_ms: float = 0.0
-    """The service's populations' p99 step times, summed [ms]."""
-    contacts_explored: bool = False
-    """Whether the session's worlds explore their contacts' softness and impratio: their lowest
-    cost said the model's contacts are wrong (a session of 1024 worlds or more; the tracker's
-    ``contact_gate_cost``)."""
-    evidence: float = 1.0
-    """How strongly the last update moved the session's worlds, 0 (open loop) to 1 (full strength):
-    the latest estimate's ``evidence``."""
-    residuals: dict[str, float] = Field(default_factory=dict)
-    """What the lowest-cost world leaves unexplained over the last second, per sensing: ``joints``
-    (RMS per joint) [rad or m], ``force`` (each fingertip force's magnitude) [N], ``touch`` (each
-    touch zone's force) [N], for what the robot sends. It holds the sensors' noise and the model's
-    mismatch: at most the noise to declare in the robot config (``joint_noise``, ``force_noise``,
-    ``touch_noise``)."""
-    joints_off: dict[str, float] = Field(default_factory=dict)
-    """The model check: joints whose simulated motion runs from the measured one by more than the
-    service's ``model_check`` over the last seconds, by name: their RMS difference [rad or m]. The
-    robot config's servos are not the robot's; ``inhand-tracker calibrate`` fits them."""

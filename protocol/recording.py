@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .messages import Estimate, PopulationSummary
+from .reports import Estimate, PopulationSummary
 from .ros2_records import decode_record
 from .trajectory import Trajectory
 

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel
 
-from .messages import Estimate, PopulationSummary, PoseObservation, RobotFrame
+from .messages import PoseObservation, RobotFrame
+from .reports import Estimate, PopulationSummary
 
 __all__ = ["RECORD_TYPES", "decode_record", "encode_record", "msg_definition", "typestore"]
 

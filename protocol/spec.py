@@ -17,14 +17,13 @@ from .messages import (
     CloseSession,
     Error,
     ErrorCode,
-    Estimate,
     OpenSession,
     PoseObservation,
     RobotFrame,
     ServiceInfo,
     SessionInfo,
-    SessionStatus,
 )
+from .reports import Estimate, SessionStatus
 from .ros2_records import RECORD_TYPES, msg_definition
 from .sensing import SENSING
 

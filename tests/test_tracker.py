@@ -19,8 +19,7 @@ from inhand_tracker.service.tracker import Frame, Tracker, TrackerConfig, tracke
 from inhand_tracker.service.tracker.cost import CostConfig
 from inhand_tracker.service.tracker.estimate import unresolved_variance
 from inhand_tracker.service.tracker.optimizers import HELD_COST, OptimizerConfig
-from inhand_tracker.service.tracker.sampling import sample_poses
-from inhand_tracker.service.tracker.tracker import _lowest_point
+from inhand_tracker.service.tracker.sampling import lowest_point, sample_poses
 from inhand_tracker.sim_backend import Population, PopulationConfig, catalog_object
 
 OBJECT = "foam_brick"
@@ -136,7 +135,7 @@ def test_a_real_drop_puts_the_hypotheses_on_the_table(hand, recording):
     assert (status == Status.DIVERGED).all()
     pose = tr.pop.object_coords
     hull = torch.as_tensor(tr.pop.object.mesh.convex_hull.vertices, dtype=torch.float32)
-    z = pose[..., 2] + _lowest_point(pose[..., 3:], hull)
+    z = pose[..., 2] + lowest_point(pose[..., 3:], hull)
     # 2 mm above the table, or on it where a hypothesis laid there overlapped a fingertip and was
     # pushed out of it, down.
     assert ((z > -0.0005) & (z < 0.0025)).all(), f"lowest points {z} m: not resting on the table"

@@ -10,19 +10,21 @@ import torch
 
 from inhand_tracker.service.tracker import tracker_config
 from inhand_tracker.service.tracker.cost import Cost, CostConfig, RealObservation, cost_terms
+from inhand_tracker.service.tracker.evidence import (
+    evidence_strength,
+    noise_bound,
+    pose_evidence,
+    pose_sources,
+    separation,
+)
 from inhand_tracker.service.tracker.optimizers import (
     HELD_COST,
     OptimizerConfig,
     duplicates,
     estimate_pmf,
-    evidence_strength,
     in_place,
-    noise_bound,
-    pose_evidence,
-    pose_sources,
     reps_eta,
     reps_pmf,
-    separation,
     update,
     wrs_pmf,
 )
@@ -291,7 +293,7 @@ def test_pose_evidence_tells_costs_the_poses_explain_from_costs_the_mass_explain
     by_mass[:, 3] = 1e9  # a lost world
     index = torch.zeros(g, k, dtype=torch.int64)
     config = OptimizerConfig(min_pose_evidence=3.0)
-    state, posed = pose_sources(index, torch.cat([by_mass[:32], by_pose[32:]]), pose, params, config)
+    state, posed, _ = pose_sources(index, torch.cat([by_mass[:32], by_pose[32:]]), pose, params, config)
     assert torch.equal(state[32:], index[32:]) and posed[32:].all()
     kept = (state[:32] == torch.arange(k)).float().mean(-1)
     assert (kept > 0.9).float().mean() > 0.9 and (state[:, 3] == 0).all()

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import torch
 
-from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply
+from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply, quat_rotate
 
 __all__ = [
     "clipped_normal",
+    "lowest_point",
+    "perturb_within",
     "recentre",
     "roughening_sigma",
     "sample_poses",
@@ -111,3 +113,18 @@ def shrink_toward_mean(pose: torch.Tensor, factor: float) -> torch.Tensor:
     mean_q = quat_multiply(quat[:, :1], quat_exp(turn.mean(1, keepdim=True)))
     towards = quat_log(quat_multiply(quat_conjugate(quat), mean_q.expand_as(quat)))
     return factor * torch.cat([pose[..., :3].mean(1, keepdim=True) - pose[..., :3], towards], dim=-1)
+
+
+def perturb_within(
+    value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor, gen: torch.Generator
+) -> torch.Tensor:
+    """theta ~ N(theta, Sigma_theta) clipped to its range ``bounds``, where ``mask``; ``sigma`` is a
+    fraction of the range."""
+    lo, hi = bounds
+    return torch.where(mask, clipped_normal(value.clone(), sigma * (hi - lo), lo, hi, gen), value)
+
+
+def lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
+    shape = (*quat.shape[:-1], len(vertices))
+    return quat_rotate(quat[..., None, :].expand(*shape, 4), vertices.expand(*shape, 3))[..., 2].amin(-1)

@@ -24,30 +24,22 @@ import numpy as np
 import torch
 
 from inhand_tracker.sim_backend import HEALTH_AWAY, HEALTH_NAN, HEALTH_OK, Population, SensorFK
-from inhand_tracker.sim_backend.rotations import quat_rotate
 
 from .capture import CapturedOps
 from .config import TrackerConfig
 from .contacts import ContactExplorer
 from .cost import TERMS, Cost, RealObservation
 from .estimate import pose_statistics, unresolved_variance
+from .evidence import Residuals, declared_scatter, evidence_strength, pose_sources
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver, draw_around
-from .optimizers import (
-    HELD_COST,
-    METHODS,
-    duplicates,
-    estimate_pmf,
-    evidence_strength,
-    method_rows,
-    pose_sources,
-    pose_strength,
-    update,
-)
+from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, update
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
+    lowest_point,
+    perturb_within,
     recentre,
     roughening_sigma,
     sample_poses,
@@ -61,16 +53,6 @@ from .window import CostWindow
 __all__ = ["Tracker"]
 
 log = logging.getLogger(__name__)
-
-_RESIDUAL_TERMS = [0, 4, 11]
-"""The cost terms whose lowest-cost values say how noisy each sensing is: joints, fingertip force
-magnitudes, touch zone forces (:data:`.cost.TERM_NAMES`)."""
-
-
-def _lowest_point(quat: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
-    """Height of the lowest of ``vertices`` (V, 3) rotated by ``quat`` (..., 4), shape (...)."""
-    shape = (*quat.shape[:-1], len(vertices))
-    return quat_rotate(quat[..., None, :].expand(*shape, 4), vertices.expand(*shape, 3))[..., 2].amin(-1)
 
 
 class Tracker:
@@ -128,19 +110,10 @@ class Tracker:
         self._origin = torch.tensor([0.0] * 6 + [1.0], device=dev)
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._sharpness = torch.ones(self.G, 1, device=dev)
-        """Each group's factor on the estimate's weights, (G, 1): the last update's evidence
-        strength, and 0 while its poses explain none of its costs."""
+        """Each group's factor on the estimate's weights, (G, 1): how far its poses explain its costs."""
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
-        self._residual = torch.zeros(self.G, 3, device=dev)
-        """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
-        (G, 3): joints (RMS per joint) [rad or m], fingertip force magnitude per sensor [N], touch
-        zone force per zone [N]: an upper bound on the sensors' noise (:attr:`GroupEstimates.residual`)."""
-        self._residual_frames = torch.zeros(self.G, 1, device=dev)
-        per = [math.sqrt(max(self.D, 1)), max(self.L, 1), max(pop.Z, 1)]
-        self._residual_per = torch.tensor(per, device=dev)
-        self._residual_terms = torch.tensor(_RESIDUAL_TERMS, device=dev)
-        """Each group's evidence at its last update, (G, 2): the separation F ratio of its window
-        (:func:`.optimizers.separation`) and the update's strength in [0, 1]."""
+        """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
+        self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
         self._bandwidth = cfg.exploration.jitter_bandwidth * silverman_bandwidth(self.K)
         shrinks = 0 < cfg.exploration.jitter_shrink_worlds <= self.K and self._bandwidth < 1.0
         self._shrink = 1.0 - math.sqrt(1.0 - self._bandwidth**2) if shrinks else 0.0
@@ -187,7 +160,7 @@ class Tracker:
         self._sharpness.masked_fill_(started[:, None], 0.0 if scaled else 1.0)
         self._evidence[:, 0].masked_fill_(started, 0.0)
         self._evidence[:, 1].masked_fill_(started, 0.0 if scaled else 1.0)
-        self._residual_frames.masked_fill_(started[:, None], 0.0)
+        self.residuals.start(started)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
 
@@ -241,7 +214,7 @@ class Tracker:
         open_loop = (self.olp | (self.K == 1))[:, None]
         poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
         if on_table:
-            poses[..., 2] = 0.002 - _lowest_point(poses[..., 3:], self._hull)
+            poses[..., 2] = 0.002 - lowest_point(poses[..., 3:], self._hull)
         mass = torch.where(open_loop, nominal_mass, mass)
         friction = torch.where(open_loop, nominal_friction, friction)
         sel = torch.as_tensor(groups, device=dev)[:, None]
@@ -400,10 +373,7 @@ class Tracker:
         pop = self.pop
         best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, self._sharpness)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
-        terms = self.cost.last_terms.gather(1, best[:, None, None].expand(-1, 1, TERMS))[:, 0]
-        self._residual_frames += 1
-        rate = (1.0 / self._residual_frames).clamp_min(1.0 / 30.0)
-        self._residual.lerp_(terms.index_select(-1, self._residual_terms) / self._residual_per, rate)
+        self.residuals.add(self.cost.last_terms, best)
         return ESTIMATE.pack(
             {
                 **poses,
@@ -417,7 +387,7 @@ class Tracker:
                 "overflow": pop.dropped().any(-1).float(),
                 "separation": self._evidence[:, 0],
                 "evidence": self._evidence[:, 1],
-                "residual": self._residual,
+                "residual": self.residuals.mean,
             }
         )
 
@@ -426,26 +396,29 @@ class Tracker:
         evidence for it; the window starts again."""
         cfg = self.config
         # Worlds apart from noise: the window's mean scatter against its means.
-        separated = self.windows.separation(self._declared_scatter())
+        separated = self.windows.separation(declared_scatter(self.cost, self.pop.robot_spec, self.L, self.pop.Z))
         self._evidence[:, 0].copy_(separated)
         cost = self.scored()
-        scale, sharpness, strength = self._exploration[:, None], torch.ones_like(self._sharpness), None
+        scale, strength = self._exploration[:, None], None
         if cfg.optimizer.by_evidence:  # parameter noise, wrench and roughening as strong as the selection
             strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.reps_epsilon)
-            scale, sharpness = scale * strength, strength
+            scale = scale * strength
         upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
-        state, posed, pose_scale, sharpness = self._pose_sources(upd.index, cost, strength, scale, sharpness)
+        params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
+        pose = self.pop.obs.object_pose
+        state, posed, sharpness = pose_sources(upd.index, cost, pose, params, cfg.optimizer, strength, self.gen)
+        pose_scale = scale if strength is None else self._exploration[:, None] * sharpness
         if strength is not None:  # what the update did to the poses, and so to the estimate
             self._evidence[:, 1:].copy_(sharpness)
         self._sharpness.copy_(sharpness)
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
-            explore, ex = upd.explore, cfg.exploration
-            mass = self._explore(self.pop.mass, ex.mass_sigma * scale, self._mass_range, explore)
-            friction = self._explore(self.pop.friction, ex.friction_sigma * scale, self._friction_range, explore)
+            explore, ex, gen = upd.explore, cfg.exploration, self.gen
+            mass = perturb_within(self.pop.mass, ex.mass_sigma * scale, self._mass_range, explore, gen)
+            friction = perturb_within(self.pop.friction, ex.friction_sigma * scale, self._friction_range, explore, gen)
             contacts = () if opens is None else self.contacts.explored(explore, scale, opens)
             self.pop.write_params(mass, friction, *contacts)
             if servo_opens is not None:
@@ -456,49 +429,12 @@ class Tracker:
             self._move_copies(state, explore & posed, pose_scale, in_place=strength is not None)
         self.windows.restart(upd.held_back, upd.index)
 
-    def _pose_sources(
-        self, index: torch.Tensor, cost: torch.Tensor, strength: torch.Tensor | None, scale, sharpness
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Where each world's state comes from in an update whose worlds take their physics from
-        ``index`` (G, K), which worlds took another's pose, how far to explore the poses, and the
-        estimate's sharpness. Under ``by_evidence`` a replaced world takes its source's pose as
-        often as the poses explain the window ``cost`` beyond the physics
-        (:func:`.optimizers.pose_strength`), at most the update's ``strength``; under
-        ``min_pose_evidence`` all or none of a group's do; else all (the paper)."""
-        cfg, own = self.config.optimizer, torch.arange(self.K, device=self.device)
-        params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
-        if strength is not None:
-            chance = torch.minimum(pose_strength(cost, self.pop.obs.object_pose, params, cfg.reps_epsilon), strength)
-            posed = torch.rand(index.shape, generator=self.gen, device=self.device) < chance
-            posed = posed | (cost >= HELD_COST)  # a world that lost its object takes its source's state
-            return torch.where(posed, index, own), posed, self._exploration[:, None] * chance, chance
-        if cfg.min_pose_evidence > 0:  # where the poses do not explain the costs, trade parameters only
-            state, posed = pose_sources(index, cost, self.pop.obs.object_pose, params, cfg)
-            # Costs that rank the worlds by their physics say nothing of their poses: weigh them alike.
-            return state, posed, scale, sharpness * posed.all(-1, keepdim=True)
-        return index, torch.ones_like(index, dtype=torch.bool), scale, sharpness
-
-    def _declared_scatter(self) -> torch.Tensor:
-        """The per-frame scatter of a world's cost that the robot's declared sensor noise can make,
-        (G,): each term's weight times how far that noise moves what it reads, squared, summed over
-        the joints, the fingertips' force magnitudes and contact flags, and the touch zones' forces
-        and contact flags. A bound, not a model: where noise moves a reading by sigma, no world's
-        term moves by more than that, and a contact flag flips at most once."""
-        robot, w = self.pop.robot_spec, self.cost.weights()
-        threshold = self.config.cost.contact_threshold
-        flips = lambda sigma: min(1.0, sigma / threshold)  # noqa: E731 - a flag's share of frames flipped, at most
-        joints = (w[:, 0] * robot.joint_noise).square()
-        forces = (w[:, 4] * robot.force_noise).square() + (w[:, 3] * flips(robot.force_noise)).square()
-        zones = (w[:, 11] * robot.touch_noise).square() + (w[:, 10] * flips(robot.touch_noise)).square()
-        return joints + self.L * forces + self.pop.Z * zones
-
     def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor, in_place: bool) -> None:
         """Roughen the object poses of the resampled worlds' copies (of ``state`` (G, K), where
         ``explore``), then move them together to keep the estimate's mean (``keep_mean``). Only the
         copies move: each surviving world keeps one copy where it was, so the estimate does not jitter
         with the spread it buys."""
-        # In place (:func:`.optimizers.in_place`) a world that took another's state is a copy; else
-        # each source's first slot holds the original.
+        # In place a world that took another's state is a copy; else each source's first slot holds the original.
         copies = state != torch.arange(self.K, device=self.device) if in_place else duplicates(state)
         cfg, moved = self.config.exploration, explore & copies
         if cfg.jitter_t > 0 or cfg.jitter_r > 0 or self._bandwidth > 0:
@@ -511,8 +447,3 @@ class Tracker:
             self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         if cfg.keep_mean:  # the frame before packed the estimate's mean over all worlds
             self.pop.displace_object(recentre(self.pop.object_coords, ESTIMATE.view(self._packed, "mean_pose"), moved))
-
-    def _explore(self, value: torch.Tensor, sigma: torch.Tensor, bounds: tuple[float, float], mask: torch.Tensor):
-        """theta ~ N(theta, Sigma_theta) clipped to its range, where ``mask``; ``sigma`` is a fraction of the range."""
-        lo, hi = bounds
-        return torch.where(mask, clipped_normal(value.clone(), sigma * (hi - lo), lo, hi, self.gen), value)

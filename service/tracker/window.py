@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from .optimizers import HELD_COST, noise_bound, separation
+from .evidence import noise_bound, separation
+from .optimizers import HELD_COST
 
 __all__ = ["CostWindow"]
 
