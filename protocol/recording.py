@@ -32,6 +32,7 @@ import numpy as np
 
 from .reports import Estimate, PopulationSummary
 from .ros2_records import decode_record
+from .sensing import SENSING
 from .trajectory import Trajectory
 
 __all__ = ["CHANNELS", "PROFILE", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording", "load_trajectory"]
@@ -96,12 +97,11 @@ class SessionRecording:
         opened["p0"] = np.asarray(opened["p0"], np.float32)
         if opened.get("q0") is not None:
             opened["q0"] = np.asarray(opened["q0"], np.float32)
-        frames.sort(key=lambda d: d["seq"])
+        frames.sort(key=lambda d: (d.get("epoch", 0), d["seq"]))  # a counter restart opens a new epoch
         stamps = np.array([d["stamp"] for d in frames], np.float64)
         steps = np.diff(stamps)
         rate = 1.0 / float(np.median(steps)) if len(steps) and np.median(steps) > 0 else 30.0
-        header = {"session", "seq", "stamp"}
-        names = [k for k in frames[0] if k not in header]
+        names = [k for k in frames[0] if k in _SENSED]
         sensing = {k: None if frames[0][k] is None else np.asarray([d[k] for d in frames], np.float32) for k in names}
         trajectory = Trajectory(
             path.stem, opened["robot"], opened["object"], rate, stamp=stamps, meta={"recording": str(path)},
@@ -109,6 +109,10 @@ class SessionRecording:
         )  # fmt: skip
         estimates.sort(key=lambda e: e.seq)
         return cls(opened, trajectory, estimates, population)
+
+
+_SENSED = frozenset(f.name for f in SENSING)
+"""The frame's sensing fields; the rest of a recorded frame is its header (session, seq, epoch, stamp)."""
 
 
 def _read_mcap(path: Path) -> tuple[dict[str, dict[str, str]], list[tuple[str, bytes]]]:

@@ -329,6 +329,13 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
     bad_cfg.write_text('kind = "hand"\nfinger_kp = 3.0\n')
     with pytest.raises(ValueError, match=r"unknown keys \['finger_kp'\] for kind 'hand'"):
         load_robot(bad_cfg)
+    noisy = tmp_path / "noisy.toml"
+    noisy.write_text('kind = "hand"\njoint_noise = 0.005\ntouch_noise = 0.1\n')
+    spec = load_robot(noisy)
+    assert (spec.joint_noise, spec.touch_noise, spec.force_noise) == (0.005, 0.1, 0.0)
+    noisy.write_text('kind = "hand"\nforce_noise = -0.1\n')
+    with pytest.raises(ValueError, match=r"robot 'allegro' force_noise: expected >= 0, got -0.1"):
+        load_robot(noisy)
     with pytest.raises(ValueError, match=r"joints: \['elbow'\] not in"):
         Population(FileRobotSpec("gripper", str(urdf), ("elbow",), ("left",)), catalog_object("foam_brick"),
                    PopulationConfig(worlds=1, device="cpu"))  # fmt: skip

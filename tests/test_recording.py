@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -237,18 +239,15 @@ def test_a_full_disk_stops_the_recording_and_the_session_tracks_on(tmp_path):
         svc.stop()
 
 
-def test_a_read_only_record_folder_leaves_the_service_tracking():
-    """The service records into a folder that takes no file whoever writes (sysfs refuses even
-    root): each session is told its recording stopped, and tracks all the same."""
+def test_a_read_only_record_folder_is_refused_before_the_service_starts():
+    """A record folder that takes no file whoever writes (sysfs refuses even root) is said in one
+    line, exit 4, before anything loads: a recording asked for is not silently lost. A folder
+    that fails later (a full disk) stops the recording and the sessions track on (above)."""
     if not Path("/sys").is_dir() or _writable(Path("/sys")):
         pytest.skip("no folder here refuses every write")
-    traj = Trajectory.load(TRAJECTORY)
-    svc = ServiceProcess(free_port(), record="/sys")
-    client, last = _stream(svc, traj, 3.0)
-    try:
-        status = client.status()
-        assert status.last_error is not None and status.last_error.startswith("recording: stopped"), status
-        assert last > 45 and status.frames > 45, (last, status.frames)
-    finally:
-        client.close()
-        svc.stop()
+    out = subprocess.run(
+        [sys.executable, "-m", "inhand_tracker.service.cli", "serve", "--listen", f"tcp/127.0.0.1:{free_port()}",
+         "--record", "/sys", "--device", "cpu"], capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert out.returncode == 4 and lines == ["serve --record: cannot write to '/sys': Permission denied"], out.stderr

@@ -193,6 +193,8 @@ def demo(
     if not file.is_file():
         raise fail(f"demo: --file: no such file '{file}'", ExitCode.FILES)
     check_device(device, "demo")
+    if record is not None:
+        check_folder(record, "demo --record")
     gpu_stack()
     from inhand_tracker.client import TrackerClient
     from inhand_tracker.client.report import replay_file
