@@ -150,7 +150,7 @@ class ContactModel:
 class SensorNoise:
     """The noise of the robot's sensing as its maker or a user measured it, a standard deviation per
     reading: the tracker's updates never move the worlds on cost differences this noise could make
-    (:func:`inhand_tracker.service.tracker.optimizers.separation`). 0: the noise the worlds' own
+    (:func:`inhand_tracker.service.tracker.evidence.separation`). 0: the noise the worlds' own
     frame-to-frame scatter shows."""
 
     joint_noise: float = 0.0

@@ -188,7 +188,7 @@ class GroupEstimates:
     m]: the model check (:class:`.joint_check.JointCheck`)."""
     separation: np.ndarray | None = None
     """How far each group's last update window told its worlds apart beyond their noise, (G,): the
-    F ratio of :func:`.optimizers.separation`, about 1 on noise alone (0 before the first update)."""
+    F ratio of :func:`.evidence.separation`, about 1 on noise alone (0 before the first update)."""
     evidence: np.ndarray | None = None
     """How strongly each group's last update moved its worlds' poses, (G,): 0 (open loop: the
     sensing told them apart no better than noise, or ranked them by their physics alone) to 1 (full

@@ -47,13 +47,13 @@ class CostWindow:
 
     def separation(self, floor: torch.Tensor | float = 0.0) -> torch.Tensor:
         """How far the window's costs separate each group's worlds beyond noise, (G,): the F ratio
-        of :func:`.optimizers.separation`, the scatter at least ``floor`` (G,) per frame."""
+        of :func:`.evidence.separation`, the scatter at least ``floor`` (G,) per frame."""
         frames = self.frames.clamp_min(1)
         return separation(self.means()[0], self.scatter / frames, frames[:, 0], floor)
 
     def noise_bound(self) -> torch.Tensor:
         """The separation noise alone stays below in about 95 % of windows of this many frames and
-        held worlds, (G,) (:func:`.optimizers.noise_bound`)."""
+        held worlds, (G,) (:func:`.evidence.noise_bound`)."""
         held = (self.means()[0] < HELD_COST).sum(-1)
         return noise_bound(held.to(self.frames.dtype), self.frames[:, 0])
 
