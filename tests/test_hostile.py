@@ -178,6 +178,8 @@ def test_a_relay_replaying_a_robot_s_signed_messages_applies_none_of_them(traj):
         manager.authorize_query(query, "status")
     status = manager.status_of(manager.sessions[info.session])
     assert (status.frames, status.resyncs, status.replays) == (12, 2, 22), status
+    # What the robot sends is what the status says the best world leaves unexplained: joints and forces.
+    assert set(status.residuals) == {"joints", "force"} and status.evidence == 1.0, status
     assert len(manager.sessions[info.session].observed) == 1
 
 

@@ -142,6 +142,10 @@ _CHECK_AFTER = 30
 """Frames before the model check speaks: the worlds settle into their grasp first."""
 
 
+_SENSINGS = ("joints", "force", "touch")
+"""The sensings a status reports residuals of, in :attr:`.GroupEstimates.residual`'s order."""
+
+
 @dataclass
 class Session:
     id: str
@@ -201,8 +205,10 @@ class Session:
     """When the session last received a frame (or opened) [s, monotonic]."""
     joints_off: dict[str, float] = field(default_factory=dict)
     """The model check: joints the worlds hold away from the robot's, by name: RMS [rad or m]."""
-    residuals: dict[str, float] = field(default_factory=dict)
-    """What the lowest-cost world leaves unexplained, per sensing the robot sends (:meth:`estimate`)."""
+    residual: tuple[float, ...] = ()
+    """What the lowest-cost world leaves unexplained after the latest frame, per sensing (joints,
+    force, touch), :attr:`.GroupEstimates.residual`; and which of them the robot sent."""
+    sensed: tuple[bool, ...] = ()
 
     def check_model(self, rms: np.ndarray, joints: tuple[str, ...], threshold: float) -> str | None:
         """Take the model check's latest RMS per joint (D,); once the session has a second of
@@ -249,7 +255,7 @@ class Session:
             load_ms=load_ms,
             contacts_explored=s.contacts_explored,
             evidence=float(s.latest.evidence) if s.latest else 1.0,
-            residuals=s.residuals,
+            residuals={k: round(float(r), 6) for k, r, on in zip(_SENSINGS, s.residual, s.sensed) if on},  # noqa: B905 - none before the first frame
             joints_off=s.joints_off,
         )
 
@@ -257,8 +263,8 @@ class Session:
         """The session's estimate for ``frame``, from its group's row of a step's estimates."""
         s = self
         g = s.group
-        sensed = {"joints": True, "force": frame.force is not None, "touch": frame.touch is not None}
-        s.residuals = {k: round(float(r), 6) for (k, on), r in zip(sensed.items(), est.residual[g], strict=True) if on}
+        # Made a dict only when the status is asked for, not every frame.
+        s.residual, s.sensed = tuple(est.residual[g]), (True, frame.force is not None, frame.touch is not None)
         return Estimate(
             session=s.id,
             seq=frame.seq,
