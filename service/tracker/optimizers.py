@@ -58,7 +58,7 @@ class OptimizerConfig:
     alike up to noise, and resampling on noise only throws away the spread of initial poses."""
     min_separation: float = 0.0
     """Skip the update of a group whose worlds' window costs differ by less than this many times
-    what their own frame-to-frame scatter explains (:func:`separation`, an F ratio; 0 never skips).
+    what their own frame-to-frame scatter explains (:func:`.evidence.separation`, an F ratio; 0 never skips).
     The cost is scale-free to the optimizers, so without it a group resamples on whatever differs,
     signal or not."""
 
@@ -66,13 +66,13 @@ class OptimizerConfig:
     """Make every update only as strong as the evidence for it: the selection (REPS's KL bound, WRS's
     lambda, how many worlds PBO replaces), the parameter and wrench noise, the roughening and the
     estimate's weighting all scale with the information the window's costs hold about which worlds
-    are better beyond what noise alone gives (:func:`evidence_strength`). Where the worlds are no
+    are better beyond what noise alone gives (:func:`.evidence.evidence_strength`). Where the worlds are no
     further apart than their own frame-to-frame noise would make them, the group runs open loop and
     its window goes on gathering. Off: every update at full strength, as the paper."""
 
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
-    physics parameters explain (:func:`pose_evidence`, an F ratio, over this); elsewhere only the
+    physics parameters explain (:func:`.evidence.pose_evidence`, an F ratio, over this); elsewhere only the
     parameters are resampled and every world keeps its own state. An object lying on a palm is felt
     through its weight, so the costs rank worlds by mass while the poses are chosen at random, and
     resampling them drifts the estimate away from where the worlds began. 0: always resample both."""
@@ -207,10 +207,10 @@ def update(
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
-    ``separated`` (G,) is each group's :func:`separation`; a group below ``config.min_separation``
+    ``separated`` (G,) is each group's :func:`.evidence.separation`; a group below ``config.min_separation``
     keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``,
     but for those that lost their object, and is named in :attr:`Update.held_back`. ``strength``
-    (G, 1) in [0, 1] (:func:`evidence_strength`) weakens each group's selection; at 0 the group is
+    (G, 1) in [0, 1] (:func:`.evidence.evidence_strength`) weakens each group's selection; at 0 the group is
     held back as well. None: every group at full strength.
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
