@@ -97,13 +97,17 @@ def xy_chart(
     ylabel: str = "ADD [mm]",
     labels: dict[str, Sequence[str]] | None = None,
     note: str = "",
+    lines: bool = True,
+    reference: float | None = None,
 ) -> Path:
-    """One marked line per series through its (x, y) points, each point annotated with its label
-    (e.g. K); x on a log scale, as frame times and world counts span decades."""
+    """One marked line per series through its (x, y) points (points alone without ``lines``, where
+    the points are separate cases), each point annotated with its label (e.g. K); x on a log scale,
+    as frame times and world counts span decades; ``reference`` draws a dashed level (e.g. 1 for a
+    ratio to a baseline)."""
     fig, ax = plt.subplots(figsize=(6.4, 3.6), layout="constrained")
     for name, points in series.items():
         xy = np.asarray(points, float).reshape(-1, 2)
-        ax.plot(xy[:, 0], xy[:, 1], marker="o", label=name, linewidth=1.2)
+        ax.plot(xy[:, 0], xy[:, 1], marker="o", label=name, linewidth=1.2 if lines else 0)
         for (x, y), text in zip(xy, (labels or {}).get(name, ()), strict=False):
             ax.annotate(text, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
     ax.set_xscale("log")
@@ -113,6 +117,8 @@ def xy_chart(
     ax.set_ylabel(ylabel)
     _label(fig, ax, title, note)
     ax.set_ylim(bottom=0)
+    if reference is not None:
+        ax.axhline(reference, color="0.4", linestyle="--", linewidth=0.8)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     ax.grid(alpha=0.3, which="both")
     return _save(fig, path)

@@ -3,7 +3,8 @@ file-name order, with its device, command and date, and a chart where the file a
 
 A result file: {"title", "device", "date", "command", "about", "columns", "rows"[, "chart"]};
 "chart" is {"kind": "bar", "groups", "series", "mean", "err", "ylabel"} or {"kind": "xy", "series":
-{name: [[x, y], ...]}, "labels": {name: [text, ...]}, "xlabel", "ylabel"}. Then one section per
+{name: [[x, y], ...]}, "labels": {name: [text, ...]}, "xlabel", "ylabel"[, "lines": false (points
+alone), "reference": y (a dashed level)]}. Then one section per
 device from docs/results/speed/: the files `inhand-tracker bench speed --json` writes.
 """
 
@@ -87,7 +88,10 @@ def _cell(value) -> str:
 
 def _chart(path: Path, title: str, chart: dict, note: str) -> Path:
     if chart["kind"] == "xy":
-        return xy_chart(path, title, chart["series"], chart["xlabel"], chart["ylabel"], chart.get("labels"), note)
+        return xy_chart(
+            path, title, chart["series"], chart["xlabel"], chart["ylabel"], chart.get("labels"), note,
+            lines=chart.get("lines", True), reference=chart.get("reference"),
+        )  # fmt: skip
     return bar_chart(
         path, title, chart["groups"], chart["series"], chart["mean"], chart.get("err"), chart["ylabel"], note
     )
