@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from inhand_tracker.service.server.config import DEFAULT_CONFIG, ServiceConfig, load_config, shipped_toml
@@ -12,10 +14,20 @@ def test_the_shipped_config_is_the_defaults_and_names_every_setting():
     assert DEFAULT_CONFIG.read_text() == shipped_toml(), "run `inhand-tracker settings > configs/service.toml`"
     shipped = DEFAULT_CONFIG.read_text()
     assert all(
-        f"\n{name} =" in shipped or f"\n# {name} =" in shipped
+        f"\n{name} =" in shipped or f"\n# {name} =" in shipped or f"\n# [[{name}]]" in shipped
         for name in ServiceConfig.model_fields
         if name != "physics"
     )
+
+
+def test_the_shipped_ros2_session_example_is_a_config_the_service_takes(tmp_path):
+    lines = DEFAULT_CONFIG.read_text().splitlines()
+    start = lines.index("# [[ros2_sessions]]")
+    example = [line.removeprefix("# ") for line in itertools.takewhile(lambda x: x.startswith("#"), lines[start:])]
+    (tmp_path / "hand.toml").write_text("ros2 = true\n" + "\n".join(example) + "\n")
+    (session,) = load_config(tmp_path / "hand.toml").ros2_sessions
+    assert (session.name, session.robot, session.joint_states) == ("left_hand", "allegro", "/allegro/joint_states")
+    assert len(session.wrenches) == 4 and session.touch is None
 
 
 def test_environment_then_overrides(monkeypatch):

@@ -71,7 +71,11 @@ def serve(
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    with started(TrackerNode(settings), "serve") as node:
+    try:
+        node = TrackerNode(settings)
+    except ValueError as exc:  # a robot, object or ROS 2 session the files do not hold
+        raise fail(f"serve: {exc}") from None
+    with started(node, "serve") as node:
         while not stop.wait(0.5) and not node.failed.is_set():
             pass
         log.info("stopping")

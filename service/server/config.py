@@ -13,7 +13,7 @@ import os
 import textwrap
 import typing
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 from pydantic_settings import (
@@ -28,7 +28,15 @@ from inhand_tracker.client.zenoh_session import check_endpoints
 from inhand_tracker.service.paths import CONFIG_DIR
 from inhand_tracker.sim_backend import PopulationConfig
 
-__all__ = ["DEFAULT_CONFIG", "SERVICE_PHYSICS", "PhysicsSettings", "ServiceConfig", "load_config", "shipped_toml"]
+__all__ = [
+    "DEFAULT_CONFIG",
+    "SERVICE_PHYSICS",
+    "PhysicsSettings",
+    "RosSession",
+    "ServiceConfig",
+    "load_config",
+    "shipped_toml",
+]
 
 DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
 
@@ -86,6 +94,58 @@ def _physics_settings() -> type[_Physics]:
 
 
 PhysicsSettings = _physics_settings()
+
+_TOPIC = r"^(/[A-Za-z_][A-Za-z0-9_]*)+$"
+"""A ROS 2 topic, fully qualified: a launch file remaps it in the service's config."""
+
+
+class RosSession(BaseModel):
+    """A session the service opens itself for a robot that speaks ROS 2 and runs no client: fed from
+    the robot's topics on the rmw_zenoh wire, its estimate out on ``/inhand/{name}/pose`` (with
+    ``ros2``). Each joint state is a frame, with the latest command, wrenches and touch; the first
+    opens the session at its joint positions, and one after the session closed opens it again."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
+    """The session's name: its pose topic is ``/inhand/{name}/pose``, its TF frame ``{name}``."""
+    robot: str
+    """One of the service's robots (its config's ``name``)."""
+    object: str
+    """One of the service's objects."""
+    p0: tuple[float, float, float, float, float, float, float]
+    """The object's pose at the start: position [m], quaternion (x, y, z, w); a pose on ``camera``
+    received before the first joint state replaces it."""
+    sigma_t: float = Field(0.005, ge=0.0, le=0.1)
+    """Translation noise of p0 [m]."""
+    sigma_r: float = Field(0.1, ge=0.0, le=3.2)
+    """Rotation noise of p0 [rad]."""
+    method: str = "PBO"
+    """The optimizer: OLP, EYE, WRS, REPS or PBO."""
+    worlds: Annotated[int, Field(ge=1, le=65536)] | Literal["auto"] = "auto"
+    """K, the session's worlds; "auto": as many as the frame budget allows (fewer taken when short)."""
+    joint_states: str = Field("/joint_states", pattern=_TOPIC)
+    """``sensor_msgs/msg/JointState``: the measured joint positions, by name (or in the robot
+    config's order when the message names none) [rad or m]. Each message is one frame."""
+    commands: str | None = Field(None, pattern=_TOPIC)
+    """The joint position targets [rad or m], as ``commands_type``; unset: the measured positions."""
+    commands_type: Literal["sensor_msgs/msg/JointState", "std_msgs/msg/Float64MultiArray"] = (
+        "sensor_msgs/msg/JointState"
+    )
+    """A JointState (by name), or a Float64MultiArray (a ros2_control position controller's
+    ``commands``, in ``command_joints``' order)."""
+    command_joints: tuple[str, ...] = ()
+    """The joints of a Float64MultiArray command, in its order; empty: the robot config's order."""
+    wrenches: tuple[Annotated[str, Field(pattern=_TOPIC)], ...] = ()
+    """``geometry_msgs/msg/WrenchStamped`` topics, one per fingertip sensor in the robot config's
+    order: the force [N] in the sensor's frame (z the pad normal, toward the object)."""
+    touch: str | None = Field(None, pattern=_TOPIC)
+    """``std_msgs/msg/Float32MultiArray``: the normal force on each touch zone [N], in the robot config's order."""
+    camera: str | None = Field(None, pattern=_TOPIC)
+    """``geometry_msgs/msg/PoseWithCovarianceStamped``: a camera's pose of the object in the robot's
+    world frame, scored as an observation."""
+    camera_sigma: tuple[float, float] = (0.005, 0.05)
+    """Position [m] and rotation [rad] noise of a camera pose whose covariance is all zeros."""
 
 
 class ServiceConfig(BaseSettings):
@@ -193,6 +253,9 @@ class ServiceConfig(BaseSettings):
     """The ROS frame the poses are in: the robot's world frame (its config's base) as your TF tree names it."""
     ros2_tf: bool = False
     """Also broadcast each session's object frame (the session's name) on ``/tf`` under ``ros2_frame_id``."""
+    ros2_sessions: tuple[RosSession, ...] = ()
+    """Sessions fed from ROS 2 topics, one ``[[ros2_sessions]]`` table each (see RosSession): a robot
+    on ROS 2 needs no client. Their poses go out on ROS 2 topics with ``ros2``."""
     view_port: int | None = Field(None, ge=1, le=65535)
     """Serve a live view of the sessions on this port (Newton's viser viewer; open it in a browser)."""
     view_host: str = "127.0.0.1"
@@ -261,7 +324,23 @@ def _toml_entry(name: str, field) -> list[str]:
     value = field.default
     if value is None:
         return [*out, f"# {name} =", ""]
+    if name == "ros2_sessions":  # an array of tables, which TOML writes after every plain key: an example
+        return [*out, *(f"# {line}" if line else "#" for line in _ROS2_EXAMPLE), ""]
     return [*out, f"{name} = {_toml_value(value)}", ""]
+
+
+_ROS2_EXAMPLE = (
+    "[[ros2_sessions]]",
+    'name = "left_hand"',
+    'robot = "allegro"',
+    'object = "foam_brick"',
+    "p0 = [0.02, -0.046, 0.025, 0.0, 0.0, 0.0, 1.0]",
+    'joint_states = "/allegro/joint_states"',
+    'commands = "/allegro/joint_commands"',
+    'wrenches = ["/allegro/tip0/wrench", "/allegro/tip1/wrench", "/allegro/tip2/wrench", "/allegro/tip3/wrench"]',
+    '# touch = "/allegro/touch"',
+    '# camera = "/camera/object_pose"',
+)
 
 
 def _toml_value(value) -> str:

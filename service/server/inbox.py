@@ -19,7 +19,7 @@ from inhand_tracker.protocol import Error, ErrorCode, encode
 
 from .admission import ServiceError
 
-__all__ = ["Inbox", "Request", "answer", "guarded"]
+__all__ = ["Inbox", "Request", "answer", "guarded", "reply"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,15 @@ def answer(done: Future | None, value) -> None:
     if done is not None:
         with contextlib.suppress(InvalidStateError):
             done.set_result(value)
+
+
+def reply(query: zenoh.Query, message) -> None:
+    """Answer a query with a message, or with an error reply for an :class:`Error`."""
+    with query:
+        if isinstance(message, Error):
+            query.reply_err(encode(message), encoding=zenoh_encoding(Error))
+        else:
+            query.reply(query.key_expr, encode(message), encoding=zenoh_encoding(type(message)))
 
 
 def guarded(handler):

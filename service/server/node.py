@@ -39,11 +39,12 @@ from inhand_tracker.sim_backend import load_catalog, load_robot, resolve_device
 
 from .admission import Admission, ServiceError
 from .config import ServiceConfig
-from .inbox import Inbox, Request, answer, guarded
+from .inbox import Inbox, Request, answer, guarded, reply
 from .outputs import Outputs
 from .pools import PoolKey
 from .recording import SessionRecorder
 from .ros2 import RosTopics
+from .ros2_input import ROS_PEER, RosHost, RosInputs, check_sessions
 from .sessions import SessionManager
 
 __all__ = ["TrackerNode"]
@@ -64,12 +65,11 @@ class TrackerNode:
     def __init__(self, config: ServiceConfig):
         self.config = config
         self.keys = Keys(config.name)
-        robots = {}
-        for path in config.robots:
-            spec = load_robot(resolve(path))
-            robots[spec.name] = spec
+        robots = {spec.name: spec for spec in (load_robot(resolve(path)) for path in config.robots)}
+        catalog = load_catalog(resolve(config.objects))
+        check_sessions(config.ros2_sessions, robots, catalog)
         self.device = str(resolve_device(config.device))
-        self.manager = SessionManager(config, robots, load_catalog(resolve(config.objects)))
+        self.manager = SessionManager(config, robots, catalog)
         self.config = config = self.manager.config  # groups resolved for the device
         self._inbox = Inbox()
         self._latest: dict[str, bytes] = {}
@@ -123,6 +123,9 @@ class TrackerNode:
         ]
         if cfg.ros2:
             self.outputs.add(RosTopics(s, cfg.ros2_domain, cfg.ros2_frame_id, cfg.ros2_tf))
+        if cfg.ros2_sessions:
+            host = RosHost(self._inbox.post, self._open, self._frame, self._observation)
+            self.outputs.add(RosInputs(s, cfg.ros2_domain, cfg.ros2_sessions, host))
         if cfg.view_port:
             from .viewer import LiveView  # viser, only where a view is asked for
 
@@ -153,13 +156,6 @@ class TrackerNode:
         self.close()
 
     # ------------------------------------------------------------------ zenoh handlers (decode, queue)
-    def _reply(self, query: zenoh.Query, answer) -> None:
-        with query:
-            if isinstance(answer, Error):
-                query.reply_err(encode(answer), encoding=zenoh_encoding(Error))
-            else:
-                query.reply(query.key_expr, encode(answer), encoding=zenoh_encoding(type(answer)))
-
     @guarded
     def _on_info(self, query: zenoh.Query) -> None:
         m = self.manager
@@ -181,7 +177,7 @@ class TrackerNode:
             building=len(m.building),
             build_s=self._build_s,
         )
-        self._reply(query, info)
+        reply(query, info)
 
     @guarded
     def _on_open(self, query: zenoh.Query) -> None:
@@ -190,16 +186,16 @@ class TrackerNode:
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", OpenSession)
         except DecodeError as exc:
-            return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._inbox.call("open", functools.partial(self._open, request, None, peer)))
+            return reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
+        reply(query, self._inbox.call("open", functools.partial(self._open, request, None, peer)))
 
     @guarded
     def _on_close(self, query: zenoh.Query) -> None:
         try:
             request = decode(bytes(query.payload.to_bytes()) if query.payload else b"", CloseSession)
         except DecodeError as exc:
-            return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
-        self._reply(query, self._inbox.call("close", lambda _: self._close(request)))
+            return reply(query, Error(code=ErrorCode.BAD_REQUEST, message=str(exc)))
+        reply(query, self._inbox.call("close", lambda _: self._close(request)))
 
     def _session_request(self, query: zenoh.Query) -> CloseSession | Error:
         """The session and token a status or pose query carries; the session is the key's."""
@@ -221,7 +217,7 @@ class TrackerNode:
             if session not in latest:
                 opened = session in self.manager.sessions
                 text = f"session '{session}': " + ("no estimate yet" if opened else "is not open")
-                return self._reply(query, Error(code=ErrorCode.BAD_REQUEST, message=text))
+                return reply(query, Error(code=ErrorCode.BAD_REQUEST, message=text))
         with query:
             for session, payload in latest.items():
                 key = zenoh.KeyExpr(self.keys.pose(session))
@@ -232,9 +228,9 @@ class TrackerNode:
     def _on_status(self, query: zenoh.Query) -> None:
         request = self._session_request(query)
         if isinstance(request, Error):
-            return self._reply(query, request)
+            return reply(query, request)
         status = lambda _: self.manager.status_of(self.manager.authorize_query(request, "status"))  # noqa: E731
-        self._reply(query, self._inbox.call("status", status))
+        reply(query, self._inbox.call("status", status))
 
     @guarded
     def _on_robot_sample(self, sample: zenoh.Sample) -> None:
@@ -398,9 +394,10 @@ class TrackerNode:
             self._waiting.setdefault(admission.key, []).append((admission, done))
             return None
         info = m.attach(admission)
-        # Gone until its robot's liveliness token shows up: a robot that never declares one
-        # does not hold a session for ever.
-        self._robot_gone[info.session] = time.monotonic()
+        # Gone until its robot's liveliness token shows up: a robot that never declares one does not
+        # hold a session for ever. A ROS 2 robot declares none: its frames hold it (idle timeout).
+        if not peer.startswith(ROS_PEER):
+            self._robot_gone[info.session] = time.monotonic()
         self._publishers[info.session] = self.session.declare_publisher(
             self.keys.pose(info.session),
             encoding=_ESTIMATE,

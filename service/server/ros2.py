@@ -47,6 +47,8 @@ __all__ = [
     "ros_topic",
     "tf_message",
     "to_ros_time",
+    "topic_key",
+    "topic_token",
 ]
 
 TYPES = typestore()
@@ -118,6 +120,19 @@ def _mangle(name: str) -> str:
     return name.replace("/", "%") if name not in ("", "/") else "%"
 
 
+def topic_key(domain_id: int, topic: str, msg_type: str, digest: str | None = None) -> str:
+    """rmw_zenoh's data key of a topic; without ``digest``, of any type hash (ROS 2 distributions
+    hash the same type differently, Humble not at all)."""
+    return f"{domain_id}/{topic.lstrip('/')}/{_dds_name(msg_type)}/{digest or '*'}"
+
+
+def topic_token(domain_id: int, zid: str, node: str, entity: int, kind: str, topic: str, msg_type: str) -> str:
+    """The liveliness token of a node's publisher (``MP``) or subscription (``MS``) on a topic,
+    which ``ros2 topic info`` reads."""
+    dds, digest = _dds_name(msg_type), TYPES.hash_rihs01(msg_type)
+    return f"@ros2_lv/{domain_id}/{zid}/0/{entity}/{kind}/%/%/{node}/{_mangle(topic)}/{dds}/{digest}/{_QOS}"
+
+
 @dataclass
 class RosPublisher:
     """One rmw_zenoh publisher: its data key, its liveliness token, its sequence and GID."""
@@ -162,12 +177,8 @@ class RosTopics(Output):
 
     def _declare(self, topic: str, msg_type: str) -> RosPublisher:
         self._entities += 1
-        dds, digest = _dds_name(msg_type), TYPES.hash_rihs01(msg_type)
-        key = f"{self.domain_id}/{topic.lstrip('/')}/{dds}/{digest}"
-        token = (
-            f"@ros2_lv/{self.domain_id}/{self._zid}/0/{self._entities}/MP/%/%/{self.node}/"
-            f"{_mangle(topic)}/{dds}/{digest}/{_QOS}"
-        )
+        key = topic_key(self.domain_id, topic, msg_type, TYPES.hash_rihs01(msg_type))
+        token = topic_token(self.domain_id, self._zid, self.node, self._entities, "MP", topic, msg_type)
         return RosPublisher(
             topic,
             msg_type,

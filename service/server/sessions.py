@@ -146,6 +146,10 @@ class SessionManager:
         pool.key = replace(pool.key, serial=self._built)
         self.pools[pool.key] = pool
 
+    def layout(self, robot: str):
+        """The robot's layout (its joints, sensors and touch zones, in its frames' order)."""
+        return self.gate.kinematics.setdefault(robot, Kinematics(self.robots[robot])).layout
+
     def attach(self, admission: Admission) -> SessionInfo:
         """Open the session in a free group of ``admission.pool``."""
         request, pool = admission.request, admission.pool
