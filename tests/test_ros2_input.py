@@ -5,6 +5,7 @@ reads them, and the pose comes back on a ROS 2 topic."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 from service_process import ROOT, ServiceProcess, free_port
 
 from inhand_tracker.client import TrackerClient
@@ -35,16 +37,25 @@ def _joint_names(robot: str) -> tuple[str, ...]:
     return Kinematics(load_robot(CONFIG_DIR / "robots" / f"{robot}.toml")).layout.joint_names
 
 
-def _fresh_sdk_session() -> None:
-    """zenoh-ros2-sdk keeps one Zenoh session per process, connected where its first user said:
-    another test's service, gone by now. Ours connects to this test's service."""
+@pytest.fixture
+def sdk_session():
+    """zenoh-ros2-sdk keeps one Zenoh session per process, connected where its first user said: the
+    test's own, made fresh before it and closed after it, so no other test inherits one to a
+    service that is gone."""
+    from zenoh_ros2_sdk import message_registry
     from zenoh_ros2_sdk.session import ZenohSession
 
-    if ZenohSession._instance is not None:
-        ZenohSession._instance.close()
+    def fresh() -> None:
+        if ZenohSession._instance is not None:
+            ZenohSession._instance.close()
+        message_registry._registry = None  # it holds the session it was made with
+
+    fresh()
+    yield
+    fresh()
 
 
-def test_a_ros_native_robot_is_tracked_from_its_topics_and_its_pose_read_back_on_ros():
+def test_a_ros_native_robot_is_tracked_from_its_topics_and_its_pose_read_back_on_ros(sdk_session):
     from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber
     from zenoh_ros2_sdk.discovery import get_topic_info
     from zenoh_ros2_sdk.message_registry import get_registry
@@ -61,7 +72,6 @@ def test_a_ros_native_robot_is_tracked_from_its_topics_and_its_pose_read_back_on
     svc = ServiceProcess(
         port, ros2="true", ros2_domain_id=str(DOMAIN), ros2_sessions=json.dumps([declared]), idle_timeout_s="4"
     )
-    _fresh_sdk_session()
     get_registry(str(MSGS))  # the .msg files a ROS 2 install would hold; nothing fetched
     on = {"router_ip": "127.0.0.1", "router_port": port, "domain_id": DOMAIN, "node_name": "hand_driver"}
     poses, lock = [], threading.Lock()
@@ -152,3 +162,40 @@ def test_a_declared_session_the_service_cannot_serve_is_refused_at_start_in_one_
     assert run.returncode == 2, run.stdout + run.stderr
     lines = [line for line in run.stderr.splitlines() if line.strip()]
     assert said in run.stderr and len(lines) == 1, run.stderr
+
+
+def test_two_services_on_one_router_publish_as_nodes_and_topics_of_their_own():
+    """One service per GPU behind one router, each with a session of the default name: each service's
+    node and topics live in its own namespace (its name), so neither's pose reaches the other's topic."""
+    from inhand_tracker.client import zenoh_config
+
+    traj = Trajectory.load(TRAJECTORY)
+    port = free_port()
+    router = f"tcp/127.0.0.1:{port}"
+    conf = zenoh_config(listen=[router])
+    conf.insert_json5("mode", '"router"')
+    services = []
+    with zenoh.open(conf) as z, contextlib.ExitStack() as stack:
+        try:
+            for name in ("gpu-a", "gpu-b"):
+                settings = {"name": name, "connect": router, "ros2": "true", "ros2_domain_id": "6"}
+                settings["idle_timeout_s"] = "120"  # both sessions stay open while the other service warms
+                services.append(ServiceProcess(free_port(), listen=False, **settings))
+            robots = [stack.enter_context(TrackerClient(connect=[router], service=n)) for n in ("gpu-a", "gpu-b")]
+            for svc, robot in zip(services, robots, strict=True):
+                svc.wait_ready(robot)
+            for robot in robots:
+                info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=2)
+                assert info.name == "allegro_foam_brick"
+                robot.send(traj.frame(0, info.session))
+                robot.latest_pose(timeout=60, after_seq=0)
+            # The publishers' liveliness tokens, in rmw_zenoh's layout (which `ros2 topic list` and
+            # `ros2 topic info -v` read): one node per service, inhand_tracker in its service's namespace.
+            mine = ["/gpu_a/inhand/allegro_foam_brick/pose", "/gpu_b/inhand/allegro_foam_brick/pose"]
+            tokens = [str(r.ok.key_expr).split("/") for r in z.liveliness().get("@ros2_lv/6/**", timeout=2) if r.ok]
+            publishers = sorted((t[9], t[7], t[8]) for t in tokens if t[5] == "MP" and t[9].endswith("%pose"))
+            assert publishers == [(t.replace("/", "%"), t[:6].replace("/", "%"), "inhand_tracker") for t in mine]
+        finally:
+            stack.close()
+            for svc in services:
+                svc.stop()

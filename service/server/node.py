@@ -43,7 +43,7 @@ from .inbox import Inbox, Request, answer, guarded, reply
 from .outputs import Outputs
 from .pools import PoolKey
 from .recording import SessionRecorder
-from .ros2 import RosTopics
+from .ros2 import RosTopics, ros_namespace
 from .ros2_input import ROS_PEER, RosHost, RosInputs, check_sessions
 from .sessions import SessionManager
 
@@ -122,10 +122,10 @@ class TrackerNode:
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
         ]
         if cfg.ros2:
-            self.outputs.add(RosTopics(s, cfg.ros2_domain, cfg.ros2_frame_id, cfg.ros2_tf))
+            self.outputs.add(RosTopics(s, cfg.ros2_domain, cfg.ros2_frame_id, cfg.ros2_tf, ros_namespace(cfg.name)))
         if cfg.ros2_sessions:
             host = RosHost(self._inbox.post, self._open, self._frame, self._observation)
-            self.outputs.add(RosInputs(s, cfg.ros2_domain, cfg.ros2_sessions, host))
+            self.outputs.add(RosInputs(s, cfg.ros2_domain, cfg.ros2_sessions, host, ros_namespace(cfg.name)))
         if cfg.view_port:
             from .viewer import LiveView  # viser, only where a view is asked for
 

@@ -42,8 +42,10 @@ __all__ = [
     "TYPES",
     "RosPublisher",
     "RosTopics",
+    "node_token",
     "object_frame",
     "pose_message",
+    "ros_namespace",
     "ros_topic",
     "tf_message",
     "to_ros_time",
@@ -62,14 +64,22 @@ _QOS = "::,10:,:,:,,"
 _NOT_A_NAME = re.compile(r"[^A-Za-z0-9_]")
 
 
-def ros_topic(name: str, leaf: str = "pose") -> str:
-    """The ROS 2 topic of a session's ``leaf``, by the session's name (a ROS name token)."""
-    return f"/inhand/{_NOT_A_NAME.sub('_', name)}/{leaf}"
+def ros_namespace(service: str) -> str:
+    """The ROS 2 namespace of a service's node and topics: the root for the service named
+    ``default``, else ``/<its name>``, so that two services on one network never share a topic."""
+    return "/" if service == "default" else "/" + _NOT_A_NAME.sub("_", service)
 
 
-def object_frame(name: str) -> str:
-    """The TF frame of a session's object: the session's name."""
-    return _NOT_A_NAME.sub("_", name)
+def ros_topic(name: str, leaf: str = "pose", namespace: str = "/") -> str:
+    """The ROS 2 topic of a session's ``leaf``, by the session's name (a ROS name token), in the
+    service's namespace."""
+    return f"{namespace.rstrip('/')}/inhand/{_NOT_A_NAME.sub('_', name)}/{leaf}"
+
+
+def object_frame(name: str, namespace: str = "/") -> str:
+    """The TF frame of a session's object: the session's name, under the service's namespace."""
+    frame = _NOT_A_NAME.sub("_", name)
+    return frame if namespace == "/" else f"{namespace.strip('/')}/{frame}"
 
 
 def to_ros_time(stamp: float):
@@ -126,11 +136,18 @@ def topic_key(domain_id: int, topic: str, msg_type: str, digest: str | None = No
     return f"{domain_id}/{topic.lstrip('/')}/{_dds_name(msg_type)}/{digest or '*'}"
 
 
-def topic_token(domain_id: int, zid: str, node: str, entity: int, kind: str, topic: str, msg_type: str) -> str:
+def node_token(domain_id: int, zid: str, node: str, namespace: str) -> str:
+    """The liveliness token of a node, which ``ros2 node list`` reads."""
+    return f"@ros2_lv/{domain_id}/{zid}/0/0/NN/%/{_mangle(namespace)}/{node}"
+
+
+def topic_token(
+    domain_id: int, zid: str, node: str, namespace: str, entity: int, kind: str, topic: str, msg_type: str
+) -> str:
     """The liveliness token of a node's publisher (``MP``) or subscription (``MS``) on a topic,
     which ``ros2 topic info`` reads."""
-    dds, digest = _dds_name(msg_type), TYPES.hash_rihs01(msg_type)
-    return f"@ros2_lv/{domain_id}/{zid}/0/{entity}/{kind}/%/%/{node}/{_mangle(topic)}/{dds}/{digest}/{_QOS}"
+    dds, digest, ns = _dds_name(msg_type), TYPES.hash_rihs01(msg_type), _mangle(namespace)
+    return f"@ros2_lv/{domain_id}/{zid}/0/{entity}/{kind}/%/{ns}/{node}/{_mangle(topic)}/{dds}/{digest}/{_QOS}"
 
 
 @dataclass
@@ -158,19 +175,24 @@ class RosPublisher:
 
 
 class RosTopics(Output):
-    """The service as one ROS 2 node (``inhand_tracker``, root namespace), with a pose publisher
-    per session and, when ``tf`` is on, one ``/tf`` publisher for all of them."""
+    """The service as one ROS 2 node (``inhand_tracker`` in the service's namespace), with a pose
+    publisher per session and, when ``tf`` is on, one ``/tf`` publisher for all of them."""
 
     name = "ROS 2 topics"
 
-    def __init__(self, session: zenoh.Session, domain_id: int = 0, frame_id: str = "world", tf: bool = False):
-        self.session, self.domain_id, self.frame_id = session, domain_id, frame_id
+    def __init__(
+        self,
+        session: zenoh.Session,
+        domain_id: int = 0,
+        frame_id: str = "world",
+        tf: bool = False,
+        namespace: str = "/",
+    ):
+        self.session, self.domain_id, self.frame_id, self.namespace = session, domain_id, frame_id, namespace
         self.node = "inhand_tracker"
         self._zid = str(session.info.zid())
         self._entities = 0
-        self._node_token = session.liveliness().declare_token(
-            f"@ros2_lv/{domain_id}/{self._zid}/0/0/NN/%/%/{self.node}"
-        )
+        self._node_token = session.liveliness().declare_token(node_token(domain_id, self._zid, self.node, namespace))
         self._poses: dict[str, RosPublisher] = {}
         self._children: dict[str, str] = {}
         self._tf = self._declare("/tf", TF_TYPE) if tf else None
@@ -178,7 +200,7 @@ class RosTopics(Output):
     def _declare(self, topic: str, msg_type: str) -> RosPublisher:
         self._entities += 1
         key = topic_key(self.domain_id, topic, msg_type, TYPES.hash_rihs01(msg_type))
-        token = topic_token(self.domain_id, self._zid, self.node, self._entities, "MP", topic, msg_type)
+        token = topic_token(self.domain_id, self._zid, self.node, self.namespace, self._entities, "MP", topic, msg_type)
         return RosPublisher(
             topic,
             msg_type,
@@ -190,8 +212,9 @@ class RosTopics(Output):
 
     def open(self, info: SessionInfo, request: OpenSession | None = None) -> None:
         """Start publishing the session's estimates on its ROS 2 pose topic."""
-        self._poses[info.session] = self._declare(ros_topic(info.name or info.session), POSE_TYPE)
-        self._children[info.session] = object_frame(info.name or info.session)
+        name = info.name or info.session
+        self._poses[info.session] = self._declare(ros_topic(name, namespace=self.namespace), POSE_TYPE)
+        self._children[info.session] = object_frame(name, self.namespace)
 
     def estimate(self, estimate: Estimate) -> None:
         pub = self._poses.get(estimate.session)

@@ -120,7 +120,9 @@ class RosInputs(Output):
 
     name = "ROS 2 inputs"
 
-    def __init__(self, session: zenoh.Session, domain_id: int, specs: tuple[RosSession, ...], host: RosHost):
+    def __init__(
+        self, session: zenoh.Session, domain_id: int, specs: tuple[RosSession, ...], host: RosHost, namespace: str = "/"
+    ):
         self.host, self.domain_id = host, domain_id
         self._feeds = {s.name: _Feed(s) for s in specs}
         self._layouts = None
@@ -137,7 +139,7 @@ class RosInputs(Output):
                 topics.append((s.camera, CAMERA, self._camera))
             for topic, msg_type, apply in topics:
                 self._entities += 1
-                token = topic_token(domain_id, zid, "inhand_tracker", self._entities, "MS", topic, msg_type)
+                token = topic_token(domain_id, zid, "inhand_tracker", namespace, self._entities, "MS", topic, msg_type)
                 self._tokens.append(session.liveliness().declare_token(token))
                 handler = functools.partial(self._on_sample, feed, topic, msg_type, apply)
                 self._subscribers.append(session.declare_subscriber(topic_key(domain_id, topic, msg_type), handler))
