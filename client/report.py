@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from inhand_tracker.protocol import SessionRecording, SessionStatus, Trajectory
+from inhand_tracker.protocol.recording import is_recording
 
 from .replay import NOISE_LEVELS, ReplayResult, noisy_start
 from .replay import replay as stream
@@ -34,7 +35,7 @@ def replay_file(
     say: Callable[[str], None] = print,
     score: Scorer | None = None,
 ) -> int:
-    """Stream a trajectory file (``.traj``) or a session recording (``.mcap``) to the service as
+    """Stream a trajectory file (``.traj``) or a session recording (its folder or ``.mcap``) to the service as
     its robot would, and report what came back: latency, and ADD where the file carries the
     truth. A recording reopens its session as it was opened, unless ``method`` or ``worlds``
     say otherwise; a trajectory starts from its true pose with ``noise`` (low, med, high).
@@ -90,7 +91,7 @@ def _load(file: Path, noise: str) -> tuple[Trajectory, SessionRecording | None, 
         raise ValueError(f"--noise: expected low, med or high, got '{noise}'")
     recording = None
     try:
-        if file.suffix == ".mcap":
+        if is_recording(file):
             recording = SessionRecording.load(file)
             traj = recording.trajectory
         else:

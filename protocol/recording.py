@@ -1,7 +1,8 @@
-"""Session recordings: one MCAP file per session in the rosbag2 profile, as the service writes
-them (setting ``record``) and as ``inhand-tracker replay`` reads them back. Every channel is a ROS 2
-message in CDR with its ``ros2msg`` schema in the file, so tools that read rosbag2's MCAP
-storage (rosbags) take the types from the file itself.
+"""Session recordings: one rosbag2 folder per session (an MCAP file in the rosbag2 profile and its
+``metadata.yaml``), as the service writes them (setting ``record``) and as ``inhand-tracker
+replay`` reads them back (the folder or its ``.mcap``). Every channel is a ROS 2 message in CDR
+with its ``ros2msg`` schema in the file, so tools that read rosbag2 (``ros2 bag``, rosbags) open
+the folder and take the types from the file itself.
 
 Channels (topic, ROS 2 type):
 
@@ -35,7 +36,16 @@ from .ros2_records import decode_record
 from .sensing import SENSING
 from .trajectory import Trajectory
 
-__all__ = ["CHANNELS", "PROFILE", "SESSION_FIELDS", "SESSION_METADATA", "SessionRecording", "load_trajectory"]
+__all__ = [
+    "CHANNELS",
+    "PROFILE",
+    "SESSION_FIELDS",
+    "SESSION_METADATA",
+    "SessionRecording",
+    "is_recording",
+    "load_trajectory",
+    "recording_file",
+]
 
 CHANNELS = {
     "frame": "/inhand/frame",
@@ -74,7 +84,7 @@ class SessionRecording:
     def load(cls, path: str | os.PathLike) -> SessionRecording:
         """The recording in ``path``; one cut short (the service killed, the disk full) is read up
         to its last whole record."""
-        path = Path(path)
+        path = recording_file(path)
         metadata, messages = _read_mcap(path)
         if SESSION_METADATA not in metadata:
             raise ValueError(f"recording '{path}': no '{SESSION_METADATA}' metadata: not a session recording")
@@ -159,7 +169,25 @@ def _chunk_error() -> type[Exception]:
         return ValueError
 
 
-def load_trajectory(path: str | os.PathLike) -> Trajectory:
-    """The trajectory of a ``.traj`` file, or what the robot sent in a session recording (``.mcap``)."""
+def is_recording(path: str | os.PathLike) -> bool:
+    """A session recording: a rosbag2 folder, or its ``.mcap`` file."""
     path = Path(path)
-    return SessionRecording.load(path).trajectory if path.suffix == ".mcap" else Trajectory.load(path)
+    return path.suffix == ".mcap" or path.is_dir()
+
+
+def recording_file(path: str | os.PathLike) -> Path:
+    """The MCAP file of a recording: ``path`` itself, or the one file of the rosbag2 folder ``path``
+    (a folder without its metadata.yaml, which a killed service leaves, is read too)."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    files = sorted(path.glob("*.mcap"))
+    if len(files) != 1:
+        raise ValueError(f"recording '{path}': expected one .mcap file in the folder, found {len(files)}")
+    return files[0]
+
+
+def load_trajectory(path: str | os.PathLike) -> Trajectory:
+    """The trajectory of a ``.traj`` file, or what the robot sent in a session recording (a rosbag2
+    folder or its ``.mcap``)."""
+    return SessionRecording.load(path).trajectory if is_recording(path) else Trajectory.load(path)

@@ -24,15 +24,23 @@ from inhand_tracker.service.paths import DATA_DIR
 TRAJECTORY = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 
 
-def test_the_demo_s_recording_is_a_rosbag2_file_and_replays_to_the_same_estimates(tmp_path):
-    """rosbags reads the recording as a rosbag2 bag (MCAP storage) and decodes every message of
-    every channel from the schemas in the file alone; the light client replays it."""
+def test_the_demo_s_recording_is_a_rosbag2_folder_and_replays_to_the_same_estimates(tmp_path):
+    """rosbags opens the recording's folder as a rosbag2 bag (its metadata.yaml, MCAP storage) and
+    decodes every message of every channel from the schemas in the file alone; the light client
+    replays it."""
     from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Reader
 
     out = CliRunner().invoke(app, ["demo", "--device", "cpu", "--worlds", "8", "--record", str(tmp_path)])
     assert out.exit_code == 0, out.output[-3000:]
-    (path,) = tmp_path.glob("*.mcap")
+    (folder,) = tmp_path.iterdir()
+    (path,) = folder.glob("*.mcap")
     traj = Trajectory.load(TRAJECTORY)
+    assert folder.name.startswith("allegro_foam_brick_") and path.name == f"{folder.name}_0.mcap"
+    with Reader(folder) as bag:  # the folder reader: metadata.yaml first
+        assert bag.message_count == sum(c.msgcount for c in bag.connections) == 6 * traj.frames  # no observations
+        assert {c.topic for c in bag.connections} == set(CHANNELS.values())
+        assert {c.topic: c.msgcount for c in bag.connections}[CHANNELS["frame"]] == traj.frames
 
     with path.open("rb") as f:
         reader = make_reader(f)
@@ -48,7 +56,7 @@ def test_the_demo_s_recording_is_a_rosbag2_file_and_replays_to_the_same_estimate
         assert {(c.message_encoding, summary.schemas[c.schema_id].encoding) for c in topics.values()} == {
             ("cdr", "ros2msg")
         }
-    with AnyReader([path]) as bag:  # its types from the file's schemas, not from this project
+    with AnyReader([folder]) as bag:  # its types from the file's schemas, not from this project
         decoded = {
             c.topic: [bag.deserialize(raw, c.msgtype) for c, _, raw in bag.messages([c])] for c in bag.connections
         }
@@ -71,7 +79,7 @@ def test_the_demo_s_recording_is_a_rosbag2_file_and_replays_to_the_same_estimate
     try:
         with TrackerClient(connect=[svc.endpoint]) as probe:
             svc.wait_ready(probe)
-        out = CliRunner().invoke(app, ["replay", str(path), "--connect", svc.endpoint])
+        out = CliRunner().invoke(app, ["replay", str(folder), "--connect", svc.endpoint])
     finally:
         svc.stop()
     assert out.exit_code == 0, out.output[-3000:]
@@ -109,7 +117,7 @@ def test_every_channel_carries_its_full_schema_and_a_killed_service_leaves_a_rea
         recorder.frame(traj.frame(i % traj.frames, info.session))
         i += 1
         time.sleep(0.01)
-    (path,) = tmp_path.glob("*.mcap")  # not closed: the footer and summary are missing
+    (path,) = tmp_path.glob("*/*.mcap")  # not closed: the footer and summary are missing
     records = []
     with contextlib.suppress(EndOfFile):  # the file ends mid-record, where the process stopped
         records.extend(StreamReader(path.open("rb"), skip_magic=False).records)
@@ -206,7 +214,7 @@ def test_a_service_killed_with_sigkill_leaves_a_readable_recording(tmp_path):
     svc.proc.kill()
     svc.proc.wait(timeout=10)
     client.close()
-    (path,) = tmp_path.glob("*.mcap")
+    (path,) = tmp_path.glob("*/*.mcap")
     records = []
     with contextlib.suppress(EndOfFile):  # the file ends where the process stopped
         records.extend(StreamReader(path.open("rb"), skip_magic=False).records)
@@ -232,7 +240,7 @@ def test_a_full_disk_stops_the_recording_and_the_session_tracks_on(tmp_path):
         status = client.status()
         assert status.last_error is not None and status.last_error.startswith("recording: stopped"), status
         assert last > 60 and status.frames > 60, (last, status.frames)  # tracking went on
-        (path,) = tmp_path.glob("*.mcap")
+        (path,) = tmp_path.glob("*/*.mcap")
         assert SessionRecording.load(path).trajectory.frames > 0  # cut mid-record, it still opens
     finally:
         client.close()

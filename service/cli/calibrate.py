@@ -19,7 +19,7 @@ def _files_exist(command: str, robot: Path, recordings: list[Path], device: str)
     check_device(device, command)
     if not robot.is_file():
         raise fail(f"{command} --robot: no such file '{robot}'", ExitCode.FILES)
-    if missing := [str(r) for r in recordings if not r.is_file()]:
+    if missing := [str(r) for r in recordings if not r.exists()]:
         raise fail(f"{command}: no such recording {missing[0]}", ExitCode.FILES)
     gpu_stack()
 
@@ -27,7 +27,7 @@ def _files_exist(command: str, robot: Path, recordings: list[Path], device: str)
 @app.command()
 def calibrate(
     ctx: typer.Context,
-    recordings: Annotated[list[Path], typer.Argument(help="the robot's recordings: .traj or the service's .mcap")],
+    recordings: Annotated[list[Path], typer.Argument(help="recordings: .traj, or the service's (folder or .mcap)")],
     robot: Annotated[Path, typer.Option(help="the robot's config (TOML) the recordings were made with")],
     settings: Annotated[
         str, typer.Option(help="what to fit, comma-separated: ke, kd, effort, damping, armature, friction")
@@ -70,7 +70,7 @@ def calibrate(
 
 @app.command("check-model")
 def check_model(
-    recordings: Annotated[list[Path], typer.Argument(help="recordings with truth: .traj (or the service's .mcap)")],
+    recordings: Annotated[list[Path], typer.Argument(help="recordings with truth: .traj (or the service's)")],
     robot: Annotated[Path, typer.Option(help="the robot's config (TOML)")],
     joint_noise: Annotated[
         float, typer.Option(help="the measured joints' noise, a standard deviation [rad or m]: taken out of the RMS")

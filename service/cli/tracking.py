@@ -98,7 +98,7 @@ def settings() -> None:
 # ---------------------------------------------------------------------- the robot side
 @app.command()
 def replay(
-    file: Annotated[Path, typer.Argument(help="a trajectory file (.traj) or a session recording (.mcap)")],
+    file: Annotated[Path, typer.Argument(help="a trajectory file (.traj) or a recording (folder or .mcap)")],
     connect: Annotated[str, typer.Option(help="the service's endpoints, comma-separated")] = "tcp/127.0.0.1:7447",
     name: Annotated[str, typer.Option(help="service name")] = "default",
     method: Annotated[str | None, typer.Option(help="OLP, EYE, WRS, REPS or PBO (default: the protocol's)")] = None,

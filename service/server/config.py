@@ -261,8 +261,9 @@ class ServiceConfig(BaseSettings):
     view_host: str = "127.0.0.1"
     """Where the live view listens: 0.0.0.0 to reach it from other machines."""
     record: str | None = None
-    """A folder to record every session to, one MCAP file each (``<session>.mcap``): what the robot
-    sent, every estimate and a summary of the population, for Foxglove and ``inhand-tracker replay``."""
+    """A folder to record every session to, one rosbag2 folder each (``<name>_<session>/``, MCAP):
+    what the robot sent, every estimate and a summary of the population, for ``ros2 bag``, Foxglove
+    and ``inhand-tracker replay``."""
 
     @property
     def ros2_domain(self) -> int:

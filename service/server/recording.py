@@ -1,7 +1,8 @@
-"""Every session recorded to an MCAP file in the rosbag2 profile (setting ``record``): what the
-robot sent, every estimate and a summary of the population, each a ROS 2 message with its schema,
-so tools that read rosbag2's MCAP storage (rosbags) open it, and ``inhand-tracker replay``
-tracks it again offline. The layout is :mod:`protocol.recording`'s."""
+"""Every session recorded to a rosbag2 folder (setting ``record``): an MCAP file in the rosbag2
+profile with what the robot sent, every estimate and a summary of the population, each a ROS 2
+message with its schema, and the folder's ``metadata.yaml`` once the session closes, so ``ros2 bag``
+and rosbags open it and ``inhand-tracker replay`` tracks it again offline. The layout is
+:mod:`protocol.recording`'s."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
+from ruamel.yaml import YAML
 
 from inhand_tracker.protocol import (
     CHANNELS,
@@ -47,11 +49,13 @@ def _plain(value):
 
 
 class _File:
-    """One session's MCAP file and its channels."""
+    """One session's rosbag2 folder: its MCAP file, channels and what metadata.yaml will say."""
 
-    def __init__(self, path: Path, info: SessionInfo, request: OpenSession, service: str, frame_id: str):
-        self.path, self.info, self.frame_id = path, info, frame_id
-        self.stream = path.open("wb")
+    def __init__(self, folder: Path, info: SessionInfo, request: OpenSession, service: str, frame_id: str):
+        folder.mkdir()
+        self.folder, self.info, self.frame_id = folder, info, frame_id
+        self.path = folder / f"{folder.name}_0.mcap"
+        self.stream = self.path.open("wb")
         self.writer = Writer(self.stream, compression=CompressionType.ZSTD)
         self.writer.start(profile=PROFILE, library="inhand-tracker")
         self.channels: dict[str, int] = {}
@@ -67,11 +71,15 @@ class _File:
         self.writer.add_metadata(SESSION_METADATA, {k: json.dumps(_plain(v)) for k, v in opened.items()})
         self.sequence = 0
         self.flushed = time.monotonic()
+        self.types = types
+        self.counts = dict.fromkeys(types, 0)
+        self.first_ns = self.last_ns = time.time_ns()
 
     def write(self, role: str, data: bytes, stamp: float) -> None:
         self.sequence += 1
-        robot_ns = round(stamp * 1e9)
-        self.writer.add_message(self.channels[role], time.time_ns(), data, robot_ns, self.sequence)
+        self.counts[role] += 1
+        robot_ns, self.last_ns = round(stamp * 1e9), time.time_ns()
+        self.writer.add_message(self.channels[role], self.last_ns, data, robot_ns, self.sequence)
         if time.monotonic() - self.flushed > _FLUSH_S:
             # The chunk written and handed to the OS: a process killed after this loses at most
             # _FLUSH_S, and the loader reads a file without its summary up to its last whole record.
@@ -88,6 +96,35 @@ class _File:
     def close(self) -> None:
         self.writer.finish()
         self.stream.close()
+        metadata = bag_metadata(self.path.name, self.types, self.counts, self.first_ns, self.last_ns)
+        with (self.folder / "metadata.yaml").open("w") as out:
+            YAML(typ="safe", pure=True).dump(metadata, out)
+
+
+def bag_metadata(file: str, types: dict[str, str], counts: dict[str, int], first_ns: int, last_ns: int) -> dict:
+    """rosbag2's metadata.yaml (version 8, as Jazzy writes it) of one MCAP file: written here, since
+    the MCAP is ours (written as it goes, so that a crash loses a quarter second, which rosbags'
+    writer does not do) and only its metadata is rosbag2's."""
+    span = {"starting_time": {"nanoseconds_since_epoch": first_ns}, "duration": {"nanoseconds": last_ns - first_ns}}
+    total = sum(counts.values())
+    topics = [
+        {
+            "topic_metadata": {
+                "name": CHANNELS[role], "type": types[role], "serialization_format": "cdr",
+                "offered_qos_profiles": "", "type_description_hash": TYPES.hash_rihs01(types[role]),
+            },
+            "message_count": counts[role],
+        }
+        for role in types
+    ]  # fmt: skip
+    return {
+        "rosbag2_bagfile_information": {
+            "version": 8, "storage_identifier": "mcap", "relative_file_paths": [file], **span,
+            "message_count": total, "topics_with_message_count": topics, "compression_format": "",
+            "compression_mode": "", "files": [{"path": file, **span, "message_count": total}],
+            "custom_data": {}, "ros_distro": "",
+        }
+    }  # fmt: skip
 
 
 class SessionRecorder(Output):
@@ -124,10 +161,11 @@ class SessionRecorder(Output):
             self.said(session, message)
 
     def open(self, info: SessionInfo, request: OpenSession) -> None:
-        path = self.folder / f"{info.session}.mcap"
+        # Named by the session's name (what a launch file knows it by) and id (unique across runs).
+        folder = self.folder / f"{info.name or 'session'}_{info.session}"
         with self._guarded(info.session):
-            self._files[info.session] = _File(path, info, request, self.service, self.frame_id)
-            log.info("recording session %s to %s", info.session, path)
+            self._files[info.session] = _File(folder, info, request, self.service, self.frame_id)
+            log.info("recording session %s to %s", info.session, folder)
 
     def frame(self, frame: RobotFrame) -> None:
         with self._guarded(frame.session):
@@ -176,7 +214,7 @@ class SessionRecorder(Output):
             with self._guarded(session):
                 f.close()
                 self._files.pop(session, None)
-                log.info("recording of session %s closed: %s", session, f.path)
+                log.info("recording of session %s closed: %s", session, f.folder)
 
     def close(self) -> None:
         for session in list(self._files):
