@@ -27,6 +27,7 @@ from inhand_tracker.protocol import (
     ServiceInfo,
     SessionInfo,
     SessionStatus,
+    checked,
     decode,
     encode,
 )
@@ -205,7 +206,8 @@ class TrackerClient:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
         # A service compiling on a cold cache is waited for as long as a build; an absent one is said at once.
         self.wait_ready(self.open_timeout, absent=3.0)
-        request = OpenSession(
+        request = checked(
+            OpenSession,
             robot=robot,
             object=object,
             p0=np.asarray(p0, np.float32),

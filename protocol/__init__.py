@@ -5,7 +5,7 @@ Imports only numpy, msgpack and pydantic (and mcap and rosbags, to read a record
 robot-side client stays light.
 """
 
-from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, MEDIA_TYPE, DecodeError, decode, encode, encoding_of
+from .codec import MAX_ARRAY_BYTES, MAX_PAYLOAD_BYTES, MEDIA_TYPE, DecodeError, checked, decode, encode, encoding_of
 from .keys import PREFIX, Keys, check_name
 from .messages import (
     AUTO,
@@ -65,6 +65,7 @@ __all__ = [
     "check_name",
     "check_sensing",
     "check_version",
+    "checked",
     "decode",
     "encode",
     "encoding_of",

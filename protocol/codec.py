@@ -16,6 +16,7 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "MEDIA_TYPE",
     "DecodeError",
+    "checked",
     "decode",
     "encode",
     "encoding_of",
@@ -93,6 +94,22 @@ def decode(payload: bytes, model: type[M]) -> M:
     try:
         return model.model_validate(raw)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or model.__name__
-        raise DecodeError(f"{model.__name__}.{where}: {first['msg']}") from exc
+        raise DecodeError(_one_line(model, exc)) from exc
+
+
+def checked(model: type[M], **fields: Any) -> M:
+    """The ``model`` message of ``fields``; a ValueError in one line names the field, what is
+    wrong and the value given (pydantic's own lists every branch of a union over many lines)."""
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        raise ValueError(_one_line(model, exc, with_input=True)) from None
+
+
+def _one_line(model: type[BaseModel], exc: ValidationError, with_input: bool = False) -> str:
+    first = exc.errors()[0]
+    # A union's branch (``constrained-int``, ``literal['auto']``) is pydantic's, not a field.
+    where = ".".join(str(p) for p in first["loc"] if not (isinstance(p, str) and set(p) & set("-[("))) or model.__name__
+    own = first["type"] == "value_error"  # a check of ours, whose message names the value itself
+    given = f", got {first['input']!r}" if with_input and not own and "input" in first else ""
+    return f"{model.__name__}.{where}: {first['msg'].removeprefix('Value error, ')}{given}"

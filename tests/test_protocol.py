@@ -57,7 +57,7 @@ def test_bad_values_are_refused_naming_the_field_and_the_numbers():
         OpenSession(robot="allegro", object="foam_brick", p0=[0.0] * 6)
     # A peer that skips validation still cannot slip NaN past decode.
     raw = encode(_frame()).replace(np.float32(1.0).tobytes(), np.float32(np.inf).tobytes(), 1)
-    with pytest.raises(DecodeError, match=r"RobotFrame\.q: Value error, 1 non-finite values, first at \(0,\) = inf"):
+    with pytest.raises(DecodeError, match=r"RobotFrame\.q: 1 non-finite values, first at \(0,\) = inf"):
         decode(raw, RobotFrame)
 
 
@@ -152,3 +152,22 @@ def test_wire_values_of_the_wrong_type_are_refused_not_coerced():
         decode(msgpack.packb({1: 2}), OpenSession)
     with pytest.raises(DecodeError, match="not valid msgpack"):
         decode(b"\xc1", OpenSession)
+
+
+def test_a_message_built_with_bad_values_is_refused_in_one_line_naming_the_field_and_the_value():
+    """What a user passes to open_session (or a config): no pydantic dump of every union branch."""
+    from inhand_tracker.protocol import OpenSession, checked
+
+    p0 = np.array([0, 0, 0.1, 0, 0, 0, 1.0])
+    cases = [
+        ({"worlds": 100000}, "OpenSession.worlds: Input should be less than or equal to 65536, got 100000"),
+        (
+            {"name": "left hand"},
+            "OpenSession.name: String should match pattern '^[A-Za-z][A-Za-z0-9_]{0,62}$', got 'left hand'",
+        ),
+        ({"p0": np.zeros(3)}, "OpenSession.p0: expected last dimension 7, got shape (3,)"),
+    ]
+    for fields, said in cases:
+        with pytest.raises(ValueError) as exc:
+            checked(OpenSession, **({"robot": "allegro", "object": "foam_brick", "p0": p0} | fields))
+        assert str(exc.value) == said and "\n" not in str(exc.value)
