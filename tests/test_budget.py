@@ -177,3 +177,23 @@ def test_opens_without_a_service_name_go_where_there_is_room_behind_one_router(t
             for svc in services:
                 svc.stop()
     assert np.all([svc.proc.returncode == 0 for svc in services])
+
+
+def test_auto_grants_the_same_worlds_over_restarts_whose_step_times_moved_a_little(tmp_path):
+    """Three starts of an idle service, each re-measuring its step times a few per cent apart around
+    the budget's edge: the same K each time (it is kept in the cache); a real change moves it."""
+    key, budget, sizes, kind = {"device": "cpu"}, 80.0, ladder(8, 1024), "('allegro', 'foam_brick', ())"
+    granted = []
+    for scale in (0.98, 1.04, 0.99):  # 32 worlds step in 78.4, 83.2, 79.2 ms against 80
+        times = FrameTimes.load(tmp_path, key)
+        times.points = {8: 20.0 * scale, 32: 80.0 * scale, 64: 160.0 * scale}
+        granted.append(affordable_worlds(times, 0.0, budget, 1, sizes, 1024, times.granted.get(kind)))
+        times.granted[kind] = granted[-1]
+        times.save(tmp_path)
+    assert granted == [32, 32, 32]
+    times = FrameTimes.load(tmp_path, key)
+    times.points = {8: 20.0, 32: 100.0, 64: 200.0}  # a quarter slower: 16 now
+    assert affordable_worlds(times, 0.0, budget, 1, sizes, 1024, times.granted[kind]) == 16
+    # Beside other populations the K is what fits, whatever was granted before.
+    times.points = {8: 20.0, 32: 78.0, 64: 160.0}
+    assert affordable_worlds(times, 10.0, budget, 1, sizes, 1024, 32) == 16

@@ -4,6 +4,7 @@ the K that keeps every population's p99 step inside the frame budget."""
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from .config import ServiceConfig
 from .pools import MEASURED_STEPS, Pool, PoolKey
 
 __all__ = ["Admission", "Gate", "ServiceError"]
+
+log = logging.getLogger(__name__)
 
 _TUNABLE = sorted(name for name, s in registry().items() if s.session and s.kind is not str)
 """What a session's overrides may change, by dotted name (numbers and flags: the wire carries floats)."""
@@ -136,11 +139,17 @@ class Gate:
         if asked != AUTO and asked <= room and load + self.frame_times.predict(g * asked) <= budget:
             return asked, None
         cap = room if asked == AUTO else min(asked, room)
-        new = affordable_worlds(self.frame_times, load, budget, g, ladder(cfg.min_worlds, cfg.max_worlds), cap)
+        sizes, before = ladder(cfg.min_worlds, cfg.max_worlds), self.frame_times.granted.get(str(kind))
+        new = affordable_worlds(self.frame_times, load, budget, g, sizes, cap, before if asked == AUTO else None)
         best = max([new, *(k for k in joinable if k <= cap)])
         per = f"{cfg.rate_hz:g} Hz x {cfg.budget_share:g}"
         if asked == AUTO:
             if best:
+                if best != before:
+                    text = "worlds=auto: %d for %s (%s before), %.1f ms in use of the %.1f ms budget"
+                    log.info(text, best, kind, before, load, budget)
+                if not load:  # what an idle service grants, kept across starts
+                    self.frame_times.granted[str(kind)] = best
                 return best, None
             t = self.frame_times.predict(g * cfg.min_worlds)
             raise ServiceError(

@@ -22,12 +22,24 @@ import numpy as np
 
 from inhand_tracker.service.paths import DATA_DIR
 
-__all__ = ["STEP_TIME_MOTION", "FrameTimes", "affordable_worlds", "device_name", "ladder", "measure_step_times"]
+__all__ = [
+    "HOLD",
+    "STEP_TIME_MOTION",
+    "FrameTimes",
+    "affordable_worlds",
+    "device_name",
+    "ladder",
+    "measure_step_times",
+]
 
 STEP_TIME_MOTION = DATA_DIR / "smoke-foam_brick_pick_place_0.traj"
 """What the frame times are measured on: a pick and place, the hand in contact for most of it."""
 
 log = logging.getLogger(__name__)
+
+
+HOLD = 0.15
+"""How near the budget [share] a step time may lie for ``auto`` to keep the K it granted before."""
 
 
 def ladder(smallest: int, largest: int) -> list[int]:
@@ -72,6 +84,9 @@ class FrameTimes:
     """W -> p99 step time [ms]."""
     measured: str = ""
     """When the points were last changed (ISO date, UTC)."""
+    granted: dict[str, int] = field(default_factory=dict)
+    """The K ``auto`` last granted each kind of population (robot, object, overrides), kept across
+    starts so that the same open gets the same K while the step times stay near (:data:`HOLD`)."""
 
     def predict(self, worlds: int) -> float:
         if not self.points:
@@ -106,7 +121,9 @@ class FrameTimes:
         try:
             data = json.loads(path.read_text())
             if data["key"] == key:
-                return cls(key, {int(w): float(t) for w, t in data["points"].items()}, data.get("measured", ""))
+                points = {int(w): float(t) for w, t in data["points"].items()}
+                granted = {str(k): int(v) for k, v in data.get("granted", {}).items()}
+                return cls(key, points, data.get("measured", ""), granted)
         except FileNotFoundError:
             pass
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -119,19 +136,38 @@ class FrameTimes:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp")
             points = {str(w): round(t, 3) for w, t in sorted(self.points.items())}
-            tmp.write_text(json.dumps({"key": self.key, "points": points, "measured": self.measured}, indent=1))
+            data = {"key": self.key, "points": points, "measured": self.measured, "granted": self.granted}
+            tmp.write_text(json.dumps(data, indent=1))
             tmp.replace(path)
         except OSError as exc:  # a read-only home costs a measurement per start, not the service
             log.warning("frame times: cannot write the cache %s (%s)", path, exc)
 
 
 def affordable_worlds(
-    times: FrameTimes, load_ms: float, budget_ms: float, groups: int, sizes: list[int], at_most: int
+    times: FrameTimes,
+    load_ms: float,
+    budget_ms: float,
+    groups: int,
+    sizes: list[int],
+    at_most: int,
+    previous: int | None = None,
 ) -> int:
     """The largest K of ``sizes`` (at most ``at_most``) whose population of ``groups`` x K worlds
-    fits in the budget beside ``load_ms`` of populations already stepping; 0 when none does."""
-    fits = [k for k in sizes if k <= at_most and load_ms + times.predict(groups * k) <= budget_ms]
-    return max(fits, default=0)
+    fits in the budget beside ``load_ms`` of populations already stepping; 0 when none does.
+
+    ``previous``, the K the same kind of population got before on an idle service, is kept while
+    the choice between it and the new one lies within :data:`HOLD` of the budget: step times
+    measured again move by a few per cent from one start to the next, and a session should not get
+    half or twice the worlds (and track differently) for that. Beside other populations (``load_ms``)
+    the K is what fits: theirs is a real change."""
+    predict = lambda k: load_ms + times.predict(groups * k)  # noqa: E731
+    best = max((k for k in sizes if k <= at_most and predict(k) <= budget_ms), default=0)
+    if previous and previous != best and previous in sizes and previous <= at_most and load_ms == 0:
+        shrinks_by_a_little = previous > best and predict(previous) <= budget_ms * (1 + HOLD)
+        grows_by_a_little = previous < best and predict(best) > budget_ms * (1 - HOLD)
+        if shrinks_by_a_little or grows_by_a_little:
+            return previous
+    return best
 
 
 def measure_step_times(tracker, traj, q0: np.ndarray, rest: np.ndarray, frames: int = 120) -> float:
