@@ -4,6 +4,7 @@ service through a client, and what came back (``inhand-tracker replay``)."""
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,6 +18,11 @@ from .replay import replay as stream
 from .tracker_client import TrackerClient
 
 __all__ = ["Scorer", "replay_file"]
+
+UNREACHABLE = 5
+"""The exit status of a replay that found no service, as ``watch``'s (docs/operations.md)."""
+_PROGRESS_S = 10.0
+"""How often a replay whose output is not a terminal says how far it got [s]."""
 
 Scorer = Callable[[str, np.ndarray, np.ndarray], np.ndarray]
 """ADD per frame [m] of an object (by its catalog name) at its true poses (N, 7) against the
@@ -47,6 +53,7 @@ def replay_file(
         o = recording.opened
         chosen = {"method": o["method"], "worlds": o["worlds"], "overrides": o["overrides"], **chosen}
     try:
+        client.wait_ready(client.open_timeout, absent=3.0, waiting=_waiting(say))
         info = client.open_session(traj.robot, traj.object, **start, **chosen)
         say(
             f"session {info.session}: {traj.object} in {traj.robot}, {info.worlds} worlds, {info.method}; "
@@ -54,7 +61,12 @@ def replay_file(
         )
         errors: list[float] = []
 
+        said = [time.monotonic()]
+
         def show(i: int, est) -> None:
+            if not live and time.monotonic() - said[0] >= _PROGRESS_S:  # a log, not a terminal: a line now and then
+                said[0] = time.monotonic()
+                say(f"  frame {i + 1}/{traj.frames}, {est.status}, latency {est.latency_ms:.1f} ms")
             if traj.truth is None:
                 return
             errors.append(float(np.linalg.norm(traj.truth.pose[i, :3] - est.pose[:3])))
@@ -80,8 +92,21 @@ def replay_file(
         client.close_session()
     except Exception as exc:  # a user's command: say what went wrong, no traceback
         print(f"replay: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
+        return UNREACHABLE if isinstance(exc, TimeoutError) and "does not answer" in str(exc) else 1
     return 0
+
+
+def _waiting(say: Callable[[str], None]) -> Callable[[float], None]:
+    """Say that the service answers but is not ready (a first start compiles for minutes), then
+    every half minute how long it has been."""
+    said = [-1.0]
+
+    def waiting(seconds: float) -> None:
+        if said[0] < 0 or seconds - said[0] >= 30:
+            say(f"waiting for the service to be ready (compiling its kernels): {seconds:.0f} s")
+            said[0] = seconds
+
+    return waiting
 
 
 def _load(file: Path, noise: str) -> tuple[Trajectory, SessionRecording | None, dict]:

@@ -147,12 +147,15 @@ class TrackerClient:
                     found[info.name] = info
         return sorted(found.values(), key=lambda i: (-i.free_worlds, i.sessions - i.max_sessions, i.name))
 
-    def wait_ready(self, timeout: float | None = None, absent: float | None = None) -> ServiceInfo:
+    def wait_ready(
+        self, timeout: float | None = None, absent: float | None = None, waiting: Callable[[float], None] | None = None
+    ) -> ServiceInfo:
         """Wait until the service (without a name: any service) answers and has compiled its
         kernels (minutes on a first start with a cold cache); TimeoutError after ``timeout`` [s]
         (default the client's), or, with ``absent``, after that many seconds in which nothing
         answered at all: a service warming up answers that it is not ready, one that is not there
-        never answers (a service process still importing its libraries does not answer either)."""
+        never answers (a service process still importing its libraries does not answer either).
+        ``waiting(seconds)`` is called on every poll while a service answers but is not ready."""
         start = time.monotonic()
         deadline = start + (timeout or self.timeout)
         answered = False
@@ -179,6 +182,8 @@ class TrackerClient:
                 )
             if time.monotonic() >= deadline:
                 raise TimeoutError(f"{which} ready within {timeout or self.timeout} s")
+            if answered and waiting is not None:
+                waiting(time.monotonic() - start)
             time.sleep(0.2)
 
     def open_session(

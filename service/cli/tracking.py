@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -114,7 +115,8 @@ def replay(
 
     with TrackerClient(connect=endpoints(connect, "connect", "replay"), service=name) as client:
         try:
-            code = replay_file(client, file, method, worlds, rate, noise, say=typer.echo, score=_catalog_add)
+            live = sys.stdout.isatty()  # a terminal gets one line rewritten; a log a line every 10 s
+            code = replay_file(client, file, method, worlds, rate, noise, live, say=typer.echo, score=_catalog_add)
         except ValueError as exc:
             raise fail(str(exc)) from None
     raise typer.Exit(code)
