@@ -40,6 +40,7 @@ def replay_file(
     live: bool = False,
     say: Callable[[str], None] = print,
     score: Scorer | None = None,
+    allow_fewer: bool = False,
 ) -> int:
     """Stream a trajectory file (``.traj``) or a session recording (its folder or ``.mcap``) to the service as
     its robot would, and report what came back: latency, and ADD where the file carries the
@@ -49,6 +50,7 @@ def replay_file(
     Returns the exit status; a bad argument is a ValueError naming it."""
     traj, recording, start = _load(file, noise)
     chosen = {k: v for k, v in {"method": method, "worlds": worlds}.items() if v is not None}
+    chosen["allow_fewer"] = allow_fewer
     if recording is not None:  # the session as it was opened, unless told otherwise
         o = recording.opened
         chosen = {"method": o["method"], "worlds": o["worlds"], "overrides": o["overrides"], **chosen}

@@ -130,7 +130,7 @@ def test_a_simulating_command_without_the_gpu_stack_says_what_to_install(monkeyp
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "newton" else found(name, *a))
     out = _run("bench", "sim", "--worlds", "2", "--device", "cpu")  # as on the robot side's light install
     assert out.exit_code == 2 and "(missing: newton)" in out.stderr, out.stderr
-    assert "pip install 'inhand-tracker[service]'" in out.stderr
+    assert "pip install '.[service]' in the repository" in out.stderr
 
 
 def test_an_endpoint_without_its_transport_is_answered_in_one_line_within_a_second(tmp_path):

@@ -41,6 +41,7 @@ def _one_line(text: str) -> str:
         (("serve", "--device", "tpu"), "serve: --device: expected auto, cpu, cuda or cuda:N, got 'tpu'"),
         (("replay", TRAJECTORY, "--connect", "tcp/127.0.0.1:{port}"), "does not answer at tcp/127.0.0.1:{port}"),
         (("watch", "--connect", "tcp/127.0.0.1:{port}"), "does not answer at tcp/127.0.0.1:{port}"),
+        (("replay", "no_such_track"), "replay: no such file 'no_such_track', nor a bundled trajectory of that name"),
     ],
 )
 def test_a_mistake_is_answered_within_seconds_in_one_line(args, words):
@@ -87,7 +88,8 @@ def test_the_readme_serve_and_replay_track_on_a_cpu_with_default_settings(tmp_pa
     try:
         deadline = time.monotonic() + 600
         while True:  # the service calibrates its frame times on a first start: a minute on a CPU
-            out, _ = _cli("replay", TRAJECTORY, "--connect", f"tcp/127.0.0.1:{port}", timeout=600)
+            # As the README writes it: the bundled track by its name.
+            out, _ = _cli("replay", "smoke-foam_brick_pick_place_0", "--connect", f"tcp/127.0.0.1:{port}", timeout=600)
             if out.returncode == 0 or "does not answer" not in out.stderr or time.monotonic() > deadline:
                 break
             assert service.poll() is None, service.stdout.read()[-3000:]

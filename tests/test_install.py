@@ -63,7 +63,7 @@ def test_the_base_install_is_the_robot_side_without_torch(wheel, tmp_path):
         assert out.returncode == 0, (command, out.stderr[-2000:])
     assert (tmp_path / "spec" / "golden" / "Estimate.msgpack").exists()
     out = _run(bin_, "inhand-tracker", "serve", cwd=tmp_path)
-    assert out.returncode == 2 and "pip install 'inhand-tracker[service]'" in out.stderr, out.stderr[-2000:]
+    assert out.returncode == 2 and "pip install '.[service]' in the repository" in out.stderr, out.stderr[-2000:]
 
 
 @pytest.mark.slow

@@ -92,7 +92,8 @@ def gpu_stack() -> None:
             f"this command simulates, and the GPU stack is not installed (missing: {', '.join(missing)}):"
             " install torch first (the CPU build: pip install torch==2.13.0 --index-url"
             " https://download.pytorch.org/whl/cpu; or your CUDA build), then"
-            " pip install 'inhand-tracker[service]'. The robot side (replay, the client) needs neither."
+            " pip install '.[service]' in the repository (or 'WHEEL[service]' for a built wheel)."
+            " The robot side (replay, the client) needs neither."
         )
     import inhand_tracker.sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)
     from inhand_tracker.service.logs import quiet_warp, watch_kernel_compiles

@@ -108,18 +108,37 @@ def replay(
     ] = None,
     rate: Annotated[float, typer.Option(help="frames per second; 0: each frame after the last estimate")] = 0.0,
     noise: Annotated[str, typer.Option(help="initial pose noise from the truth: low, med, high")] = "med",
+    allow_fewer: Annotated[bool, typer.Option(help="take fewer than --worlds where the budget is short")] = False,
 ) -> None:
-    """Robot side: stream a trajectory file to a service and print the estimates."""
+    """Robot side: stream a trajectory file to a service and print the estimates. FILE may name
+    a bundled trajectory (`smoke-foam_brick_pick_place_0`) from anywhere."""
     from inhand_tracker.client import TrackerClient
     from inhand_tracker.client.report import replay_file
 
+    file = _bundled(file)
     with TrackerClient(connect=endpoints(connect, "connect", "replay"), service=name) as client:
         try:
             live = sys.stdout.isatty()  # a terminal gets one line rewritten; a log a line every 10 s
-            code = replay_file(client, file, method, worlds, rate, noise, live, say=typer.echo, score=_catalog_add)
+            code = replay_file(
+                client, file, method, worlds, rate, noise, live, say=typer.echo, score=_catalog_add,
+                allow_fewer=allow_fewer,
+            )  # fmt: skip
         except ValueError as exc:
             raise fail(str(exc)) from None
     raise typer.Exit(code)
+
+
+def _bundled(file: Path) -> Path:
+    """``file``, or the bundled trajectory it names (with or without ``.traj``); exit 4 naming them."""
+    from inhand_tracker.service.paths import DATA_DIR  # paths only: the robot side's install has it
+
+    if file.exists():
+        return file
+    for candidate in (DATA_DIR / file.name, DATA_DIR / f"{file.name}.traj"):
+        if candidate.is_file():
+            return candidate
+    names = ", ".join(sorted(p.stem for p in DATA_DIR.glob("*.traj")))
+    raise fail(f"replay: no such file '{file}', nor a bundled trajectory of that name ({names})", ExitCode.FILES)
 
 
 def _catalog_add(name: str, true_pose, est_pose):
