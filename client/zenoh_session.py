@@ -11,7 +11,7 @@ import zenoh
 
 from inhand_tracker.protocol import encoding_of
 
-__all__ = ["check_endpoints", "zenoh_config", "zenoh_encoding"]
+__all__ = ["check_endpoints", "connected", "zenoh_config", "zenoh_encoding"]
 
 _ENDPOINT = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/[^\s/#?][^\s]*")
 """A Zenoh locator: a transport, then its address (``tcp/127.0.0.1:7447``), optionally ``#`` options."""
@@ -26,6 +26,11 @@ def check_endpoints(endpoints: Iterable[str], what: str) -> list[str]:
             hint = f"tcp/{e}" if re.fullmatch(r"[\w.\-\[\]:]+:\d+", e) else "tcp/HOST:PORT"
             raise ValueError(f"{what}: '{e}' is not a Zenoh endpoint; write it as {hint}")
     return out
+
+
+def connected(session: zenoh.Session) -> bool:
+    """Whether the session reaches a router or a peer now."""
+    return bool(list(session.info.routers_zid()) or list(session.info.peers_zid()))
 
 
 @functools.cache

@@ -101,3 +101,38 @@ def test_the_readme_serve_and_replay_track_on_a_cpu_with_default_settings(tmp_pa
         log = service.communicate(timeout=60)[0]
     assert "CUDA warning" not in log, log[:2000]
     assert "opened: robot 'allegro', object 'foam_brick'" in log and "closed (its robot closed it)" in log, log[-3000:]
+
+
+def test_a_router_that_does_not_answer_is_said_within_a_second_of_the_start_and_its_coming_too():
+    """`serve --connect` to a router not started yet: a warning names the address, and once the
+    router comes up the service says it reached it (Zenoh retries on its own)."""
+    import zenoh
+
+    from inhand_tracker.client import zenoh_config
+
+    router = f"tcp/127.0.0.1:{free_port()}"
+    service = subprocess.Popen(
+        [sys.executable, "-m", "inhand_tracker.service.cli", "serve", "--listen", f"tcp/127.0.0.1:{free_port()}",
+         "--connect", router, "--device", "cpu"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    lines: list[tuple[float, str]] = []
+    try:
+        began = time.monotonic()
+        while not any("Zenoh: no answer at" in line for _, line in lines) and time.monotonic() - began < 120:
+            lines.append((time.monotonic(), service.stdout.readline()))
+        # By the log's own clock (the lines reach the pipe in bursts): within the second.
+        stamp = lambda text: time.mktime(time.strptime(text[:19], "%Y-%m-%d %H:%M:%S"))  # noqa: E731
+        started = next(stamp(line) for _, line in lines if "warming up" in line)
+        said = next(line for _, line in lines if "Zenoh: no answer at" in line)
+        assert router in said and stamp(said) - started <= 1.0, lines
+        conf = zenoh_config(listen=[router])
+        conf.insert_json5("mode", '"router"')
+        with zenoh.open(conf):
+            began = time.monotonic()
+            while not any("Zenoh: reached" in line for _, line in lines) and time.monotonic() - began < 30:
+                lines.append((time.monotonic(), service.stdout.readline()))
+            assert any(f"Zenoh: reached {router}" in line for _, line in lines), lines
+    finally:
+        service.terminate()
+        service.wait(timeout=60)

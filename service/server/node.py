@@ -17,7 +17,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
 
-from inhand_tracker.client import zenoh_config, zenoh_encoding
+from inhand_tracker.client.zenoh_session import connected, zenoh_config, zenoh_encoding
 from inhand_tracker.protocol import (
     CloseSession,
     DecodeError,
@@ -86,15 +86,15 @@ class TrackerNode:
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
         """Builds populations off the loop thread."""
         self._waiting: dict[PoolKey, list[tuple[Admission, Future | None]]] = {}
-        """Opens waiting for their population's build, by population key: each admission (the
-        request with the worlds granted, why fewer than asked, the peer) and its answer."""
+        """Opens waiting for their population's build, by key: each admission and its answer."""
         self._build_s = 0.0
         """How long the last population build took [s]."""
         self._token = None
         self.session: zenoh.Session | None = None
         self._others: set[str] = set()
-        """The other services on this Zenoh network (their liveliness tokens): named to a robot
-        this one has no room for."""
+        """The other services on this network (their tokens): named to a robot this one has no room for."""
+        self._linked = True
+        """Whether a peer or router of ``connect`` was reached at the last look (said when it changes)."""
         self._room = (0.0, 0)
         """The loop's latest (load_ms, free_worlds), for the info queryable."""
         self.outputs = Outputs()
@@ -280,8 +280,12 @@ class TrackerNode:
             self._withdraw()
 
     def _watch(self) -> None:
-        """A loop that stops coming round (stuck in a step or a build) is as dead as one that raised."""
+        """A loop that stops coming round (stuck in a step or a build) is as dead as one that raised;
+        a router that does not answer (not started, the wrong address) is said, and again when it does."""
         while not self._stop.wait(0.5) and not self.failed.is_set():
+            if self.config.connect and (linked := connected(self.session)) != self._linked:
+                self._linked, where = linked, ", ".join(self.config.connect)
+                (log.info if linked else log.warning)("Zenoh: %s %s", "reached" if linked else "no answer at", where)
             stalled, limit = time.monotonic() - self._beat, self.config.watchdog_s
             if self.ready and stalled > limit:
                 log.critical("the GPU loop has not come round for %.1f s (watchdog_s %g)", stalled, limit)
