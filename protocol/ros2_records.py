@@ -54,13 +54,16 @@ def _fields(model: type[BaseModel]) -> tuple[tuple[str, str, bool, tuple], ...]:
 
 
 def msg_definition(model: type[BaseModel]) -> str:
-    """``model``'s ``.msg`` text."""
+    """``model``'s ``.msg`` text, each field with what it is and its unit as a comment (the
+    record's own description: ``[m]``, ``[rad]``, ``[s]``...), so that a recording says them."""
     about = " ".join((model.__doc__ or model.__name__).split()).split(". ")[0].rstrip(".")
     lines = [f"# {about}."]
+    described = model.model_json_schema()["properties"]
     for name, ros, nullable, _ in _fields(model):
         if nullable:
-            lines.append(f"bool has_{name}")
-        lines.append(f"{ros} {name}")
+            lines.append(f"bool has_{name}  # whether {name} is present")
+        text = " ".join(described[name].get("description", "").split())
+        lines.append(f"{ros} {name}" + (f"  # {text}" if text else ""))
     return "\n".join(lines) + "\n"
 
 

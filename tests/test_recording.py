@@ -53,6 +53,9 @@ def test_the_demo_s_recording_is_a_rosbag2_folder_and_replays_to_the_same_estima
         assert reader.get_header().profile == "ros2"
         schema = summary.schemas[topics[CHANNELS["pose"]].schema_id]
         assert (schema.name, schema.encoding) == ("geometry_msgs/msg/PoseWithCovarianceStamped", "ros2msg")
+        frame = summary.schemas[topics[CHANNELS["frame"]].schema_id].data.decode()
+        assert "float32[] q  # Measured joint positions. Shape ('D',) [rad or m]." in frame.splitlines(), frame
+        assert "float64 stamp  # Robot clock when the frame was sensed [s]" in frame, frame
         assert {(c.message_encoding, summary.schemas[c.schema_id].encoding) for c in topics.values()} == {
             ("cdr", "ros2msg")
         }

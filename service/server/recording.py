@@ -28,7 +28,7 @@ from inhand_tracker.protocol import (
     SessionInfo,
 )
 from inhand_tracker.protocol.recording import PROFILE, SESSION_FIELDS, SESSION_METADATA
-from inhand_tracker.protocol.ros2_records import RECORD_TYPES, encode_record, typestore
+from inhand_tracker.protocol.ros2_records import RECORD_TYPES, encode_record, msg_definition, typestore
 
 from .outputs import Output
 from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, tf_message, to_ros_time
@@ -62,7 +62,9 @@ class _File:
         store = typestore()
         types = {role: name for role, (_, name) in RECORD_TYPES.items()} | _ROS
         for role, msg_type in types.items():
-            text = store.generate_msgdef(msg_type, ros_version=2)[0]
+            # The protocol's records with their fields' units and meaning; ROS's own as ROS has them.
+            text = msg_definition(RECORD_TYPES[role][0]) if role in RECORD_TYPES else None
+            text = text or store.generate_msgdef(msg_type, ros_version=2)[0]
             sid = self.writer.register_schema(name=msg_type, encoding="ros2msg", data=text.encode())
             self.channels[role] = self.writer.register_channel(CHANNELS[role], "cdr", sid)
         # The granted values (info) over the asked ones (request), as the session was opened.
