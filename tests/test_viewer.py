@@ -108,9 +108,15 @@ def test_the_operator_s_view_draws_the_session_and_shows_its_figures(tmp_path):
                 until=lambda pixels, page: _coloured(pixels) > 0.05 and "95 %" in page,
             )
             robot.close_session()
+            closed, after = _screenshot(  # the scene empties once the session closes
+                browser, url, tmp_path / "closed.png", until=lambda pixels, html: "No session" in html
+                and _coloured(pixels) < 0.01,
+            )  # fmt: skip
     finally:
         browser.quit()
         svc.stop()
+    assert _coloured(empty) < 0.01, f"{_coloured(empty):.2%} of the scene is coloured before any session"
+    assert _coloured(closed) < 0.01 and "95 %: " not in after, f"{_coloured(closed):.2%} coloured after the close"
     assert info.session in page, "the session is not offered in the page"
     for figure in ("left", "K=8", " Hz", "latency", " ms", "cost", "mass", "friction"):
         assert figure in page, (figure, page[-3000:])

@@ -63,6 +63,9 @@ class Drawing:
         self._panel = self.server.gui.add_markdown("No session is tracking.")
         self.server.gui.add_markdown(_LEGEND)
         self._estimate = self.server.scene.add_frame("/inhand/estimate", axes_length=0.04, axes_radius=0.002)
+        self._estimate.visible = False
+        self._marks: dict[str, object] = {}
+        """The scene nodes drawn beside the worlds (the real fingertips, the 95 % region, its label)."""
         self._look_at = np.zeros(3)
         self._aimed: set[int] = set()
         self.model = self.state = None
@@ -115,7 +118,7 @@ class Drawing:
         self.viewer.begin_frame(time.monotonic())
         self.viewer.log_state(self.state)
         self.viewer.end_frame()
-        self.server.scene.add_point_cloud(
+        self._marks["tips"] = self.server.scene.add_point_cloud(
             "/inhand/real_fingertips", points=tips, colors=(220, 20, 60), point_size=0.012, point_shape="circle"
         )
         if estimate is not None:
@@ -132,20 +135,33 @@ class Drawing:
         p = estimate.pose.astype(np.float64)
         self._look_at = p[:3]  # where a new browser looks
         self._estimate.position, self._estimate.wxyz = p[:3], (p[6], p[3], p[4], p[5])
+        self._estimate.visible = True
         radius = float(np.sqrt(_CHI2_3_95 * np.linalg.eigvalsh(estimate.covariance.astype(np.float64)).max()))
         centre = estimate.mean.astype(np.float64)
-        self.server.scene.add_icosphere(  # the same name replaces the last one
+        self._marks["region"] = self.server.scene.add_icosphere(  # the same name replaces the last one
             "/inhand/mean_95", radius=max(radius, 1e-4), color=(255, 140, 0), opacity=0.45, position=centre
         )
         # A label draws over everything: the region's size reads even where the sphere is small.
         above = centre + np.array([0.0, 0.0, radius + 0.01])
-        self.server.scene.add_label("/inhand/mean_95_label", f"95 %: {radius * 1e3:.1f} mm", position=above)
+        self._marks["label"] = self.server.scene.add_label(
+            "/inhand/mean_95_label", f"95 %: {radius * 1e3:.1f} mm", position=above
+        )
 
     def warm(self, robot, obj, config) -> None:
         """Show and draw one world once, so that a browser's first drawing compiles nothing."""
         self.show(robot, obj, config, 1)
         self.draw(self.state.body_q.numpy().ravel(), np.ones(1), np.zeros((0, 3)), None, "No session is tracking.",
                   ("none",))  # fmt: skip
+        self.clear()
+
+    def clear(self) -> None:
+        """Nothing in the scene: before any session, and once the one shown has closed."""
+        if self.model is not None:
+            self.viewer.clear_model()
+        for mark in self._marks.values():
+            mark.remove()
+        self._marks.clear()
+        self._estimate.visible = False
         self.model = self.state = None
 
     def close(self) -> None:
@@ -206,6 +222,8 @@ def draw_forever(conn: Connection, host: str, port: int) -> None:
                         shared = _Shared(memory, max(stop for _, stop in places.values()))
                     case Panel(text, sessions):
                         drawing.panel(text, sessions)
+                        if sessions == ("none",):  # the session shown closed, and none is left
+                            drawing.clear()
                     case Draw(estimate, text, sessions) if shared is not None:
                         part = {n: shared.array[a:b] for n, (a, b) in places.items()}
                         tips = part["tips"].reshape(-1, 3)
