@@ -59,8 +59,10 @@ with the protocol's records (:mod:`protocol.ros2_records`)."""
 POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 _M = TYPES.types
-_QOS = "::,10:,:,:,,"
-"""rmw_zenoh's QoS field of a token: reliable, volatile, keep last 10, the rest default."""
+_QOS = "::,{depth}:,:,:,,"
+"""rmw_zenoh's QoS field of a token: reliable, volatile, keep last ``depth``, the rest default."""
+_TF_DEPTH = 100
+"""/tf's history depth, as tf2's broadcasters declare it (the poses keep ROS's default 10)."""
 _NOT_A_NAME = re.compile(r"[^A-Za-z0-9_]")
 
 
@@ -142,12 +144,21 @@ def node_token(domain_id: int, zid: str, node: str, namespace: str) -> str:
 
 
 def topic_token(
-    domain_id: int, zid: str, node: str, namespace: str, entity: int, kind: str, topic: str, msg_type: str
+    domain_id: int,
+    zid: str,
+    node: str,
+    namespace: str,
+    entity: int,
+    kind: str,
+    topic: str,
+    msg_type: str,
+    depth: int = 10,
 ) -> str:
     """The liveliness token of a node's publisher (``MP``) or subscription (``MS``) on a topic,
-    which ``ros2 topic info`` reads."""
+    which ``ros2 topic info`` reads, with the history ``depth`` it keeps."""
     dds, digest, ns = _dds_name(msg_type), TYPES.hash_rihs01(msg_type), _mangle(namespace)
-    return f"@ros2_lv/{domain_id}/{zid}/0/{entity}/{kind}/%/{ns}/{node}/{_mangle(topic)}/{dds}/{digest}/{_QOS}"
+    qos = _QOS.format(depth=depth)
+    return f"@ros2_lv/{domain_id}/{zid}/0/{entity}/{kind}/%/{ns}/{node}/{_mangle(topic)}/{dds}/{digest}/{qos}"
 
 
 @dataclass
@@ -195,12 +206,13 @@ class RosTopics(Output):
         self._node_token = session.liveliness().declare_token(node_token(domain_id, self._zid, self.node, namespace))
         self._poses: dict[str, RosPublisher] = {}
         self._children: dict[str, str] = {}
-        self._tf = self._declare("/tf", TF_TYPE) if tf else None
+        self._tf = self._declare("/tf", TF_TYPE, _TF_DEPTH) if tf else None
 
-    def _declare(self, topic: str, msg_type: str) -> RosPublisher:
+    def _declare(self, topic: str, msg_type: str, depth: int = 10) -> RosPublisher:
         self._entities += 1
         key = topic_key(self.domain_id, topic, msg_type, TYPES.hash_rihs01(msg_type))
-        token = topic_token(self.domain_id, self._zid, self.node, self.namespace, self._entities, "MP", topic, msg_type)
+        entity = self._entities
+        token = topic_token(self.domain_id, self._zid, self.node, self.namespace, entity, "MP", topic, msg_type, depth)
         return RosPublisher(
             topic,
             msg_type,
