@@ -187,6 +187,8 @@ class Session:
     """Pose observations accepted and not yet applied (the newest few)."""
     newest_stamp: float | None = None
     """The robot clock of the newest frame accepted [s]."""
+    stamps: deque = field(default_factory=lambda: deque(maxlen=31))
+    """The robot clocks of the last frames accepted [s]: the robot's own rate."""
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     latest: Estimate | None = None
     contacts_explored: bool = False

@@ -284,6 +284,7 @@ class SessionManager:
         # The clock of the newest frame in seq order, not the largest ever seen: one frame stamped far
         # ahead must not make every later observation stale.
         session.newest_stamp = frame.stamp
+        session.stamps.append(frame.stamp)
         if len(session.pending) >= self.config.max_pending:
             session.pending.popleft()
             session.stale += 1

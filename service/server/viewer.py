@@ -80,7 +80,6 @@ class LiveView(Output):
         self._places: dict[str, tuple[int, int]] = {}
         self._staged: torch.Tensor | None = None
         self._snapshot: _Snapshot | None = None
-        self._counted: tuple[str, int, float] | None = None
         self._turn = contextlib.nullcontext()
         log.info("live view on http://%s:%d", host, answer.port)
 
@@ -185,10 +184,7 @@ class LiveView(Output):
     def _describe(self, session) -> str:
         """The panel's text for ``session``: its state and the figures an operator watches."""
         estimate: Estimate | None = session.latest
-        now = time.monotonic()
-        last = self._counted
-        rate = (session.frames - last[1]) / (now - last[2]) if last and last[0] == session.id and now > last[2] else 0.0
-        self._counted = (session.id, session.frames, now)
+        rate = self._rate(session)
         if estimate is None:
             return f"**{session.name or session.id}**: waiting for its first frame"
         latency = np.percentile(np.asarray(session.latencies), 50) if session.latencies else 0.0
@@ -200,6 +196,13 @@ class LiveView(Output):
             f"| {estimate.seq} | {rate:.1f} Hz | {latency:.1f} ms | {estimate.cost:.2f} | {estimate.mass * 1e3:.0f} g"
             f" | {estimate.friction:.2f} |{notice}"
         )
+
+    @staticmethod
+    def _rate(session) -> float:
+        """The robot's frames per second by its own clock over its last 30 frames: what it sends,
+        whatever the service's or the browser's pace."""
+        s = session.stamps
+        return (len(s) - 1) / (s[-1] - s[0]) if len(s) > 1 and s[-1] > s[0] else 0.0
 
     def close(self) -> None:
         try:
