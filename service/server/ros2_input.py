@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from inhand_tracker.protocol import Error, OpenSession, PoseObservation, RobotFrame, SessionInfo
+from inhand_tracker.protocol import Error, OpenSession, PoseObservation, RobotFrame, SessionInfo, checked
 from inhand_tracker.service.tracker import METHODS
 
 from .config import RosSession
@@ -184,10 +184,13 @@ class RosInputs(Output):
         touch = None
         if s.touch:
             touch = feed.touch if feed.touch is not None else np.zeros(feed.zones, np.float32)
-        frame = RobotFrame(
-            session=feed.session, seq=feed.seq, stamp=stamp, token=feed.token, controls=controls, q=q,
-            force=force, touch=touch,
-        )  # fmt: skip
+        try:  # a value no robot sends (NaN from a driver) is refused with the field, once in the log
+            frame = checked(
+                RobotFrame, session=feed.session, seq=feed.seq, stamp=stamp, token=feed.token, controls=controls,
+                q=q, force=force, touch=touch,
+            )  # fmt: skip
+        except ValueError as exc:
+            return feed.say(f"frame refused: {exc}")
         feed.seq += 1
         try:
             self.host.frame(frame, time.perf_counter())
