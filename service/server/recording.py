@@ -31,7 +31,7 @@ from inhand_tracker.protocol.recording import PROFILE, SESSION_FIELDS, SESSION_M
 from inhand_tracker.protocol.ros2_records import RECORD_TYPES, encode_record, msg_definition, typestore
 
 from .outputs import Output
-from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, tf_message, to_ros_time
+from .ros2 import POSE_TYPE, TF_TYPE, TYPES, object_frame, pose_message, ros_namespace, tf_message, to_ros_time
 
 __all__ = ["SessionRecorder"]
 
@@ -63,8 +63,10 @@ class _File:
         types = {role: name for role, (_, name) in RECORD_TYPES.items()} | _ROS
         for role, msg_type in types.items():
             # The protocol's records with their fields' units and meaning; ROS's own as ROS has them.
-            text = msg_definition(RECORD_TYPES[role][0]) if role in RECORD_TYPES else None
-            text = text or store.generate_msgdef(msg_type, ros_version=2)[0]
+            if role in RECORD_TYPES:
+                text = msg_definition(RECORD_TYPES[role][0])
+            else:
+                text = store.generate_msgdef(msg_type, ros_version=2)[0]
             sid = self.writer.register_schema(name=msg_type, encoding="ros2msg", data=text.encode())
             self.channels[role] = self.writer.register_channel(CHANNELS[role], "cdr", sid)
         # The granted values (info) over the asked ones (request), as the session was opened.
@@ -208,7 +210,8 @@ class SessionRecorder(Output):
         )  # fmt: skip
         f.record("population", summary, estimate.stamp)
         f.ros("pose", pose_message(estimate, f.frame_id), estimate.stamp)
-        f.ros("tf", tf_message(estimate, f.frame_id, object_frame(f.info.name or estimate.session)), estimate.stamp)
+        child = object_frame(f.info.name or estimate.session, ros_namespace(self.service))  # as /tf has it live
+        f.ros("tf", tf_message(estimate, f.frame_id, child), estimate.stamp)
 
     def drop(self, session: str) -> None:
         f = self._files.get(session)
