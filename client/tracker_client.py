@@ -79,9 +79,12 @@ class TrackerClient:
         zenoh_file: str | os.PathLike | None = None,
         open_timeout: float = 900.0,
         peer: str | None = None,
+        zenoh_mode: str | None = None,
     ):
         """``service``: its name, or None to choose at each open. ``zenoh_file``: a Zenoh JSON5 config
         (TLS or mTLS certificates) under the endpoints given. ``open_timeout``: an open's wait [s].
+        ``zenoh_mode``: "client" behind a router that relays nothing between peers (rmw_zenoh's);
+        None: the file's mode, else peer.
         ``peer``: the name to open under, which the service's per-peer caps count (behind the
         hardened compose's router, this robot's certificate name)."""
         self._route, self.peer = service is None, peer
@@ -89,7 +92,7 @@ class TrackerClient:
         self.endpoints = list(connect) or ["(scouting)"]
         """Where this client looks for its service, for the errors that say it found none."""
         self.timeout, self.open_timeout = timeout, open_timeout
-        self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file))
+        self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file, zenoh_mode))
         self.info: SessionInfo | None = None
         self._seq = 0
         self._epoch = 0

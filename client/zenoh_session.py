@@ -39,13 +39,18 @@ def zenoh_encoding(model: type) -> zenoh.Encoding:
     return zenoh.Encoding(encoding_of(model))
 
 
-def zenoh_config(listen=(), connect=(), scouting: bool = False, file: str | os.PathLike | None = None) -> zenoh.Config:
-    """A peer config: listen and connect endpoints, multicast scouting on or off; on top of the
-    Zenoh config ``file`` when given (TLS certificates, access control rules, ``mode: "client"``
-    behind a router)."""
+def zenoh_config(
+    listen=(), connect=(), scouting: bool = False, file: str | os.PathLike | None = None, mode: str | None = None
+) -> zenoh.Config:
+    """A Zenoh config: listen and connect endpoints, multicast scouting on or off, ``mode`` ("peer",
+    or "client" behind a router that relays nothing between peers, as rmw_zenoh's); on top of the
+    Zenoh config ``file`` when given (TLS certificates, access control rules), whose mode stands
+    where ``mode`` is None (peer where neither says)."""
     listen, connect = check_endpoints(listen, "listen"), check_endpoints(connect, "connect")
     conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
-    if conf.get_json("mode") == "null":
+    if mode is not None:
+        conf.insert_json5("mode", f'"{mode}"')
+    elif conf.get_json("mode") == "null":
         conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
     if connect:

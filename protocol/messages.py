@@ -8,11 +8,13 @@ against the session it opened.
 from __future__ import annotations
 
 import math
+import re
 from enum import StrEnum
 from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     Field,
     StrictInt,
     create_model,
@@ -29,6 +31,7 @@ __all__ = [
     "DEFAULT_WORLDS",
     "METHODS",
     "PROTOCOL_VERSION",
+    "SESSION_NAME",
     "CloseSession",
     "Error",
     "ErrorCode",
@@ -51,6 +54,23 @@ METHODS = ("OLP", "EYE", "WRS", "REPS", "PBO")
 """The optimizers a session may ask for: open loop, the paper's EYE baseline, and its three optimizers."""
 DEFAULT_METHOD = "PBO"
 """A session's optimizer when it does not say."""
+_NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$"
+
+
+def _ros_name(name: str) -> str:
+    # A validator, not a pattern: pydantic's pattern error shows users a regular expression.
+    if not re.fullmatch(_NAME_PATTERN, name):
+        raise ValueError(
+            f"'{name}' is not a ROS 2 name: letters, digits and _, each part starting with a letter,"
+            " parts joined by / (as in lab2/left_hand)"
+        )
+    return name
+
+
+SESSION_NAME = Annotated[
+    str, AfterValidator(_ros_name), Field(max_length=127, json_schema_extra={"pattern": _NAME_PATTERN})
+]
+"""A session's name: ROS 2 name tokens, joined by ``/`` into a namespace."""
 
 
 REACH = 10.0
@@ -156,10 +176,13 @@ class OpenSession(WireMessage):
     overrides: dict[str, float] = Field(default_factory=dict)
     """Tracker settings by their dotted names (e.g. update_every, exploration.wrench_force,
     optimizer.min_separation); a flag as 1 or 0."""
-    name: str | None = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
-    """The session's name, a ROS name token: its ROS 2 topics and TF frame are named after it
-    (``/inhand/{name}/pose``, ``{name}``), so a launch file or an RViz config can name them. A name
-    another open session holds is refused. Default ``{robot}_{object}``, numbered from 2 when taken."""
+    name: SESSION_NAME | None = None
+    """The session's name, ROS name tokens joined by ``/`` (a namespace, as in ``lab2/left_hand``):
+    its ROS 2 topics and TF frame are named after it (``/inhand/{name}/pose``, ``{name}``), so a
+    launch file or an RViz config can name them. A name another open session holds is refused.
+    Default: ``{peer}/{robot}_{object}`` for an open under a peer name, else ``{robot}_{object}``.
+    A second unnamed session of the same default is refused on a service that publishes ROS 2
+    topics (so that a topic's name never hangs on which robot opened first), else numbered from 2."""
 
     @field_validator("p0")
     @classmethod

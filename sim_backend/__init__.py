@@ -1,53 +1,27 @@
-"""Simulation backend: K worlds of hand + object per group on Newton, stepped as one graph."""
+"""Simulation backend: K worlds of hand + object per group on Newton, stepped as one graph.
 
-from .config import PopulationConfig, SolverSettings, forward_only_kernels, resolve_device
+Its names load on first use (lazy_loader): the settings (:class:`PopulationConfig`) are read and
+checked without torch, warp's kernels or newton, which take seconds to import."""
 
-forward_only_kernels()  # before anything below imports newton: Warp reads the switch per kernel module
+import lazy_loader as lazy
 
-# isort: split
-from .build import BuiltModel, Physics, build_model, make_physics  # noqa: E402
-from .grasp import Grasp, plan_pinch  # noqa: E402
-from .health import HEALTH_AWAY, HEALTH_LOST, HEALTH_NAN, HEALTH_OK  # noqa: E402
-from .kinematics import Kinematics, SensorFK  # noqa: E402
-from .objects import CATALOG, ObjectSpec, catalog_object, load_catalog, load_mesh_object, make_banana  # noqa: E402
-from .observe import Observation, add_sensor_noise  # noqa: E402
-from .params import ObjectParams  # noqa: E402
-from .population import Population  # noqa: E402
-from .robots import FileRobotSpec, HandSpec, RobotLayout, RobotSpec, add_robot, load_robot  # noqa: E402
-from .step import no_collection  # noqa: E402
+from .config import forward_only_kernels
 
-__all__ = [
-    "CATALOG",
-    "HEALTH_AWAY",
-    "HEALTH_LOST",
-    "HEALTH_NAN",
-    "HEALTH_OK",
-    "BuiltModel",
-    "FileRobotSpec",
-    "Grasp",
-    "HandSpec",
-    "Kinematics",
-    "ObjectParams",
-    "ObjectSpec",
-    "Observation",
-    "Physics",
-    "Population",
-    "PopulationConfig",
-    "RobotLayout",
-    "RobotSpec",
-    "SensorFK",
-    "SolverSettings",
-    "add_robot",
-    "add_sensor_noise",
-    "build_model",
-    "catalog_object",
-    "forward_only_kernels",
-    "load_catalog",
-    "load_mesh_object",
-    "load_robot",
-    "make_banana",
-    "make_physics",
-    "no_collection",
-    "plan_pinch",
-    "resolve_device",
-]
+forward_only_kernels()  # before anything here imports newton: Warp reads the switch per kernel module
+
+__getattr__, __dir__, __all__ = lazy.attach(
+    __name__,
+    submod_attrs={
+        "config": ["PopulationConfig", "SolverSettings", "forward_only_kernels", "resolve_device"],
+        "build": ["BuiltModel", "Physics", "build_model", "make_physics"],
+        "grasp": ["Grasp", "plan_pinch"],
+        "health": ["HEALTH_AWAY", "HEALTH_LOST", "HEALTH_NAN", "HEALTH_OK"],
+        "kinematics": ["Kinematics", "SensorFK"],
+        "objects": ["CATALOG", "ObjectSpec", "catalog_object", "load_catalog", "load_mesh_object", "make_banana"],
+        "observe": ["Observation", "add_sensor_noise"],
+        "params": ["ObjectParams"],
+        "population": ["Population"],
+        "robots": ["FileRobotSpec", "HandSpec", "RobotLayout", "RobotSpec", "add_robot", "load_robot"],
+        "step": ["no_collection"],
+    },
+)

@@ -42,6 +42,7 @@ def _one_line(text: str) -> str:
         (("replay", TRAJECTORY, "--connect", "tcp/127.0.0.1:{port}"), "does not answer at tcp/127.0.0.1:{port}"),
         (("watch", "--connect", "tcp/127.0.0.1:{port}"), "does not answer at tcp/127.0.0.1:{port}"),
         (("replay", "no_such_track"), "replay: no such file 'no_such_track', nor a bundled trajectory of that name"),
+        (("serve", "--connect", "127.0.0.1:7447"), "'127.0.0.1:7447' is not a Zenoh endpoint; write it as tcp/127.0.0"),
     ],
 )
 def test_a_mistake_is_answered_within_seconds_in_one_line(args, words):
@@ -51,6 +52,26 @@ def test_a_mistake_is_answered_within_seconds_in_one_line(args, words):
     expected = 5 if "does not answer" in words else 4 if "no such file" in words else 2
     assert out.returncode == expected and seconds < 5.0, (out.returncode, seconds, out.stderr)
     assert words.format(port=port) in _one_line(out.stderr), out.stderr
+
+
+@pytest.mark.parametrize(
+    "file, env, words",
+    [
+        ('groups = "abc"', {}, "serve: service config groups: Input should be a valid integer"),
+        ("", {"INHAND_GROUPS": "-3"}, "serve: service config groups: Input should be greater than or equal to 1"),
+        ("[[ros2_sessions]]\nname = 'left hand'\nrobot = 'allegro'\nobject = 'foam_brick'", {},
+         "serve: service config ros2_sessions.0.name: 'left hand' is not a ROS 2 name"),
+        ("[physics]\nsubsteps = 7", {}, "service config physics: population.substeps: expected an even number, got 7"),
+    ],
+)  # fmt: skip
+def test_a_bad_setting_is_answered_before_the_gpu_stack_loads(tmp_path, file, env, words):
+    """A setting from the config file or the environment is checked before torch, warp and newton
+    load (seconds): the answer comes in well under two seconds (0.6 s on a 2-core CPU)."""
+    config = tmp_path / "service.toml"
+    config.write_text(file)
+    out, seconds = _cli("serve", "--config", str(config), "--device", "cpu", env=env)
+    assert out.returncode == 2 and seconds < 2.0, (seconds, out.stderr)
+    assert words in _one_line(out.stderr), out.stderr
 
 
 def test_a_taken_port_and_an_unwritable_record_folder_are_answered_in_one_line_with_their_exit_codes(tmp_path):
@@ -73,6 +94,16 @@ def test_a_taken_port_and_an_unwritable_record_folder_are_answered_in_one_line_w
     out, seconds = _cli("serve", "--listen", free, "--record", str(blocker / "recordings"), "--device", "cpu")
     assert out.returncode == 4 and seconds < 5.0, (seconds, out.stderr)
     assert f"serve --record: cannot write to '{blocker / 'recordings'}'" in _one_line(out.stderr)
+
+
+def test_a_zenoh_client_with_no_router_is_answered_in_one_line_before_the_gpu_stack_loads():
+    """Behind rmw_zenoh's router the service is a Zenoh client, which cannot start without its
+    router: said in one line (exit 5) before torch, warp and newton load."""
+    port = free_port()
+    env = {"INHAND_ZENOH_MODE": "client", "INHAND_CONNECT": f"tcp/127.0.0.1:{port}"}
+    out, seconds = _cli("serve", "--device", "cpu", env=env)
+    assert out.returncode == 5 and seconds < 2.0, (seconds, out.stderr)
+    assert f"as a Zenoh client, no router answered at tcp/127.0.0.1:{port}" in _one_line(out.stderr)
 
 
 @pytest.mark.slow

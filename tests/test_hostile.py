@@ -299,17 +299,26 @@ def test_memory_stays_flat_over_a_thousand_open_close_cycles(traj):
 
 
 def test_a_session_s_name_is_its_own(traj):
-    """A name names the session's ROS 2 topics and TF frame: another open session's is refused;
-    unnamed, sessions of one robot and object are numbered."""
-    manager = _manager(groups=4)
+    """A name names the session's ROS 2 topics and TF frame: another open session's is refused; a
+    name may carry a namespace; unnamed, a session's name is the same on every run (the robot's
+    peer name, its robot and object). Where names are ROS 2 topics, a second one that would take
+    it is refused, not numbered by whichever opened first; without ROS 2 it is numbered."""
+    manager = _manager(groups=6, ros2=True)
     named = manager.open(_request(traj, name="left_hand"))
     with pytest.raises(ServiceError, match="name: 'left_hand' is another open session's"):
         manager.open(_request(traj, name="left_hand"))
-    assert [manager.open(_request(traj)).name for _ in range(2)] == ["allegro_foam_brick", "allegro_foam_brick_2"]
+    assert manager.open(_request(traj)).name == "allegro_foam_brick"
+    with pytest.raises(ServiceError, match="default name 'allegro_foam_brick' is another open session's ROS 2 topic"):
+        manager.open(_request(traj))
+    assert manager.open(_request(traj), peer="cell-2.arm").name == "cell_2_arm/allegro_foam_brick"
+    assert manager.open(_request(traj, name="lab2/left_hand")).name == "lab2/left_hand"
     manager.close(named.session, named.token)
     assert manager.open(_request(traj, name="left_hand")).name == "left_hand"
-    with pytest.raises(ValidationError, match="name"):
-        _request(traj, name="2nd hand")  # not a ROS name token
+    for bad in ("2nd hand", "lab2/", "/left", "lab2//left", "lab2/2nd"):  # not ROS names
+        with pytest.raises(ValidationError, match="name"):
+            _request(traj, name=bad)
+    plain = _manager(groups=2)  # no ROS 2 topics: the name only labels the session
+    assert [plain.open(_request(traj)).name for _ in range(2)] == ["allegro_foam_brick", "allegro_foam_brick_2"]
 
 
 def test_a_megabyte_of_garbage_on_a_session_key_does_not_break_its_status(traj):

@@ -163,7 +163,8 @@ def test_a_message_built_with_bad_values_is_refused_in_one_line_naming_the_field
         ({"worlds": 100000}, "OpenSession.worlds: Input should be less than or equal to 65536, got 100000"),
         (
             {"name": "left hand"},
-            "OpenSession.name: String should match pattern '^[A-Za-z][A-Za-z0-9_]{0,62}$', got 'left hand'",
+            "OpenSession.name: 'left hand' is not a ROS 2 name: letters, digits and _, each part starting with a"
+            " letter, parts joined by / (as in lab2/left_hand)",
         ),
         ({"p0": np.zeros(3)}, "OpenSession.p0: expected last dimension 7, got shape (3,)"),
     ]

@@ -142,7 +142,7 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
                 sensor_names=[],
                 worlds=1,
                 method="PBO",
-                name="bench_left",
+                name="lab2/bench_left",  # a name in a namespace: a topic and a frame below it
             )
         )
         est = Estimate(
@@ -159,7 +159,10 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
     digest = store.hash_rihs01(POSE)
     dds = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
     (sample,) = [s for s in got if str(s.key_expr).startswith("7/inhand/")]
-    assert str(sample.key_expr) == f"7/inhand/bench_left/pose/{dds}/{digest}"
+    assert str(sample.key_expr) == f"7/inhand/lab2/bench_left/pose/{dds}/{digest}"
+    (tf,) = [s for s in got if str(s.key_expr).startswith("7/tf/")]
+    (child,) = store.deserialize_cdr(bytes(tf.payload.to_bytes()), "tf2_msgs/msg/TFMessage").transforms
+    assert (child.header.frame_id, child.child_frame_id) == ("base", "lab2/bench_left")
     msg = store.deserialize_cdr(bytes(sample.payload.to_bytes()), POSE)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (12, 250_000_000, "base")
     assert msg.pose.pose.orientation.z == pytest.approx(0.6) and msg.pose.covariance[35] == pytest.approx(6e-6)
@@ -170,6 +173,6 @@ def test_the_cdr_is_what_rosbags_decodes_and_the_keys_are_rmw_zenohs():
             # /tf keeps 100 as tf2's broadcasters declare; a pose keeps ROS's default 10.
             f"@ros2_lv/7/{zid}/0/1/MP/%/%/inhand_tracker/%tf/tf2_msgs::msg::dds_::TFMessage_/"
             f"{store.hash_rihs01('tf2_msgs/msg/TFMessage')}/::,100:,:,:,,",
-            f"@ros2_lv/7/{zid}/0/2/MP/%/%/inhand_tracker/%inhand%bench_left%pose/{dds}/{digest}/::,10:,:,:,,",
+            f"@ros2_lv/7/{zid}/0/2/MP/%/%/inhand_tracker/%inhand%lab2%bench_left%pose/{dds}/{digest}/::,10:,:,:,,",
         ]
     )

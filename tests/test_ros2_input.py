@@ -1,7 +1,9 @@
 """A ROS 2 robot tracked with none of this project's client code: an independent rmw_zenoh client
 (zenoh-ros2-sdk, from PyPI, with the .msg files a ROS 2 install holds) publishes the robot's joint
 states, commands and fingertip wrenches on its own topics; the session the service's config declares
-reads them, and the pose comes back on a ROS 2 topic."""
+reads them, and the pose comes back on a ROS 2 topic. Everything meets at a Zenoh router, the service
+connected to it as a Zenoh client, as rmw_zenoh's own router requires (it relays nothing between
+plain peers)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import pytest
 import zenoh
 from service_process import ROOT, ServiceProcess, free_port
 
-from inhand_tracker.client import TrackerClient
+from inhand_tracker.client import TrackerClient, zenoh_config
 from inhand_tracker.protocol import Trajectory
 from inhand_tracker.service.paths import CONFIG_DIR, DATA_DIR
 
@@ -69,14 +71,20 @@ def test_a_ros_native_robot_is_tracked_from_its_topics_and_its_pose_read_back_on
         "wrenches": [f"/hand/tip{i}/wrench" for i in range(sensors)],
     }  # fmt: skip
     port = free_port()
+    router = f"tcp/127.0.0.1:{port}"
+    conf = zenoh_config(listen=[router])
+    conf.insert_json5("mode", '"router"')
+    stack = contextlib.ExitStack()
+    stack.enter_context(zenoh.open(conf))
     svc = ServiceProcess(
-        port, ros2="true", ros2_domain_id=str(DOMAIN), ros2_sessions=json.dumps([declared]), idle_timeout_s="4"
-    )
+        free_port(), listen=False, connect=router, zenoh_mode="client", ros2="true",
+        ros2_domain_id=str(DOMAIN), ros2_sessions=json.dumps([declared]), idle_timeout_s="4",
+    )  # fmt: skip
     get_registry(str(MSGS))  # the .msg files a ROS 2 install would hold; nothing fetched
     on = {"router_ip": "127.0.0.1", "router_port": port, "domain_id": DOMAIN, "node_name": "hand_driver"}
     poses, lock = [], threading.Lock()
     try:
-        with TrackerClient(connect=[svc.endpoint]) as probe:
+        with TrackerClient(connect=[router], zenoh_mode="client") as probe:
             svc.wait_ready(probe)
         joints = ROS2Publisher("/hand/joint_states", "sensor_msgs/msg/JointState", **on)
         commands = ROS2Publisher("/hand/joint_commands", "sensor_msgs/msg/JointState", **on)
@@ -127,7 +135,7 @@ def test_a_ros_native_robot_is_tracked_from_its_topics_and_its_pose_read_back_on
         assert get_topic_info(pose_topic, DOMAIN, "127.0.0.1", port, 2.0).publisher_count == 1
 
         # The robot falls silent past the idle timeout: the session closes; its next joint state opens it again.
-        with TrackerClient(connect=[svc.endpoint]) as probe:
+        with TrackerClient(connect=[router], zenoh_mode="client") as probe:
             deadline = time.monotonic() + 30
             while probe.service_info(timeout=2.0).sessions and time.monotonic() < deadline:
                 time.sleep(0.2)
@@ -140,6 +148,7 @@ def test_a_ros_native_robot_is_tracked_from_its_topics_and_its_pose_read_back_on
         sub.close()
     finally:
         svc.stop()
+        stack.close()
     log = svc.proc.stdout.read()
     assert log.count("ROS 2 session 'ros_hand' opened") == 2, log[-3000:]
     assert "Traceback" not in log, log[-3000:]
@@ -167,7 +176,6 @@ def test_a_declared_session_the_service_cannot_serve_is_refused_at_start_in_one_
 def test_two_services_on_one_router_publish_as_nodes_and_topics_of_their_own():
     """One service per GPU behind one router, each with a session of the default name: each service's
     node and topics live in its own namespace (its name), so neither's pose reaches the other's topic."""
-    from inhand_tracker.client import zenoh_config
 
     traj = Trajectory.load(TRAJECTORY)
     port = free_port()

@@ -227,3 +227,35 @@ def test_the_view_compiles_what_it_draws_at_warm_up():
         assert loaded() == before, loaded() - before
     finally:
         drawing.close()
+
+
+def test_the_view_colours_links_alike_and_draws_the_region_around_the_estimate():
+    """One link one colour in every world (Newton's palette runs by shape); the 95 % region around
+    the estimate, wide enough to hold the weighted mean when the two part; every open browser
+    turned to a new session's object."""
+    from inhand_tracker.service.paths import CONFIG_DIR
+    from inhand_tracker.service.server.view_drawing import Drawing
+    from inhand_tracker.service.server.view_messages import EstimateView
+    from inhand_tracker.sim_backend import PopulationConfig, load_catalog, load_robot
+
+    robot, catalog = load_robot(CONFIG_DIR / "robots/allegro.toml"), load_catalog()
+    drawing = Drawing("127.0.0.1", free_port())
+    try:
+        drawing.show(robot, catalog["foam_brick"], PopulationConfig(), 3)
+        body = drawing.model.shape_body.numpy()
+        colour = drawing.model.shape_color.numpy()
+        link = body % drawing.bodies
+        for i in np.unique(link[body >= 0]):
+            assert len(np.unique(colour[(body >= 0) & (link == i)], axis=0)) == 1, f"link {i} in several colours"
+        assert len(np.unique(colour[body >= 0], axis=0)) > 2  # links apart, not one grey
+        pose = np.array([0.1, 0.0, 0.2, 0, 0, 0, 1.0], np.float32)
+        mean = pose[:3] + np.array([0.02, 0.0, 0.0], np.float32)
+        drawing._aimed.add(12345)  # a browser that looked at the last session
+        estimate = EstimateView(pose, mean, np.eye(3, dtype=np.float32) * 1e-6)
+        drawing.draw(drawing.state.body_q.numpy().ravel(), np.ones(3), np.zeros((4, 3)), estimate, "t", ("a",))
+        region = drawing._marks["region"]
+        assert np.allclose(region.position, pose[:3], atol=1e-6)
+        assert region.radius > 0.02 * np.sqrt(7.815) * 0.99  # holds the mean, 20 mm away
+        assert not drawing._aimed  # every browser is aimed again, at this object
+    finally:
+        drawing.close()

@@ -83,23 +83,29 @@ Json = Annotated[bool, typer.Option("--json", help="print JSON instead of a tabl
 def gpu_stack() -> None:
     """What every command that simulates needs first; on the robot side's light install, a clear
     word on what to install instead of an import traceback."""
+    installed_stack()
+    import inhand_tracker.sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)
+    from inhand_tracker.service.logs import quiet_warp, watch_kernel_compiles
+
+    quiet_warp()
+    watch_kernel_compiles()
+
+
+def installed_stack() -> None:
+    """Exit 2 with what to install when the service's packages are not, on the robot side's light
+    install; looked up, not imported (a fraction of a second)."""
     import importlib.util
 
     # Looked up, not imported: newton must not be imported before forward_only_kernels.
-    missing = [name for name in ("torch", "warp", "newton") if importlib.util.find_spec(name) is None]
+    missing = [name for name in ("torch", "warp", "newton", "lazy_loader") if importlib.util.find_spec(name) is None]
     if missing:
         raise fail(
             f"this command simulates, and the GPU stack is not installed (missing: {', '.join(missing)}):"
             " install torch first (the CPU build: pip install torch==2.13.0 --index-url"
             " https://download.pytorch.org/whl/cpu; or your CUDA build), then"
             " pip install '.[service]' in the repository (or 'WHEEL[service]' for a built wheel)."
-            " The robot side (replay, the client) needs neither."
+            " The robot side (replay, the client) needs none of them."
         )
-    import inhand_tracker.sim_backend  # noqa: F401  (first: it switches off Warp's adjoints before newton is imported)
-    from inhand_tracker.service.logs import quiet_warp, watch_kernel_compiles
-
-    quiet_warp()
-    watch_kernel_compiles()
 
 
 def command_line(ctx: typer.Context) -> str:
@@ -226,14 +232,46 @@ def check_folder(folder: Path, option: str) -> None:
         raise fail(f"{option}: cannot write to '{folder}': {exc.strerror or exc}", ExitCode.FILES) from None
 
 
+def check_router(connect: tuple[str, ...], command: str) -> None:
+    """Exit 5 with one line when no router of a Zenoh client answers, before the GPU stack loads: a
+    client cannot open without one (a peer waits for it, and says so). Only TCP-borne endpoints
+    (tcp/, tls/) are knocked on, with a plain connect; others are left to Zenoh."""
+    import socket
+
+    tried = []
+    for endpoint in connect:
+        scheme, _, address = endpoint.partition("/")
+        host, _, port = address.split("#")[0].rpartition(":")
+        if scheme not in ("tcp", "tls") or not port.isdigit():
+            return
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+                return
+        except OSError:
+            tried.append(endpoint)
+    if tried:
+        raise fail(_no_router(command, tried), ExitCode.UNREACHABLE)
+
+
+def _no_router(command: str, where: list[str]) -> str:
+    return (
+        f"{command}: as a Zenoh client, no router answered at {', '.join(where) or '(scouting)'}; start it"
+        " first, or check the address (connect / INHAND_CONNECT)"
+    )
+
+
 @contextlib.contextmanager
 def started(node, command: str):
-    """A service node, started and closed; an address already taken exits 2 with one line and the fix."""
+    """A service node, started and closed; an address already taken exits 3, and an absent router
+    of a Zenoh client 5, each with one line and the fix."""
     try:
         node.start()
     except Exception as exc:
         node.close()
-        if "address already in use" not in str(exc).lower():
+        said = str(exc).lower()
+        if "unable to connect to any of" in said:  # a Zenoh client needs its router at the start
+            raise fail(_no_router(command, list(node.config.connect)), ExitCode.UNREACHABLE) from None
+        if "address already in use" not in said:
             raise
         raise fail(_taken_message(command, ", ".join(node.config.listen)), ExitCode.TAKEN) from None
     try:

@@ -18,9 +18,11 @@ from .common import (
     check_folder,
     check_listen,
     check_port,
+    check_router,
     endpoints,
     fail,
     gpu_stack,
+    installed_stack,
     names,
     started,
 )
@@ -54,8 +56,8 @@ def serve(
         check_port("127.0.0.1", view_port, "serve --view-port")
     if record is not None:
         check_folder(record, "serve --record")
-    gpu_stack()
-    from inhand_tracker.service.server import TrackerNode, load_config
+    installed_stack()
+    from inhand_tracker.service.server.config import load_config  # no GPU stack: a bad value is said at once
 
     try:
         settings = load_config(
@@ -69,6 +71,11 @@ def serve(
         check_port(settings.view_host, settings.view_port, "serve: view_port")
     if settings.record is not None and record is None:
         check_folder(Path(settings.record), "serve: record")
+    if settings.zenoh_mode == "client":
+        check_router(settings.connect, "serve")
+    gpu_stack()
+    from inhand_tracker.service.server import TrackerNode
+
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -1,9 +1,17 @@
 """The service on Zenoh: its configuration, the sessions (each a group of a shared population)
-and the node whose one loop thread owns the GPU."""
+and the node whose one loop thread owns the GPU.
 
-from .admission import ServiceError
-from .config import ServiceConfig, load_config
-from .node import TrackerNode
-from .sessions import SessionManager
+Its names load on first use (lazy_loader), so that a configuration is read and refused in a
+fraction of a second, before torch, warp and newton load."""
 
-__all__ = ["ServiceConfig", "ServiceError", "SessionManager", "TrackerNode", "load_config"]
+import lazy_loader as lazy
+
+__getattr__, __dir__, __all__ = lazy.attach(
+    __name__,
+    submod_attrs={
+        "admission": ["ServiceError"],
+        "config": ["ServiceConfig", "load_config"],
+        "node": ["TrackerNode"],
+        "sessions": ["SessionManager"],
+    },
+)

@@ -25,6 +25,7 @@ from pydantic_settings import (
 )
 
 from inhand_tracker.client.zenoh_session import check_endpoints
+from inhand_tracker.protocol import SESSION_NAME
 from inhand_tracker.service.paths import CONFIG_DIR
 from inhand_tracker.sim_backend import PopulationConfig
 
@@ -107,8 +108,9 @@ class RosSession(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
-    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
-    """The session's name: its pose topic is ``/inhand/{name}/pose``, its TF frame ``{name}``."""
+    name: SESSION_NAME
+    """The session's name, ROS name tokens joined by ``/``: its pose topic is ``/inhand/{name}/pose``,
+    its TF frame ``{name}``."""
     robot: str
     """One of the service's robots (its config's ``name``)."""
     object: str
@@ -171,6 +173,10 @@ class ServiceConfig(BaseSettings):
     access control rules (relative to the project root)."""
     scouting: bool = False
     """Zenoh multicast scouting; off, so a service is found only where it is told to be."""
+    zenoh_mode: Literal["peer", "client"] | None = None
+    """How the service joins Zenoh: "peer", or "client" of the router it connects to (behind
+    rmw_zenoh's router, rmw_zenohd, which relays nothing between peers). Unset: the ``zenoh_config``
+    file's mode, else peer."""
     groups: int | None = Field(None, ge=1)
     """Sessions per population: sessions with the same robot, object and K share one graph replay.
     Unset: 8 on a GPU (eight sessions step at about the cost of one), 1 on a CPU (each costs its own)."""

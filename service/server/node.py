@@ -106,7 +106,7 @@ class TrackerNode:
     def start(self) -> TrackerNode:
         cfg, keys = self.config, self.keys
         file = resolve(cfg.zenoh_config) if cfg.zenoh_config else None
-        self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting, file))
+        self.session = s = zenoh.open(zenoh_config(cfg.listen, cfg.connect, cfg.scouting, file, cfg.zenoh_mode))
         self._entities = [
             s.declare_queryable(keys.info, self._on_info),
             s.declare_queryable(keys.opens, self._on_open),

@@ -165,8 +165,9 @@ class SessionRecorder(Output):
             self.said(session, message)
 
     def open(self, info: SessionInfo, request: OpenSession) -> None:
-        # Named by the session's name (what a launch file knows it by) and id (unique across runs).
-        folder = self.folder / f"{info.name or 'session'}_{info.session}"
+        # Named by the session's name (what a launch file knows it by; a namespace's ``/`` as ``.``)
+        # and id (unique across runs).
+        folder = self.folder / f"{(info.name or 'session').replace('/', '.')}_{info.session}"
         with self._guarded(info.session):
             self._files[info.session] = _File(folder, info, request, self.service, self.frame_id)
             log.info("recording session %s to %s", info.session, folder)

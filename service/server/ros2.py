@@ -63,7 +63,8 @@ _QOS = "::,{depth}:,:,:,,"
 """rmw_zenoh's QoS field of a token: reliable, volatile, keep last ``depth``, the rest default."""
 _TF_DEPTH = 100
 """/tf's history depth, as tf2's broadcasters declare it (the poses keep ROS's default 10)."""
-_NOT_A_NAME = re.compile(r"[^A-Za-z0-9_]")
+_NOT_A_NAME = re.compile(r"[^A-Za-z0-9_/]")
+"""What a ROS name (tokens and the ``/`` of their namespace) cannot hold."""
 
 
 def ros_namespace(service: str) -> str:

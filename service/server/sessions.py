@@ -45,6 +45,14 @@ from .pools import MEASURED_STEPS, SILENT_AFTER, Pool, PoolKey, Session, Turn, b
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
 
 log = logging.getLogger(__name__)
+_NOT_IN_A_TOKEN = re.compile(r"[^A-Za-z0-9_]")
+
+
+def _token(text: str) -> str:
+    """``text`` as a ROS name token: other characters as ``_``, a letter first."""
+    token = _NOT_IN_A_TOKEN.sub("_", text)
+    return token if token[:1].isalpha() else f"s_{token}"
+
 
 _SAID = 500
 """The most characters of a refused input's error a session's status repeats."""
@@ -117,15 +125,24 @@ class SessionManager:
         if name is not None and any(s.name == name for s in self.sessions.values()):
             raise ServiceError(ErrorCode.BAD_REQUEST, f"name: '{name}' is another open session's; choose another")
 
-    def _name(self, request: OpenSession) -> str:
-        """The session's name: the one asked for, else ``{robot}_{object}``, numbered from 2 when taken."""
+    def _name(self, request: OpenSession, peer: str) -> str:
+        """The session's name: the one asked for, else its default (:attr:`OpenSession.name`), the
+        same on every run. Where the name is a ROS 2 topic (setting ``ros2``), a session that would
+        take one another holds is refused, not numbered: a number would hang on which robot opened
+        first, and a launch file could not name its topic. Elsewhere it is numbered from 2."""
         if request.name is not None:
             self._check_name(request.name)  # taken while its population was built
             return request.name
-        base = re.sub(r"[^A-Za-z0-9_]", "_", f"{request.robot}_{request.object}")
-        base = base if base[:1].isalpha() else f"s_{base}"
+        name = _token(f"{request.robot}_{request.object}")
+        name = f"{_token(peer)}/{name}" if peer else name
         taken = {s.name for s in self.sessions.values()}
-        return next(n for n in (base, *(f"{base}_{i}" for i in range(2, len(taken) + 3))) if n not in taken)
+        if name in taken and self.config.ros2:
+            raise ServiceError(
+                ErrorCode.BAD_REQUEST,
+                f"name: this session's default name '{name}' is another open session's ROS 2 topic; give it a name of"
+                " its own",
+            )
+        return next(n for n in (name, *(f"{name}_{i}" for i in range(2, len(taken) + 3))) if n not in taken)
 
     def reserve(self, admission: Admission) -> None:
         """Count a population being built against the caps until it is adopted (or failed)."""
@@ -159,7 +176,7 @@ class SessionManager:
         group = pool.sessions.index(None)
         session = Session(
             uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group,
-            self._name(request), admission.peer,
+            self._name(request, admission.peer), admission.peer,
         )  # fmt: skip
         tracker = pool.tracker
         tracker.set_method(group, request.method)

@@ -39,8 +39,16 @@ _OBJECT_OPACITY = 0.6
 _HAND_OPACITY = 0.35
 """The opacity of the hands' links: the real fingertips inside them show through."""
 _LEGEND = """**Colours.** Red dots: the real fingertips, from the joints the robot sent. Orange sphere:
-the 95 % region of the object's position. Axes: the estimate. Faded objects: the worlds, each as
-opaque as its share of the estimate."""
+the 95 % region of the object's position around the estimate. Axes: the estimate. Blue objects:
+the worlds, each as opaque as its share of the estimate. The hand's links keep one colour each."""
+_LINK_PALETTE = np.array(
+    [(0.62, 0.62, 0.66), (0.80, 0.60, 0.45), (0.45, 0.65, 0.50), (0.55, 0.55, 0.80), (0.80, 0.75, 0.45),
+     (0.65, 0.50, 0.70), (0.45, 0.70, 0.75), (0.75, 0.50, 0.50)], np.float32,
+)  # fmt: skip
+"""The hand's link colours, by the link's index in the robot: the same link the same colour in
+every world and every session, and neighbouring links apart (Newton's default palette runs by
+shape, so one link takes a different colour in each world)."""
+_OBJECT_COLOUR = (0.25, 0.45, 0.85)
 _POLL_S = 0.1
 """How often an idle drawing process looks for new browsers and the picked session [s]."""
 
@@ -68,6 +76,7 @@ class Drawing:
         """The scene nodes drawn beside the worlds (the real fingertips, the 95 % region, its label)."""
         self._look_at = np.zeros(3)
         self._aimed: set[int] = set()
+        self._aim_at_estimate = False
         self.model = self.state = None
         self.bodies = 0
 
@@ -95,10 +104,17 @@ class Drawing:
         self.viewer.show_collision = True  # the population's shapes are collision shapes, what the physics sees
         self.viewer.set_world_offsets((0.0, 0.0, 0.0))
         shape_body = self.model.shape_body.numpy()
-        mine = (shape_body >= 0) & (shape_body % built.bodies == built.object_body)
+        link = shape_body % built.bodies
+        mine = (shape_body >= 0) & (link == built.object_body)
         opacity = self.model.shape_opacity.numpy()
         opacity[(shape_body >= 0) & ~mine] = _HAND_OPACITY
         self.model.shape_opacity.assign(opacity)
+        colour = self.model.shape_color.numpy()
+        colour[shape_body >= 0] = _LINK_PALETTE[link[shape_body >= 0] % len(_LINK_PALETTE)]
+        colour[mine] = _OBJECT_COLOUR
+        self.model.shape_color.assign(colour)
+        self._aimed.clear()  # every browser looks at the new session's object once it is estimated
+        self._aim_at_estimate = True
         self._object_shapes = np.flatnonzero(mine)
         self._object_worlds = self.model.shape_world.numpy()[self._object_shapes]
 
@@ -134,10 +150,18 @@ class Drawing:
     def _show_estimate(self, estimate: EstimateView) -> None:
         p = estimate.pose.astype(np.float64)
         self._look_at = p[:3]  # where a new browser looks
+        if self._aim_at_estimate:  # a new session: the browsers already open turn to its object too
+            self._aimed.clear()
+            self._aim_at_estimate = False
         self._estimate.position, self._estimate.wxyz = p[:3], (p[6], p[3], p[4], p[5])
         self._estimate.visible = True
-        radius = float(np.sqrt(_CHI2_3_95 * np.linalg.eigvalsh(estimate.covariance.astype(np.float64)).max()))
-        centre = estimate.mean.astype(np.float64)
+        # The region is around the estimate, where the object is drawn: the covariance is about the
+        # weighted mean, so the mean's offset from the estimate is added to it (the second moment
+        # about the estimate); a sphere at the mean sat beside the object when the two parted.
+        centre = p[:3]
+        offset = estimate.mean.astype(np.float64) - centre
+        spread = estimate.covariance.astype(np.float64) + np.outer(offset, offset)
+        radius = float(np.sqrt(_CHI2_3_95 * np.linalg.eigvalsh(spread).max()))
         self._marks["region"] = self.server.scene.add_icosphere(  # the same name replaces the last one
             "/inhand/mean_95", radius=max(radius, 1e-4), color=(255, 140, 0), opacity=0.45, position=centre
         )
