@@ -34,28 +34,15 @@ from inhand_tracker.protocol import (
 from inhand_tracker.protocol.auth import sign, signed_query
 
 from .builds import BuildWatch
-from .zenoh_session import zenoh_config, zenoh_encoding
+from .errors import ServiceLost, StaleEstimate, TrackerError
+from .zenoh_session import connected, zenoh_config, zenoh_encoding
 
 __all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError"]
 
-
-class TrackerError(Exception):
-    """The service refused a request: ``code`` (protocol ErrorCode), its message, and on
-    ``capacity`` the other services that may have room."""
-
-    def __init__(self, code: ErrorCode | str, message: str, others: list[str] | None = None):
-        super().__init__(f"{code}: {message}" + (f" (other services: {', '.join(others)})" if others else ""))
-        self.code, self.message, self.others = ErrorCode(code), message, list(others or [])
-
-
-class StaleEstimate(RuntimeError):
-    """The newest estimate answers a frame older than the caller allows: the service is not keeping
-    up, stalled, or no longer tracks this session."""
-
-
-class ServiceLost(ConnectionError):
-    """The service's liveliness token went away while a session was open: it stopped or
-    restarted, and the session is gone with it (:meth:`TrackerClient.reopen` starts a new one)."""
+_NO_LINK_S = 0.8
+"""How long a client waits for any router or peer at its connect endpoints before it says that
+nothing is there (a link comes up within milliseconds on a LAN; a service that is there but still
+starting answers later, and is waited for)."""
 
 
 class TrackerClient:
@@ -90,6 +77,7 @@ class TrackerClient:
         self._route, self.peer = service is None, peer
         self.keys = Keys(service or "default", peer)
         self.endpoints = list(connect) or ["(scouting)"]
+        self._connects = bool(connect)
         """Where this client looks for its service, for the errors that say it found none."""
         self.timeout, self.open_timeout = timeout, open_timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file, zenoh_mode))
@@ -163,7 +151,16 @@ class TrackerClient:
         deadline = start + (timeout or self.timeout)
         answered = False
         while True:
-            left = min(2.0, max(0.1, deadline - time.monotonic()))
+            linked = connected(self._zenoh)
+            if absent is not None and not linked and self._connects and time.monotonic() - start >= _NO_LINK_S:
+                which = "no service" if self._route else f"service '{self.keys.service}'"
+                raise TimeoutError(
+                    f"{which} does not answer at {', '.join(self.endpoints)}: nothing is there (no router or"
+                    f" service reached in {_NO_LINK_S:g} s); start one with `inhand-tracker serve`, or give its"
+                    " address (--connect)"
+                )
+            # Short polls while no link is up, so that an absent router is said within a second.
+            left = min(2.0 if linked else 0.25, max(0.1, deadline - time.monotonic()))
             try:
                 if self._route:
                     found = self.services(timeout=left)

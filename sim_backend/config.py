@@ -86,6 +86,9 @@ class PopulationConfig:
     collides with itself, so that list is short), "sap" or "nxn" search all shapes."""
     contact_gap: float = 0.005
     """Shapes closer than this make (speculative) contacts [m]."""
+    drop_duplicate_contacts: bool = False
+    """Make a contact that Newton's narrow phase writes twice (same shapes, points and normal)
+    count once, as MuJoCo C does (:mod:`.duplicates`)."""
     constraints_per_world: int | None = None
     """MuJoCo constraint rows per world (njmax); None: five per contact the world holds."""
     slip_speed: float = 0.01

@@ -12,6 +12,7 @@ import warp as wp
 
 from . import health, observe
 from .build import contact_points
+from .duplicates import drop_duplicate_contacts
 from .worlds import Worlds
 
 __all__ = ["no_collection", "observe_frame", "simulate"]
@@ -77,6 +78,8 @@ def simulate(d: Worlds) -> None:
                       inputs=[d.goal, d.last_goal, (i + 1) / cfg.substeps, n.coords, ix.coord_index],
                       outputs=[d.control.joint_target_q])  # fmt: skip
         d.pipeline.collide(s_in, d.contacts)
+        if cfg.drop_duplicate_contacts:
+            drop_duplicate_contacts(d.contacts)
         # Only the last substep's contact forces are observed: earlier ones would be overwritten.
         observables = d.observables if i == cfg.substeps - 1 else None
         d.solver.step(s_in, s_out, d.control, d.contacts, dt, observables=observables)

@@ -55,6 +55,7 @@ SERVICE_PHYSICS = (
     "constraints_per_world",
     "cone",
     "impratio",
+    "drop_duplicate_contacts",
 )
 """PopulationConfig's settings the service's ``[physics]`` may set: the solver's budget per frame,
 the worlds' room for contacts, and the contact model (which beats the robot config's)."""
