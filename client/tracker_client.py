@@ -35,14 +35,14 @@ from inhand_tracker.protocol.auth import sign, signed_query
 
 from .builds import BuildWatch
 from .errors import ServiceLost, StaleEstimate, TrackerError
+from .trust import Trust
 from .zenoh_session import connected, zenoh_config, zenoh_encoding
 
 __all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError"]
 
 _NO_LINK_S = 0.8
-"""How long a client waits for any router or peer at its connect endpoints before it says that
-nothing is there (a link comes up within milliseconds on a LAN; a service that is there but still
-starting answers later, and is waited for)."""
+"""How long a client waits for any router or peer at its connect endpoints before it says nothing is
+there (a link comes up within milliseconds on a LAN; a service that is there but starting is waited for)."""
 
 
 class TrackerClient:
@@ -67,11 +67,13 @@ class TrackerClient:
         open_timeout: float = 900.0,
         peer: str | None = None,
         zenoh_mode: str | None = None,
+        service_key: str | None = None,
     ):
         """``service``: its name, or None to choose at each open. ``zenoh_file``: a Zenoh JSON5 config
         (TLS or mTLS certificates) under the endpoints given. ``open_timeout``: an open's wait [s].
         ``zenoh_mode``: "client" behind a router that relays nothing between peers (rmw_zenoh's);
-        None: the file's mode, else peer.
+        None: the file's mode, else peer. ``service_key``: the service's key fingerprint, as
+        ``serve`` prints it (or the key): its info, open reply and estimates are then checked.
         ``peer``: the name to open under, which the service's per-peer caps count (behind the
         hardened compose's router, this robot's certificate name)."""
         self._route, self.peer = service is None, peer
@@ -81,6 +83,7 @@ class TrackerClient:
         """Where this client looks for its service, for the errors that say it found none."""
         self.timeout, self.open_timeout = timeout, open_timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file, zenoh_mode))
+        self.trust = Trust(service_key)
         self.info: SessionInfo | None = None
         self._seq = 0
         self._epoch = 0
@@ -120,7 +123,7 @@ class TrackerClient:
         raise TimeoutError(f"{key}: no reply from service '{self.keys.service}' within {timeout or self.timeout} s")
 
     def service_info(self, timeout: float = 5.0) -> ServiceInfo:
-        return self._get(self.keys.info, None, ServiceInfo, timeout)
+        return self.trust.info(self._get(self.keys.info, None, ServiceInfo, timeout))
 
     def services(self, timeout: float = 2.0) -> list[ServiceInfo]:
         """Every service that answers on this Zenoh network, the roomiest first (free worlds, sessions)."""
@@ -210,7 +213,7 @@ class TrackerClient:
         if self.info is not None:
             raise RuntimeError(f"session '{self.info.session}' is open; close it first")
         # A service compiling on a cold cache is waited for as long as a build; an absent one is said at once.
-        self.wait_ready(self.open_timeout, absent=3.0)
+        service = self.wait_ready(self.open_timeout, absent=3.0)
         request = checked(
             OpenSession,
             robot=robot,
@@ -225,7 +228,7 @@ class TrackerClient:
             overrides=overrides or {},
             name=name,
         )
-        self.info = info = self._open(request)
+        self.info = info = self.trust.opened(self._open(self.trust.request(request, service)))
         self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
                             method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides,
                             name=name)  # fmt: skip
@@ -337,6 +340,8 @@ class TrackerClient:
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
         estimate = decode(bytes(sample.payload.to_bytes()), Estimate)
+        if self.info is None or not self.trust.estimate(estimate, self.info.token):
+            return
         with self._new:
             self._latest = estimate
             self._new.notify_all()
@@ -370,7 +375,8 @@ class TrackerClient:
         if estimate is None:
             if self.info is None:
                 raise RuntimeError("no session: call open_session first")
-            estimate = self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
+            got = self._get(self.keys.pose(self.info.session), None, Estimate, timeout)
+            estimate = self.trust.checked(got, self.info.token)
         if max_age is not None and self._sent_stamp is not None and self._sent_stamp - estimate.stamp > max_age:
             raise StaleEstimate(
                 f"the newest estimate answers seq {estimate.seq} (stamp {estimate.stamp:.3f} s), "

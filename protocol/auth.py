@@ -19,7 +19,7 @@ from pydantic import BaseModel
 
 from .codec import encode
 
-__all__ = ["QUERY_WINDOW_S", "query_mac", "sign", "signed_query", "verify", "verify_query"]
+__all__ = ["QUERY_WINDOW_S", "mac_of", "query_mac", "sign", "signed_query", "verify", "verify_query"]
 
 QUERY_WINDOW_S = 300.0
 """How far a query's stamp may lie from the service's clock [s]: robot and service clocks need
@@ -43,6 +43,11 @@ def verify(message: BaseModel, token: str) -> bool:
         bare = message.model_copy(update={"token": "", "mac": ""})
         return secrets.compare_digest(message.mac, _mac(token, encode(bare)))
     return bool(message.token) and secrets.compare_digest(message.token, token)
+
+
+def mac_of(message: BaseModel, token: str) -> str:
+    """The HMAC of ``message`` (an estimate) with its ``mac`` empty, keyed by ``token``."""
+    return _mac(token, encode(message.model_copy(update={"mac": ""})))
 
 
 def query_mac(token: str, purpose: str, session: str, stamp: float) -> str:

@@ -1,6 +1,6 @@
 """Every Zenoh key expression of the protocol, in one place.
 
-``inhand/v4/{service}/...``: the version is the protocol's; it changes when a message changes
+``inhand/v5/{service}/...``: the version is the protocol's; it changes when a message changes
 incompatibly.
 """
 

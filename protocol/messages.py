@@ -43,8 +43,8 @@ __all__ = [
     "check_version",
 ]
 
-PROTOCOL_VERSION = 4
-"""Bumped, with the key prefix's ``v4``, when a message changes incompatibly."""
+PROTOCOL_VERSION = 5
+"""Bumped, with the key prefix's ``v5``, whenever a message gains or changes a field."""
 DEFAULT_WORLDS = 40
 """K, the paper's: a session's worlds where no frame budget decides (``worlds="auto"`` on a
 service without one, benchmarks)."""
@@ -115,7 +115,7 @@ class ServiceInfo(WireMessage):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     name: str
-    """The service's name: its keys live under ``inhand/v4/{name}``."""
+    """The service's name: its keys live under ``inhand/v5/{name}``."""
     device: str
     """Where its simulations run (``cuda:0``, ``cpu``)."""
     robots: list[str]
@@ -148,6 +148,11 @@ class ServiceInfo(WireMessage):
     build_s: float = 0.0
     """How long the service's last population build took [s] (0: none yet): what an open that
     needs a build waits."""
+    key: str = ""
+    """The service's public key (base64: Ed25519's 32 bytes, then X25519's 32; protocol.identity):
+    a robot configured with it, or with its fingerprint, knows the service by it."""
+    signature: str = ""
+    """The service's Ed25519 signature of this info with ``signature`` empty."""
 
 
 class OpenSession(WireMessage):
@@ -183,6 +188,9 @@ class OpenSession(WireMessage):
     Default: ``{peer}/{robot}_{object}`` for an open under a peer name, else ``{robot}_{object}``.
     A second unnamed session of the same default is refused on a service that publishes ROS 2
     topics (so that a topic's name never hangs on which robot opened first), else numbered from 2."""
+    client_key: str = ""
+    """An X25519 public key the robot made for this open (base64): the session's secret is then
+    agreed from it and the service's key, and the reply carries no token (protocol.identity)."""
 
     @field_validator("p0")
     @classmethod
@@ -224,7 +232,7 @@ class SessionInfo(WireMessage):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     session: str
-    """The session's id: its keys are ``inhand/v4/{service}/s/{session}/...``."""
+    """The session's id: its keys are ``inhand/v5/{service}/s/{session}/...``."""
     token: str
     """The session's secret: every frame, close, status and pose query must carry it. Zenoh's
     access control (or mTLS) decides who may connect and read; the token keeps peers that may
@@ -247,6 +255,9 @@ class SessionInfo(WireMessage):
     """Why the session got fewer worlds than it asked for, when it did."""
     name: str = ""
     """The session's name (:attr:`OpenSession.name`): its ROS 2 topics and TF frame follow it."""
+    signature: str = ""
+    """For an open with a ``client_key``: the service's Ed25519 signature of this reply (with
+    ``signature`` empty) followed by that key, so that it answers that open alone."""
 
 
 class _FrameHeader(WireMessage):

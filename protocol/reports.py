@@ -74,6 +74,10 @@ class Estimate(WireMessage):
     notice: str | None = None
     """What the robot should know about this frame, once: e.g. that its seq jumped and the
     session re-synchronised to it."""
+    mac: str = ""
+    """For a session opened with a ``client_key``: HMAC-SHA256 of this estimate with ``mac`` empty,
+    keyed by the session's agreed secret (protocol.auth), so that its robot can tell it is the
+    service's."""
 
 
 class PopulationSummary(WireMessage):

@@ -35,6 +35,7 @@ from inhand_tracker.protocol import (
     OpenSession,
     PoseObservation,
     RobotFrame,
+    SessionInfo,
     Trajectory,
     decode,
     encode,
@@ -584,7 +585,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
     acl = {"access_control": {
         "enabled": True, "default_permission": "allow",
         "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                   "key_exprs": ["inhand/v4/default/**"]}],
+                   "key_exprs": ["inhand/v5/default/**"]}],
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip
@@ -950,3 +951,53 @@ def test_a_silent_co_tenant_stops_costing_its_population_a_wait(traj):
     manager.step(pool)
     manager.submit(traj.frame(SILENT_AFTER + 2, robot.session, token=robot.token))
     assert manager.ready(max_wait=3600.0) == []  # it spoke: it is awaited again
+
+
+def test_a_robot_that_knows_its_service_s_key_accepts_no_fake_service_relay_or_forged_estimate(traj, tmp_path):
+    """The plain deployment (no access rules), a robot configured with the fingerprint `serve`
+    prints: a peer answering as the service is refused; a peer that relays the robot's open to the
+    real service gets a reply without the session's secret and cannot close the session; an
+    estimate forged on the session's pose key is not taken; the genuine ones are."""
+    from inhand_tracker.protocol.identity import ServiceKey, signed
+
+    svc = ServiceProcess(free_port(), timeout_s=5.0, key_file=str(tmp_path / "service.key"))
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as probe:
+            svc.wait_ready(probe)
+            fingerprint = ServiceKey.load_or_create(tmp_path / "service.key").fingerprint
+            info = probe.service_info()
+
+        # A fake service: another key, its info signed with it (answering from the robot's own Zenoh
+        # session, so that nothing but the fake can answer, whatever the routing).
+        fake_key = ServiceKey.generate()
+        fake = info.model_copy(update={"name": "fake", "key": fake_key.public})
+        answer = encode(signed(fake_key, fake))
+        with TrackerClient(connect=[svc.endpoint], service="fake", service_key=fingerprint) as robot:
+            robot._zenoh.declare_queryable(Keys("fake").info, lambda q: q.reply(q.key_expr, answer))
+            with pytest.raises(TrackerError, match="does not hold the key"):
+                robot.service_info()
+
+        with TrackerClient(connect=[svc.endpoint], service_key=fingerprint) as robot:
+            opened = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q,
+                                        worlds=4)  # fmt: skip
+            assert opened.token and len(opened.token) == 32  # agreed, not sent
+            # A relay that forwards the robot's own open (same client key) gets no secret back.
+            request = _request(traj).model_copy(update={"client_key": robot.trust._exchange.public})
+            (reply,) = list(robot._zenoh.get(Keys("default").open, payload=encode(request), timeout=60))
+            relayed = decode(bytes(reply.ok.payload.to_bytes()), SessionInfo)
+            assert relayed.token == "" and relayed.signature
+            with pytest.raises(TrackerError, match="forbidden"):
+                robot._get(Keys("default").close, CloseSession(session=opened.session, token=""), Error)
+            for i in range(3):
+                robot.send(traj.frame(i, opened.session))
+            genuine = robot.latest_pose(timeout=60, after_seq=2)
+            # A forged estimate on the session's pose key: a seq ahead, the robot's old MAC.
+            forged = genuine.model_copy(update={"seq": 99, "pose": genuine.pose + 0.1})
+            robot._zenoh.put(Keys("default").pose(opened.session), encode(forged))
+            time.sleep(0.5)
+            assert robot.trust.forged == 1 and robot.latest_pose(timeout=1).seq == 2
+            robot.send(traj.frame(3, opened.session))
+            assert robot.latest_pose(timeout=60, after_seq=3).seq == 3  # the service's are still taken
+    finally:
+        svc.stop()
+    assert f"key {fingerprint}" in svc.proc.stdout.read()  # `serve` says what robots are configured with

@@ -35,7 +35,7 @@ def serve(
     config: Annotated[Path | None, typer.Option(help="service TOML (default configs/service.toml)")] = None,
     listen: Annotated[str | None, typer.Option(help="Zenoh endpoints to listen on, comma-separated")] = None,
     connect: Annotated[str | None, typer.Option(help="Zenoh endpoints to connect to (a router)")] = None,
-    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v4/NAME")] = None,
+    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v5/NAME")] = None,
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
     ros2: Annotated[bool | None, typer.Option("--ros2/--no-ros2", help="publish the estimates as ROS 2 topics")] = None,
     record: Annotated[Path | None, typer.Option(help="record every session to MCAP files in this folder")] = None,
@@ -116,6 +116,7 @@ def replay(
     rate: Annotated[float, typer.Option(help="frames per second; 0: each frame after the last estimate")] = 0.0,
     noise: Annotated[str, typer.Option(help="initial pose noise from the truth: low, med, high")] = "med",
     allow_fewer: Annotated[bool, typer.Option(help="take fewer than --worlds where the budget is short")] = False,
+    service_key: Annotated[str | None, typer.Option(help="the key fingerprint `serve` prints: checked")] = None,
 ) -> None:
     """Robot side: stream a trajectory file to a service and print the estimates. FILE may name
     a bundled trajectory (`smoke-foam_brick_pick_place_0`) from anywhere."""
@@ -123,7 +124,8 @@ def replay(
     from inhand_tracker.client.report import replay_file
 
     file = _bundled(file)
-    with TrackerClient(connect=endpoints(connect, "connect", "replay"), service=name) as client:
+    where = endpoints(connect, "connect", "replay")
+    with TrackerClient(connect=where, service=name, service_key=service_key) as client:
         try:
             live = sys.stdout.isatty()  # a terminal gets one line rewritten; a log a line every 10 s
             code = replay_file(
@@ -241,7 +243,9 @@ def demo(
         listen=(endpoint,), device=device, groups=1, rate_hz=0, record=str(record) if record else None
     )
     log.info("starting the service on %s (device %s)", endpoint, device)
-    with started(TrackerNode(config), "demo") as node, TrackerClient(connect=[endpoint]) as client:
+    node = TrackerNode(config)
+    key = node.manager.identity.fingerprint  # the embedded service's: the demo checks what answers
+    with started(node, "demo"), TrackerClient(connect=[endpoint], service_key=key) as client:
         # The embedded service compiles its kernels first: minutes on a cold cache and a small CPU,
         # with a progress line meanwhile. This client waits for it however long that takes.
         client.wait_ready(timeout=3600)

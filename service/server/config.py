@@ -162,13 +162,17 @@ class ServiceConfig(BaseSettings):
     )
 
     name: str = "default"
-    """The service's name: its keys live under inhand/v4/{name}."""
+    """The service's name: its keys live under inhand/v5/{name}."""
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, cuda or cuda:N."""
     listen: Endpoints = ("tcp/127.0.0.1:7447",)
     """Zenoh endpoints to listen on."""
     connect: Endpoints = ()
     """Zenoh endpoints (a router, or peers) to connect to."""
+    key_file: str = "~/.local/share/inhand-tracker/service.key"
+    """The service's key pair (made there on the first start, readable by its owner alone): its
+    fingerprint, printed at start and in its info, is what robots are configured with
+    (``TrackerClient(service_key=...)``) to know the service from any other peer."""
     zenoh_config: str | None = None
     """A Zenoh JSON5 config file under listen, connect and scouting: TLS and mTLS certificates,
     access control rules (relative to the project root)."""

@@ -33,6 +33,7 @@ from inhand_tracker.protocol import (
     decode,
     encode,
 )
+from inhand_tracker.protocol.identity import ServiceKey, signed
 from inhand_tracker.service.paths import resolve
 from inhand_tracker.service.tracker import METHODS
 from inhand_tracker.sim_backend import load_catalog, load_robot, resolve_device
@@ -69,7 +70,7 @@ class TrackerNode:
         catalog = load_catalog(resolve(config.objects))
         check_sessions(config.ros2_sessions, robots, catalog)
         self.device = str(resolve_device(config.device))
-        self.manager = SessionManager(config, robots, catalog)
+        self.manager = SessionManager(config, robots, catalog, ServiceKey.load_or_create(config.key_file))
         self.config = config = self.manager.config  # groups resolved for the device
         self._inbox = Inbox()
         self._latest: dict[str, bytes] = {}
@@ -113,10 +114,8 @@ class TrackerNode:
             s.declare_queryable(keys.close, self._on_close),
             s.declare_queryable(keys.every("pose"), self._on_pose),
             s.declare_queryable(keys.every("status"), self._on_status),
-            # One subscriber for what robots publish: zenoh-python runs each subscriber's callback
-            # on a thread of its own, so with one for frames and one for observations a frame could
-            # reach the tracker before an observation that arrived ahead of it on the link. Remote
-            # only: the session's keys also carry this service's own estimates.
+            # One subscriber for frames and observations (zenoh-python runs each on a thread of its own:
+            # two would let a frame overtake an observation); remote only: these keys carry estimates too.
             s.declare_subscriber(keys.every("*"), self._on_robot_sample, allowed_origin=zenoh.Locality.REMOTE),
             s.liveliness().declare_subscriber(keys.every("robot"), self._on_robot, history=True),
             s.liveliness().declare_subscriber(Keys.services("alive"), self._on_service, history=True),
@@ -140,8 +139,7 @@ class TrackerNode:
         self._stop.set()
         if self._loop.is_alive():
             self._loop.join(timeout=10)
-        # A loop still busy (a population build) or dead leaves requests unanswered, and Zenoh's
-        # close waits for the handlers that wait on them: answer them, so the service can go.
+        # Zenoh's close waits for handlers that wait on a busy or dead loop: answer them, so it can go.
         self._builder.shutdown(wait=False, cancel_futures=True)
         self._inbox.cancel((done for waits in self._waiting.values() for _, done in waits), "the service is stopping")
         self.outputs.close()
@@ -176,8 +174,9 @@ class TrackerNode:
             ready=self.ready,
             building=len(m.building),
             build_s=self._build_s,
+            key=m.identity.public,
         )
-        reply(query, info)
+        reply(query, signed(m.identity, info))
 
     @guarded
     def _on_open(self, query: zenoh.Query) -> None:
@@ -308,7 +307,8 @@ class TrackerNode:
         self._room, self._beat = (m.load_ms(), m.free_worlds()), time.monotonic()
         self.ready = True
         self._token = self.session.liveliness().declare_token(self.keys.alive)  # only now do robots see us
-        log.info("service '%s' ready on %s, device %s", cfg.name, ", ".join(cfg.listen) or "-", self.device)
+        log.info("service '%s' ready on %s, device %s, key %s", cfg.name, ", ".join(cfg.listen) or "-", self.device,
+                 m.identity.fingerprint)  # fmt: skip
         refreshed = resumed = time.monotonic()
         while not self._stop.is_set():
             self._beat = time.monotonic()

@@ -160,6 +160,8 @@ class Session:
     """The session's name: its ROS 2 topics and TF frame follow it."""
     peer: str = ""
     """The name its robot opened under ("" for none): per-peer caps count it."""
+    keyed: bool = False
+    """Opened with a client key: its secret was agreed, and its estimates carry a MAC."""
     next_seq: int = 0
     epoch: int = 0
     """The robot's seq epoch (:attr:`protocol.RobotFrame.epoch`) the session follows."""

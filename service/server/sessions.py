@@ -31,7 +31,8 @@ from inhand_tracker.protocol import (
     Trajectory,
     sensing_field,
 )
-from inhand_tracker.protocol.auth import verify, verify_query
+from inhand_tracker.protocol.auth import mac_of, verify, verify_query
+from inhand_tracker.protocol.identity import ServiceKey, signed
 from inhand_tracker.service.tracker import Frame, TrackerConfig
 from inhand_tracker.sim_backend import ObjectSpec, RobotSpec, resolve_device
 from inhand_tracker.sim_backend.kinematics import Kinematics
@@ -62,7 +63,15 @@ class SessionManager:
     """Every session and population of one service. One thread (the service's loop) owns it;
     only :meth:`build` may run on another, taking :attr:`turn` for its device work."""
 
-    def __init__(self, config: ServiceConfig, robots: dict[str, RobotSpec], objects: dict[str, ObjectSpec]):
+    def __init__(
+        self,
+        config: ServiceConfig,
+        robots: dict[str, RobotSpec],
+        objects: dict[str, ObjectSpec],
+        identity: ServiceKey | None = None,
+    ):
+        self.identity = identity or ServiceKey.generate()
+        """The service's key: its replies' signatures, and each keyed open's secret."""
         self.device = resolve_device(config.device)
         # Unset, the layout and the rate suit the device: a GPU steps 8 sessions at about the cost
         # of one and keeps 30 Hz; a CPU pays for every session and world.
@@ -118,6 +127,11 @@ class SessionManager:
         numbers) and find its population: one with a free group, or none when one must be built or
         is on its way."""
         self._check_name(request.name)
+        if request.client_key:  # a key that is not one is refused before a population is built for it
+            try:
+                self.identity.session_secret(request.client_key, "")
+            except ValueError as exc:
+                raise ServiceError(ErrorCode.BAD_REQUEST, str(exc)) from None
         mine = sum(s.peer == peer for s in self.sessions.values()) if peer else 0
         return self.gate.admit(request, len(self.sessions), peer, mine)
 
@@ -174,9 +188,13 @@ class SessionManager:
         layout = self.gate.kinematics[request.robot].layout
         q0 = layout.default_q if request.q0 is None else request.q0
         group = pool.sessions.index(None)
+        sid = uuid.uuid4().hex[:12]
+        # A keyed open's secret is agreed, never sent: a peer that relays the open learns nothing.
+        keyed = bool(request.client_key)
+        token = self.identity.session_secret(request.client_key, sid) if keyed else secrets.token_hex(16)
         session = Session(
-            uuid.uuid4().hex[:12], secrets.token_hex(16), request.robot, request.object, request.method, pool, group,
-            self._name(request, admission.peer), admission.peer,
+            sid, token, request.robot, request.object, request.method, pool, group,
+            self._name(request, admission.peer), admission.peer, keyed=keyed,
         )  # fmt: skip
         tracker = pool.tracker
         tracker.set_method(group, request.method)
@@ -195,9 +213,9 @@ class SessionManager:
         pool.sessions[group] = session
         self.sessions[session.id] = session
         self.gate.opened(admission.peer)
-        return SessionInfo(
+        info = SessionInfo(
             session=session.id,
-            token=session.token,
+            token="" if keyed else session.token,
             robot=request.robot,
             object=request.object,
             joint_names=list(layout.joint_names),
@@ -208,6 +226,7 @@ class SessionManager:
             notice=admission.notice,
             name=session.name,
         )
+        return signed(self.identity, info, request.client_key) if keyed else info
 
     def close(self, session_id: str, token: str) -> None:
         """Close a session at its robot's request (``token``: the session's secret)."""
@@ -394,6 +413,8 @@ class SessionManager:
                 log.warning("session %s (%s): %s", s.id, s.robot, said)
                 s.notice = said
             s.latest = s.estimate(frame, est, latency)
+            if s.keyed:  # its robot can tell the service's estimates from a forger's
+                s.latest = s.latest.model_copy(update={"mac": mac_of(s.latest, s.token)})
             s.notice = None
             s.contacts_explored = bool(est.contacts_explored[g])
             out.append(s.latest)

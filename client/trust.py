@@ -1,0 +1,78 @@
+"""What a client checks of its service when it knows the service's key (``serve`` prints its
+fingerprint): its info and open replies carry the service's signature, the session's secret is
+agreed rather than sent, and every estimate carries a MAC under that secret (protocol.identity)."""
+
+from __future__ import annotations
+
+import logging
+import secrets
+
+from inhand_tracker.protocol import ErrorCode, Estimate, OpenSession, ServiceInfo, SessionInfo
+from inhand_tracker.protocol.auth import mac_of
+from inhand_tracker.protocol.identity import KeyExchange, matches, verified
+
+from .errors import TrackerError
+
+__all__ = ["Trust"]
+
+log = logging.getLogger(__name__)
+
+
+class Trust:
+    """The checks of one client; each passes everything when no key is configured (with a warning
+    that says what that means)."""
+
+    def __init__(self, service_key: str | None):
+        self.service_key = service_key
+        self._exchange: KeyExchange | None = None
+        self._public = ""
+        self.forged = 0
+        """Estimates refused: their MAC was not the service's."""
+        self._warned = False
+
+    def info(self, info: ServiceInfo) -> ServiceInfo:
+        """``info``, when it is the configured service's; else a TrackerError (forbidden)."""
+        if self.service_key is not None and not (matches(self.service_key, info.key) and verified(info.key, info)):
+            raise TrackerError(
+                ErrorCode.FORBIDDEN,
+                f"service '{info.name}' does not hold the key {self.service_key} (its key: {info.key or 'none'}):"
+                " not the service this client was configured for",
+            )
+        return info
+
+    def request(self, request: OpenSession, info: ServiceInfo) -> OpenSession:
+        """The open, with a key of this open's own when the service's key is known (``info`` is
+        checked first: a client that chose among services may have heard any peer)."""
+        if self.service_key is None:
+            if not self._warned:
+                self._warned = True
+                log.warning(
+                    "no service_key given: any peer on this Zenoh network could answer as the service (the open,"
+                    " the estimates); give the fingerprint `inhand-tracker serve` prints"
+                )
+            return request
+        self._exchange, self._public = KeyExchange(), self.info(info).key
+        return request.model_copy(update={"client_key": self._exchange.public})
+
+    def opened(self, reply: SessionInfo) -> SessionInfo:
+        """The open's reply, with the session's secret agreed in it; a TrackerError (forbidden) when
+        the reply is not the service's answer to this open."""
+        if self._exchange is None:
+            return reply
+        if not verified(self._public, reply, self._exchange.public):
+            raise TrackerError(ErrorCode.FORBIDDEN, f"the reply to the open of session '{reply.session}' is not signed"
+                               " by the service's key: something else answered the open")  # fmt: skip
+        return reply.model_copy(update={"token": self._exchange.secret(self._public, reply.session)})
+
+    def checked(self, estimate: Estimate, token: str) -> Estimate:
+        """``estimate``, when it is the service's; else a TrackerError (forbidden)."""
+        if not self.estimate(estimate, token):
+            raise TrackerError(ErrorCode.FORBIDDEN, f"estimate {estimate.seq}: not the service's (its MAC)")
+        return estimate
+
+    def estimate(self, estimate: Estimate, token: str) -> bool:
+        """Whether ``estimate`` is the service's (always, without a key); a forged one is counted."""
+        if self._exchange is None or secrets.compare_digest(estimate.mac, mac_of(estimate, token)):
+            return True
+        self.forged += 1
+        return False

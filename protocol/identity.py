@@ -1,0 +1,151 @@
+"""The service's identity: a key pair whose public half a robot is configured with.
+
+A robot that knows its service's key (its fingerprint, as ``serve`` prints it) checks that what
+answers is that service: its info and every open's reply carry an Ed25519 signature. The open
+agrees the session's secret by X25519 with a key the robot makes for that open alone, so the
+secret never travels: a peer that relays the open to the service learns nothing it can sign with.
+The service then proves each estimate with an HMAC under that secret. The primitives are the
+``cryptography`` package's; nothing here is cryptography of our own.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+from pydantic import BaseModel
+
+from .codec import encode
+
+__all__ = ["KeyExchange", "ServiceKey", "fingerprint", "matches", "signed", "verified", "verify_signature"]
+
+_RAW = {"encoding": serialization.Encoding.Raw, "format": serialization.PublicFormat.Raw}
+
+
+def _b64(data: bytes) -> str:
+    return base64.b64encode(data).decode()
+
+
+def _halves(public: str) -> tuple[Ed25519PublicKey, X25519PublicKey]:
+    """A service's public key (base64 of Ed25519's 32 bytes, then X25519's 32); ValueError if not one."""
+    try:
+        raw = base64.b64decode(public, validate=True)
+    except ValueError:
+        raw = b""
+    if len(raw) != 64:
+        raise ValueError(f"service key: expected 64 bytes in base64, got {len(raw)}")
+    return Ed25519PublicKey.from_public_bytes(raw[:32]), X25519PublicKey.from_public_bytes(raw[32:])
+
+
+def fingerprint(public: str) -> str:
+    """What a robot is configured with: the first 16 bytes of the public key's SHA-256, as hex in
+    groups of four (``3f2a-9c01-...``)."""
+    digest = hashlib.sha256(base64.b64decode(public)).hexdigest()[:32]
+    return "-".join(digest[i : i + 4] for i in range(0, 32, 4))
+
+
+def matches(configured: str, public: str) -> bool:
+    """Whether ``public`` is the key a robot was configured with (the key itself or its fingerprint)."""
+    wanted = configured.strip().lower().replace(":", "-")
+    return wanted in (public.lower(), fingerprint(public)) if public else False
+
+
+def _secret(shared: bytes, session: str) -> str:
+    kdf = HKDF(algorithm=hashes.SHA256(), length=16, salt=None, info=b"inhand-tracker session " + session.encode())
+    return kdf.derive(shared).hex()
+
+
+def verify_signature(public: str, data: bytes, signature: str) -> bool:
+    """Whether ``signature`` (base64) is the service's of ``data``."""
+    try:
+        _halves(public)[0].verify(base64.b64decode(signature), data)
+    except (InvalidSignature, ValueError):
+        return False
+    return True
+
+
+class ServiceKey:
+    """The service's private keys: Ed25519 signs what it answers, X25519 agrees a secret per open."""
+
+    def __init__(self, sign: Ed25519PrivateKey, agree: X25519PrivateKey):
+        self._sign, self._agree = sign, agree
+        self.public = _b64(sign.public_key().public_bytes(**_RAW) + agree.public_key().public_bytes(**_RAW))
+        """Both public halves, base64: what the service's info carries."""
+        self.fingerprint = fingerprint(self.public)
+        """What ``serve`` prints and a robot is configured with."""
+
+    @classmethod
+    def generate(cls) -> ServiceKey:
+        return cls(Ed25519PrivateKey.generate(), X25519PrivateKey.generate())
+
+    @classmethod
+    def load_or_create(cls, path: str | os.PathLike) -> ServiceKey:
+        """The key kept in ``path`` (64 raw bytes, readable by the owner alone), made there on the
+        first start; an OSError or ValueError names the file."""
+        path = Path(path).expanduser()
+        if not path.exists():
+            key = cls.generate()
+            path.parent.mkdir(parents=True, exist_ok=True)
+            # Written aside and linked into place: services starting together on a fresh machine
+            # all end up with the one key that was linked first, never a half-written one.
+            fd, aside = tempfile.mkstemp(dir=path.parent, prefix=".key-")
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(key._sign.private_bytes_raw() + key._agree.private_bytes_raw())
+                os.link(aside, path)
+                return key
+            except FileExistsError:
+                pass
+            finally:
+                os.unlink(aside)
+        raw = path.read_bytes()
+        if len(raw) != 64:
+            raise ValueError(f"key_file: '{path}' holds {len(raw)} bytes, not a service key (64)")
+        return cls(Ed25519PrivateKey.from_private_bytes(raw[:32]), X25519PrivateKey.from_private_bytes(raw[32:]))
+
+    def sign(self, data: bytes) -> str:
+        """The Ed25519 signature of ``data``, base64."""
+        return _b64(self._sign.sign(data))
+
+    def session_secret(self, client_key: str, session: str) -> str:
+        """The secret of ``session`` agreed with the robot's key for this open (base64 X25519); a
+        ValueError for a key that is not one."""
+        try:
+            peer = X25519PublicKey.from_public_bytes(base64.b64decode(client_key, validate=True))
+        except ValueError as exc:
+            raise ValueError(f"client_key: not an X25519 public key in base64 ({exc})") from None
+        return _secret(self._agree.exchange(peer), session)
+
+
+class KeyExchange:
+    """A robot's side of one open: a key made for it alone, and the secret it agrees."""
+
+    def __init__(self):
+        self._key = X25519PrivateKey.generate()
+        self.public = _b64(self._key.public_key().public_bytes(**_RAW))
+        """What the open carries (:attr:`protocol.OpenSession.client_key`)."""
+
+    def secret(self, service_public: str, session: str) -> str:
+        """The session's secret, as the service derives it."""
+        return _secret(self._key.exchange(_halves(service_public)[1]), session)
+
+
+def signed(key: ServiceKey, message: BaseModel, bound: str = "") -> BaseModel:
+    """``message`` (with a ``signature`` field) signed by the service, over its encoding with the
+    signature empty and then ``bound`` (what it answers: an open's client key)."""
+    bare = message.model_copy(update={"signature": ""})
+    return bare.model_copy(update={"signature": key.sign(encode(bare) + bound.encode())})
+
+
+def verified(public: str, message: BaseModel, bound: str = "") -> bool:
+    """Whether ``message`` carries the signature of the service whose public key is ``public``."""
+    bare = message.model_copy(update={"signature": ""})
+    return bool(message.signature) and verify_signature(public, encode(bare) + bound.encode(), message.signature)
