@@ -94,10 +94,8 @@ class TrackerClient:
         self._latest: Estimate | None = None
         self._new = threading.Condition()
         self._callbacks: list[Callable[[Estimate], None]] = []
-        self._sent_stamp: float | None = None
-        """The robot clock of the newest frame sent [s]."""
-        self._opened: dict | None = None
-        """The last open_session's arguments, for :meth:`reopen`."""
+        self._sent_stamp: float | None = None  # the robot clock of the newest frame sent [s]
+        self._opened: dict | None = None  # the last open_session's arguments, for :meth:`reopen`
         self._service_watch = None
         self._observer: zenoh.Publisher | None = None
         self.service_lost = False
@@ -253,6 +251,7 @@ class TrackerClient:
         self._subscriber = self._zenoh.declare_subscriber(self.keys.pose(info.session), self._on_pose)
         self._token = self._zenoh.liveliness().declare_token(self.keys.robot(info.session))
         self._service_watch = self._zenoh.liveliness().declare_subscriber(self.keys.alive, self._on_service)
+        self.trust.watch(self._zenoh, self.keys.beat)
         return info
 
     def _open(self, request: OpenSession) -> SessionInfo:
@@ -361,15 +360,16 @@ class TrackerClient:
         ``max_age`` [s]: raise :class:`StaleEstimate` when the estimate answers a frame older, by
         the robot's clock, than the newest frame sent by more than this. :class:`ServiceLost` when
         the service went away while the session was open."""
+
+        def done() -> bool:
+            new = self._latest is not None and (after_seq is None or self._latest.seq >= after_seq)
+            return new or self.service_lost or not self.trust.alive()
+
         with self._new:
-            ok = self._new.wait_for(
-                lambda: (
-                    self.service_lost
-                    or (self._latest is not None and (after_seq is None or self._latest.seq >= after_seq))
-                ),
-                timeout,
-            )
-            if self.service_lost:
+            end = time.monotonic() + timeout  # in slices: a service whose beats stop notifies nobody
+            while not (ok := self._new.wait_for(done, min(0.25, end - time.monotonic()))) and time.monotonic() < end:
+                pass
+            if self.service_lost or not self.trust.alive():  # its token withdrawn, or its beats stopped
                 raise ServiceLost(f"service '{self.keys.service}' went away; session '{self._session_id()}' is gone")
             estimate = self._latest if ok else None
         if estimate is None:

@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import logging
 import secrets
+import time
 
-from inhand_tracker.protocol import ErrorCode, Estimate, OpenSession, ServiceInfo, SessionInfo
+import zenoh
+
+from inhand_tracker.protocol import DecodeError, ErrorCode, Estimate, OpenSession, ServiceInfo, SessionInfo, decode
 from inhand_tracker.protocol.auth import mac_of
 from inhand_tracker.protocol.identity import KeyExchange, matches, verified
 
@@ -16,6 +19,9 @@ from .errors import TrackerError
 __all__ = ["Trust"]
 
 log = logging.getLogger(__name__)
+
+SILENT_S = 2.0
+"""A service whose signed beat (five a second) has not come for this long is gone [s]."""
 
 
 class Trust:
@@ -29,6 +35,8 @@ class Trust:
         self.forged = 0
         """Estimates refused: their MAC was not the service's."""
         self._warned = False
+        self._stamp, self._heard = 0.0, time.monotonic()
+        self._beats = None
 
     def info(self, info: ServiceInfo) -> ServiceInfo:
         """``info``, when it is the configured service's; else a TrackerError (forbidden)."""
@@ -63,6 +71,28 @@ class Trust:
             raise TrackerError(ErrorCode.FORBIDDEN, f"the reply to the open of session '{reply.session}' is not signed"
                                " by the service's key: something else answered the open")  # fmt: skip
         return reply.model_copy(update={"token": self._exchange.secret(self._public, reply.session)})
+
+    def watch(self, session: zenoh.Session, key: str) -> None:
+        """Know the service alive by its signed beats on ``key`` (after a keyed open): a liveliness
+        token is anyone's to hold, a beat only the service's to sign, and an old one is not newer."""
+        if self._beats is not None:  # a reopen's: the last service's beats are no longer this session's
+            self._beats.undeclare()
+            self._beats = None
+        if self._exchange is not None:
+            self._heard = time.monotonic()
+            self._beats = session.declare_subscriber(key, self._on_beat)
+
+    def _on_beat(self, sample: zenoh.Sample) -> None:
+        try:
+            info = decode(bytes(sample.payload.to_bytes()), ServiceInfo)
+        except DecodeError:
+            return
+        if info.stamp > self._stamp and info.key == self._public and verified(self._public, info):
+            self._stamp, self._heard = info.stamp, time.monotonic()
+
+    def alive(self) -> bool:
+        """Whether the service's beat was heard within :data:`SILENT_S` (always, without a key)."""
+        return self._beats is None or time.monotonic() - self._heard < SILENT_S
 
     def checked(self, estimate: Estimate, token: str) -> Estimate:
         """``estimate``, when it is the service's; else a TrackerError (forbidden)."""

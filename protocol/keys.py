@@ -39,6 +39,12 @@ class Keys:
         return f"{self.root}/alive"
 
     @property
+    def beat(self) -> str:
+        """The service publishes its signed info here five times a second: a robot that knows the
+        service's key knows it alive by it (a liveliness token can be held by anyone)."""
+        return f"{self.root}/beat"
+
+    @property
     def info(self) -> str:
         """Queryable: version, device, robots, objects, capacity."""
         return f"{self.root}/info"

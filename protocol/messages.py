@@ -151,6 +151,8 @@ class ServiceInfo(WireMessage):
     key: str = ""
     """The service's public key (base64: Ed25519's 32 bytes, then X25519's 32; protocol.identity):
     a robot configured with it, or with its fingerprint, knows the service by it."""
+    stamp: float = 0.0
+    """The service's clock when it said this [s, Unix time]: a beat older than the last is a replay."""
     signature: str = ""
     """The service's Ed25519 signature of this info with ``signature`` empty."""
 

@@ -1001,3 +1001,37 @@ def test_a_robot_that_knows_its_service_s_key_accepts_no_fake_service_relay_or_f
     finally:
         svc.stop()
     assert f"key {fingerprint}" in svc.proc.stdout.read()  # `serve` says what robots are configured with
+
+
+def test_a_robot_that_knows_its_service_s_key_sees_its_death_through_a_foreign_alive_token(traj, tmp_path):
+    """A peer holds a liveliness token on the service's ``alive`` key, so the token never goes
+    away; the service is killed. A robot without the key keeps waiting; one with it misses the
+    service's signed beats and raises ServiceLost within seconds."""
+    from inhand_tracker.protocol.identity import ServiceKey
+
+    svc = ServiceProcess(free_port(), timeout_s=5.0, key_file=str(tmp_path / "service.key"))
+    try:
+        with TrackerClient(connect=[svc.endpoint]) as probe:
+            svc.wait_ready(probe)
+        fingerprint = ServiceKey.load_or_create(tmp_path / "service.key").fingerprint
+        with (
+            zenoh.open(zenoh_config(connect=[svc.endpoint])) as impostor,
+            TrackerClient(connect=[svc.endpoint], service_key=fingerprint) as keyed,
+            TrackerClient(connect=[svc.endpoint]) as blind,
+        ):
+            token = impostor.liveliness().declare_token(Keys("default").alive)
+            for robot in (keyed, blind):
+                info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q,
+                                          worlds=4)  # fmt: skip
+                robot.send(traj.frame(0, info.session))
+                assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
+            svc.proc.kill()
+            svc.proc.wait()
+            began = time.monotonic()
+            with pytest.raises(ServiceLost):
+                keyed.latest_pose(timeout=10, after_seq=10**6)
+            assert time.monotonic() - began < 5.0
+            assert not blind.service_lost  # the impostor's token still stands for the dead service
+            token.undeclare()
+    finally:
+        svc.stop()

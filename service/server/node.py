@@ -82,22 +82,16 @@ class TrackerNode:
         self._loop = threading.Thread(target=self._guarded_run, name="inhand-gpu-loop", daemon=True)
         self.ready = False
         """Kernels compiled and the liveliness token declared: sessions may open."""
-        self._beat = time.monotonic()
-        """When the loop last came round [s, monotonic]."""
-        self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")
-        """Builds populations off the loop thread."""
-        self._waiting: dict[PoolKey, list[tuple[Admission, Future | None]]] = {}
-        """Opens waiting for their population's build, by key: each admission and its answer."""
-        self._build_s = 0.0
-        """How long the last population build took [s]."""
+        self._beat = time.monotonic()  # when the loop last came round [s, monotonic]
+        self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inhand-build")  # off the loop
+        self._waiting: dict[PoolKey, list[tuple[Admission, Future | None]]] = {}  # opens awaiting a build
+        self._build_s = 0.0  # how long the last population build took [s]
         self._token = None
         self.session: zenoh.Session | None = None
         self._others: set[str] = set()
         """The other services on this network (their tokens): named to a robot this one has no room for."""
-        self._linked = True
-        """Whether a peer or router of ``connect`` was reached at the last look (said when it changes)."""
-        self._room = (0.0, 0)
-        """The loop's latest (load_ms, free_worlds), for the info queryable."""
+        self._linked = True  # a peer or router of ``connect`` reached at the last look (said when it changes)
+        self._room = (0.0, 0)  # the loop's latest (load_ms, free_worlds), for the info queryable
         self.outputs = Outputs()
         """ROS 2 topics (setting ``ros2``), recordings (``record``) and the live view (``view_port``)."""
         if config.record:
@@ -156,6 +150,10 @@ class TrackerNode:
     # ------------------------------------------------------------------ zenoh handlers (decode, queue)
     @guarded
     def _on_info(self, query: zenoh.Query) -> None:
+        reply(query, self._info())
+
+    def _info(self) -> ServiceInfo:
+        """What the service says of itself, signed by its key: the info queryable's answer and the beat."""
         m = self.manager
         info = ServiceInfo(
             name=self.config.name,
@@ -175,8 +173,9 @@ class TrackerNode:
             building=len(m.building),
             build_s=self._build_s,
             key=m.identity.public,
+            stamp=time.time(),
         )
-        reply(query, signed(m.identity, info))
+        return signed(m.identity, info)
 
     @guarded
     def _on_open(self, query: zenoh.Query) -> None:
@@ -346,6 +345,7 @@ class TrackerNode:
                 self._drop(session, f"no frame for {cfg.idle_timeout_s:.0f} s")
             if now - refreshed > 0.2:  # what info answers: read here, where the populations change
                 self._room, refreshed = (m.load_ms(), m.free_worlds()), now
+                self.session.put(self.keys.beat, encode(self._info()))  # what a keyed robot knows us alive by
         for session in list(m.sessions):
             self._drop(session, "the service is stopping")
         if m.frame_times.points:
