@@ -79,8 +79,8 @@ class TrackerClient:
         self._route, self.peer = service is None, peer
         self.keys = Keys(service or "default", peer)
         self.endpoints = list(connect) or ["(scouting)"]
-        self._connects = bool(connect)
         """Where this client looks for its service, for the errors that say it found none."""
+        self._connects = bool(connect)
         self.timeout, self.open_timeout = timeout, open_timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file, zenoh_mode))
         self.trust = Trust(service_key)

@@ -79,7 +79,9 @@ class Trust:
             self._beats.undeclare()
             self._beats = None
         if self._exchange is not None:
-            self._heard = time.monotonic()
+            # A reopened session's service may be another process, on another clock: its beats
+            # are compared with each other only.
+            self._stamp, self._heard = 0.0, time.monotonic()
             self._beats = session.declare_subscriber(key, self._on_beat)
 
     def _on_beat(self, sample: zenoh.Sample) -> None:

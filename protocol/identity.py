@@ -47,15 +47,22 @@ def _halves(public: str) -> tuple[Ed25519PublicKey, X25519PublicKey]:
 
 def fingerprint(public: str) -> str:
     """What a robot is configured with: the first 16 bytes of the public key's SHA-256, as hex in
-    groups of four (``3f2a-9c01-...``)."""
-    digest = hashlib.sha256(base64.b64decode(public)).hexdigest()[:32]
+    groups of four (``3f2a-9c01-...``); a ValueError for a key that is not base64."""
+    digest = hashlib.sha256(base64.b64decode(public, validate=True)).hexdigest()[:32]
     return "-".join(digest[i : i + 4] for i in range(0, 32, 4))
 
 
 def matches(configured: str, public: str) -> bool:
-    """Whether ``public`` is the key a robot was configured with (the key itself or its fingerprint)."""
-    wanted = configured.strip().lower().replace(":", "-")
-    return wanted in (public.lower(), fingerprint(public)) if public else False
+    """Whether ``public`` is the key a robot was configured with: the key itself (base64, exactly)
+    or its fingerprint (in any case, ``:`` or ``-`` between groups)."""
+    if not public:
+        return False
+    if configured.strip() == public:
+        return True
+    try:
+        return configured.strip().lower().replace(":", "-") == fingerprint(public)
+    except ValueError:  # not base64: no key of any service
+        return False
 
 
 def _secret(shared: bytes, session: str) -> str:
@@ -116,12 +123,9 @@ class ServiceKey:
         return _b64(self._sign.sign(data))
 
     def session_secret(self, client_key: str, session: str) -> str:
-        """The secret of ``session`` agreed with the robot's key for this open (base64 X25519); a
-        ValueError for a key that is not one."""
-        try:
-            peer = X25519PublicKey.from_public_bytes(base64.b64decode(client_key, validate=True))
-        except ValueError as exc:
-            raise ValueError(f"client_key: not an X25519 public key in base64 ({exc})") from None
+        """The secret of ``session`` agreed with the robot's key for this open (base64 X25519, as
+        :attr:`protocol.OpenSession.client_key` checks it)."""
+        peer = X25519PublicKey.from_public_bytes(base64.b64decode(client_key, validate=True))
         return _secret(self._agree.exchange(peer), session)
 
 

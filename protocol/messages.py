@@ -7,6 +7,7 @@ against the session it opened.
 
 from __future__ import annotations
 
+import base64
 import math
 import re
 from enum import StrEnum
@@ -193,6 +194,18 @@ class OpenSession(WireMessage):
     client_key: str = ""
     """An X25519 public key the robot made for this open (base64): the session's secret is then
     agreed from it and the service's key, and the reply carries no token (protocol.identity)."""
+
+    @field_validator("client_key")
+    @classmethod
+    def _x25519_key(cls, key: str) -> str:
+        try:
+            raw = base64.b64decode(key, validate=True)
+        except ValueError:
+            raw = None
+        if key and (raw is None or len(raw) != 32):
+            size = "not base64" if raw is None else f"{len(raw)} bytes"
+            raise ValueError(f"expected an X25519 public key, 32 bytes in base64, got {size}")
+        return key
 
     @field_validator("p0")
     @classmethod

@@ -167,6 +167,10 @@ def test_a_message_built_with_bad_values_is_refused_in_one_line_naming_the_field
             " letter, parts joined by / (as in lab2/left_hand)",
         ),
         ({"p0": np.zeros(3)}, "OpenSession.p0: expected last dimension 7, got shape (3,)"),
+        (
+            {"client_key": "QUJD"},
+            "OpenSession.client_key: expected an X25519 public key, 32 bytes in base64, got 3 bytes",
+        ),
     ]
     for fields, said in cases:
         with pytest.raises(ValueError) as exc:

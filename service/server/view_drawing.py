@@ -113,8 +113,7 @@ class Drawing:
         colour[shape_body >= 0] = _LINK_PALETTE[link[shape_body >= 0] % len(_LINK_PALETTE)]
         colour[mine] = _OBJECT_COLOUR
         self.model.shape_color.assign(colour)
-        self._aimed.clear()  # every browser looks at the new session's object once it is estimated
-        self._aim_at_estimate = True
+        self._aim_at_estimate = True  # every open browser turns to this object at its first estimate
         self._object_shapes = np.flatnonzero(mine)
         self._object_worlds = self.model.shape_world.numpy()[self._object_shapes]
 
