@@ -41,8 +41,7 @@ from .zenoh_session import connected, zenoh_config, zenoh_encoding
 __all__ = ["ServiceLost", "StaleEstimate", "TrackerClient", "TrackerError"]
 
 _NO_LINK_S = 0.8
-"""How long a client waits for any router or peer at its connect endpoints before it says nothing is
-there (a link comes up within milliseconds on a LAN; a service that is there but starting is waited for)."""
+"""How long a client waits for a link at its connect endpoints before it says nothing is there [s]."""
 
 
 class TrackerClient:
@@ -68,14 +67,16 @@ class TrackerClient:
         peer: str | None = None,
         zenoh_mode: str | None = None,
         service_key: str | None = None,
+        identity: str | os.PathLike | None = None,
     ):
         """``service``: its name, or None to choose at each open. ``zenoh_file``: a Zenoh JSON5 config
         (TLS or mTLS certificates) under the endpoints given. ``open_timeout``: an open's wait [s].
         ``zenoh_mode``: "client" behind a router that relays nothing between peers (rmw_zenoh's);
         None: the file's mode, else peer. ``service_key``: the service's key fingerprint, as
         ``serve`` prints it (or the key): its info, open reply and estimates are then checked.
-        ``peer``: the name to open under, which the service's per-peer caps count (behind the
-        hardened compose's router, this robot's certificate name)."""
+        ``identity``: a file with this robot's own key (made on first use): each open proves it, and
+        the service knows the robot by it (its caps, names, and room kept: ``robot_keys``).
+        ``peer``: the name to open under (behind the hardened router, the certificate's name)."""
         self._route, self.peer = service is None, peer
         self.keys = Keys(service or "default", peer)
         self.endpoints = list(connect) or ["(scouting)"]
@@ -83,7 +84,7 @@ class TrackerClient:
         self._connects = bool(connect)
         self.timeout, self.open_timeout = timeout, open_timeout
         self._zenoh = zenoh.open(zenoh_config(listen, connect, scouting, zenoh_file, zenoh_mode))
-        self.trust = Trust(service_key)
+        self.trust = Trust(service_key, identity)
         self.info: SessionInfo | None = None
         self._seq = 0
         self._epoch = 0
@@ -226,7 +227,7 @@ class TrackerClient:
             overrides=overrides or {},
             name=name,
         )
-        self.info = info = self.trust.opened(self._open(self.trust.request(request, service)))
+        self.info = info = self.trust.opened(self._open(request, service))
         self._opened = dict(robot=robot, object=object, p0=p0, sigma_t=sigma_t, sigma_r=sigma_r, q0=q0,
                             method=method, worlds=worlds, allow_fewer=allow_fewer, overrides=overrides,
                             name=name)  # fmt: skip
@@ -234,11 +235,9 @@ class TrackerClient:
         self._latest = None
         self._sent_stamp = None
         self.service_lost = False
-        # Frames and observations share one priority and congestion control: on one link Zenoh keeps
-        # the order within a priority, so an observation sent before a frame is used at that frame,
-        # and none is dropped when the link is busy. Both are declared with the session: declaring
-        # the observer at the first observation, just before a frame, adds a message the frame
-        # could overtake.
+        # Frames and observations share one priority and congestion control: Zenoh keeps the order within
+        # a priority on a link, so an observation sent before a frame is used at that frame, and none is
+        # dropped on a busy link. Both are declared here: one declared at the first observation could be overtaken.
         ordered = dict(
             express=True, priority=zenoh.Priority.REAL_TIME, congestion_control=zenoh.CongestionControl.BLOCK
         )
@@ -254,16 +253,17 @@ class TrackerClient:
         self.trust.watch(self._zenoh, self.keys.beat)
         return info
 
-    def _open(self, request: OpenSession) -> SessionInfo:
-        """Open at the named service; else at the roomiest ready one, the next while they say ``capacity``."""
+    def _open(self, request: OpenSession, service: ServiceInfo) -> SessionInfo:
+        """Open at the named service; else at the roomiest ready one, the next while they say
+        ``capacity``; each open is proven to the service it goes to."""
         with BuildWatch(self.service_info):  # an open waits for its population's build, and says so
             if not self._route:
-                return self._get(self.keys.open, request, SessionInfo, self.open_timeout)
+                return self._get(self.keys.open, self.trust.request(request, service), SessionInfo, self.open_timeout)
             full: TrackerError | None = None
             for info in (i for i in self.services() if i.ready):
                 self.keys = Keys(info.name, self.peer)
                 try:
-                    return self._get(self.keys.open, request, SessionInfo, self.open_timeout)
+                    return self._get(self.keys.open, self.trust.request(request, info), SessionInfo, self.open_timeout)
                 except TrackerError as exc:
                     if exc.code != ErrorCode.CAPACITY:
                         raise

@@ -1,10 +1,13 @@
 """What a client checks of its service when it knows the service's key (``serve`` prints its
 fingerprint): its info and open replies carry the service's signature, the session's secret is
-agreed rather than sent, and every estimate carries a MAC under that secret (protocol.identity)."""
+agreed rather than sent, and every estimate carries a MAC under that secret (protocol.identity).
+A client with a key of its own (``identity``) proves it in each open, so the service knows the
+robot again by it: its caps, its names and the room the service keeps for its robots."""
 
 from __future__ import annotations
 
 import logging
+import os
 import secrets
 import time
 
@@ -12,7 +15,7 @@ import zenoh
 
 from inhand_tracker.protocol import DecodeError, ErrorCode, Estimate, OpenSession, ServiceInfo, SessionInfo, decode
 from inhand_tracker.protocol.auth import mac_of
-from inhand_tracker.protocol.identity import KeyExchange, matches, verified
+from inhand_tracker.protocol.identity import RobotKey, matches, verified
 
 from .errors import TrackerError
 
@@ -28,10 +31,13 @@ class Trust:
     """The checks of one client; each passes everything when no key is configured (with a warning
     that says what that means)."""
 
-    def __init__(self, service_key: str | None):
+    def __init__(self, service_key: str | None, identity: str | os.PathLike | None = None):
         self.service_key = service_key
-        self._exchange: KeyExchange | None = None
+        self.identity = None if identity is None else RobotKey.load_or_create(identity)
+        """The robot's own key, kept in the file ``identity`` (None: a key per open, with the service's key)."""
+        self._exchange: RobotKey | None = None
         self._public = ""
+        self._clock = (0.0, 0.0)  # the last info's stamp [s, the service's clock] and when it came [s, monotonic]
         self.forged = 0
         """Estimates refused: their MAC was not the service's."""
         self._warned = False
@@ -46,21 +52,26 @@ class Trust:
                 f"service '{info.name}' does not hold the key {self.service_key} (its key: {info.key or 'none'}):"
                 " not the service this client was configured for",
             )
+        self._clock = (info.stamp, time.monotonic())
         return info
 
     def request(self, request: OpenSession, info: ServiceInfo) -> OpenSession:
-        """The open, with a key of this open's own when the service's key is known (``info`` is
-        checked first: a client that chose among services may have heard any peer)."""
-        if self.service_key is None:
-            if not self._warned:
-                self._warned = True
-                log.warning(
-                    "no service_key given: any peer on this Zenoh network could answer as the service (the open,"
-                    " the estimates); give the fingerprint `inhand-tracker serve` prints"
-                )
+        """The open, with the robot's key (or one of this open's own when the service's key is
+        known) and its proof (``info`` is checked first: a client that chose among services may have
+        heard any peer)."""
+        if self.service_key is None and not self._warned:
+            self._warned = True
+            log.warning(
+                "no service_key given: any peer on this Zenoh network could answer as the service (the open,"
+                " the estimates); give the fingerprint `inhand-tracker serve` prints"
+            )
+        if self.service_key is None and self.identity is None:
             return request
-        self._exchange, self._public = KeyExchange(), self.info(info).key
-        return request.model_copy(update={"client_key": self._exchange.public})
+        self._exchange, self._public = self.identity or RobotKey(), self.info(info).key
+        stamp, heard = self._clock
+        stamp = (stamp + time.monotonic() - heard) if stamp == info.stamp else info.stamp
+        return self._exchange.prove(info.key, request.model_copy(update={"client_key": self._exchange.public,
+                                                                        "stamp": stamp}))  # fmt: skip
 
     def opened(self, reply: SessionInfo) -> SessionInfo:
         """The open's reply, with the session's secret agreed in it; a TrackerError (forbidden) when

@@ -1,6 +1,6 @@
 """Every Zenoh key expression of the protocol, in one place.
 
-``inhand/v5/{service}/...``: the version is the protocol's; it changes when a message changes
+``inhand/v6/{service}/...``: the version is the protocol's; it changes when a message changes
 incompatibly.
 """
 
@@ -10,17 +10,26 @@ import re
 
 from .messages import PROTOCOL_VERSION
 
-__all__ = ["PREFIX", "Keys", "check_name"]
+__all__ = ["PREFIX", "Keys", "check_name", "session_id"]
 
 PREFIX = f"inhand/v{PROTOCOL_VERSION}"
 _NAME = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
+_SESSION = re.compile(r"^([A-Za-z0-9_\-.]{1,64}~)?[A-Za-z0-9_\-.]{1,64}$")
 
 
 def check_name(kind: str, name: str) -> str:
-    """A service or session name usable as one key chunk (no '/', '*', '$', '#', '?' or blanks)."""
-    if not isinstance(name, str) or not _NAME.match(name):
+    """A service, peer or session name usable as one key chunk (no '/', '*', '$', '#', '?' or
+    blanks; a session's may carry its peer's name and '~' first)."""
+    if not isinstance(name, str) or not (_SESSION if kind == "session" else _NAME).match(name):
         raise ValueError(f"{kind} name: expected 1-64 characters of [A-Za-z0-9_-.], got {name!r}")
     return name
+
+
+def session_id(peer: str, unique: str) -> str:
+    """A new session's id: its robot's peer name (when it opened under one), '~' and ``unique``,
+    so that a router's access rules can confine each robot to its own sessions' keys
+    (``inhand/*/*/s/PEER~$*/frame``)."""
+    return f"{peer}~{unique}" if _NAME.match(peer) else unique
 
 
 class Keys:

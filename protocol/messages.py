@@ -44,8 +44,8 @@ __all__ = [
     "check_version",
 ]
 
-PROTOCOL_VERSION = 5
-"""Bumped, with the key prefix's ``v5``, whenever a message gains or changes a field."""
+PROTOCOL_VERSION = 6
+"""Bumped, with the key prefix's ``v6``, whenever a message gains or changes a field."""
 DEFAULT_WORLDS = 40
 """K, the paper's: a session's worlds where no frame budget decides (``worlds="auto"`` on a
 service without one, benchmarks)."""
@@ -116,7 +116,7 @@ class ServiceInfo(WireMessage):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     name: str
-    """The service's name: its keys live under ``inhand/v5/{name}``."""
+    """The service's name: its keys live under ``inhand/v6/{name}``."""
     device: str
     """Where its simulations run (``cuda:0``, ``cpu``)."""
     robots: list[str]
@@ -192,8 +192,17 @@ class OpenSession(WireMessage):
     A second unnamed session of the same default is refused on a service that publishes ROS 2
     topics (so that a topic's name never hangs on which robot opened first), else numbered from 2."""
     client_key: str = ""
-    """An X25519 public key the robot made for this open (base64): the session's secret is then
-    agreed from it and the service's key, and the reply carries no token (protocol.identity)."""
+    """The robot's X25519 public key (base64), made for this open or kept by the robot: the
+    session's secret is agreed from it and the service's key, and the reply carries no token
+    (protocol.identity). An open with a key must carry its :attr:`proof`."""
+    stamp: float = 0.0
+    """The service's clock when the robot sent the open, reckoned from the service's info
+    (``ServiceInfo.stamp``) [s]: a proven open more than 30 s off it is refused, so a recorded
+    open cannot be replayed later."""
+    proof: str = ""
+    """HMAC-SHA256 (base64) of the open's other fields under a key agreed from :attr:`client_key`
+    and the service's key (protocol.identity): the sender holds the private half of the key it
+    names, so the service counts its caps, names and kept room by that key."""
 
     @field_validator("client_key")
     @classmethod
@@ -247,7 +256,7 @@ class SessionInfo(WireMessage):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     session: str
-    """The session's id: its keys are ``inhand/v5/{service}/s/{session}/...``."""
+    """The session's id: its keys are ``inhand/v6/{service}/s/{session}/...``."""
     token: str
     """The session's secret: every frame, close, status and pose query must carry it. Zenoh's
     access control (or mTLS) decides who may connect and read; the token keeps peers that may

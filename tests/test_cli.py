@@ -27,6 +27,17 @@ def test_bench_sim_prints_timings_and_memory_per_world():
         assert 0 < r["median_ms"] <= r["p95_ms"] and isinstance(r["bytes_per_world"], float)
 
 
+def test_bench_rebuilds_reports_the_memory_before_and_after():
+    out = _run("bench", "rebuilds", "--cycles", "10", "--worlds", "2", "--device", "cpu", "--json")
+    assert out.exit_code == 0, out.stderr[-2000:]
+    r = json.loads(out.stdout[out.stdout.index("{") :])
+    assert r["cycles"] == 10 and r["worlds"] == 2 and r["build_s_mean"] > 0
+    assert 0 < r["rss_mib_warm"] <= r["rss_mib_end"] * 1.5 and r["device_mib_end"] == 0.0
+    assert r["command"] == "inhand-tracker bench rebuilds --cycles 10 --worlds 2 --device cpu"
+    bad = _run("bench", "rebuilds", "--cycles", "3", "--device", "cpu")
+    assert bad.exit_code == 2 and "expected cycles >= 10 and worlds >= 1, got 3, 8" in bad.stderr
+
+
 def test_bad_arguments_are_refused_with_the_value():
     out = _run("bench", "sim", "--worlds", "40,abc")
     assert out.exit_code == 2 and "expected comma-separated integers, got '40,abc'" in out.stderr

@@ -585,7 +585,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
     acl = {"access_control": {
         "enabled": True, "default_permission": "allow",
         "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                   "key_exprs": ["inhand/v5/default/**"]}],
+                   "key_exprs": ["inhand/v6/default/**"]}],
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip
@@ -871,10 +871,12 @@ def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_
 def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sniff_forge_nor_intercept(traj, tmp_path):
     """A second robot with a valid certificate of the same lab subscribes to every session's
     frames and observations, answers every service key in the service's place, publishes forged
-    estimates on the first robot's key, tries to close its session and to open under its name, and
-    holds a liveliness token on the service's key. The router's access rules (make-certs.sh's
-    router.json5) let none of it through: 0 frames sniffed, 0 queries caught, 0 forged estimates
-    delivered, the session still open, no open under another's name, the first robot keeps >= 95 %
+    estimates on the first robot's key, puts frames on it, asks its status, tries to close its
+    session and to open under its name, and holds a liveliness token on the service's key. The
+    router's access rules (make-certs.sh's router.json5, each robot confined to its own sessions'
+    keys) let none of it through: 0 frames sniffed, 0 queries caught, 0 forged estimates delivered,
+    0 of its frames in the first robot's status, no status answered, the session still open, no
+    open under another's name, the first robot keeps >= 95 %
     of its 10 Hz estimate rate meanwhile, and learns of the service's death when it dies."""
     with _hardened(tmp_path) as (endpoint, shipped, svc):
         attacker = zenoh.open(zenoh_config(connect=[endpoint], file=shipped("robot.json5", robot="observer")))
@@ -916,7 +918,11 @@ def test_under_the_hardened_composes_access_rules_a_second_robot_can_neither_sni
                 time.sleep(1.0)
                 guess = CloseSession(session=info.session, token="0" * 32)
                 list(attacker.get(keys.close, payload=encode(guess), timeout=3))
-                assert robot.status().frames >= sent  # still open: its status answers
+                status = robot.status()
+                assert status.frames >= sent  # still open: its status answers
+                assert status.errors == 0, status.last_error  # the observer's frames never reached it
+                ask = CloseSession(session=info.session, token="0" * 32)
+                assert list(attacker.get(keys.status(info.session), payload=encode(ask), timeout=3)) == []
                 answered = len([s for s in got if 0 < s <= sent])
                 assert answered >= 0.95 * sent, (answered, sent)
                 # The attacker holds a token on the service's liveliness key: the router never let
@@ -958,6 +964,7 @@ def test_a_robot_that_knows_its_service_s_key_accepts_no_fake_service_relay_or_f
     prints: a peer answering as the service is refused; a peer that relays the robot's open to the
     real service gets a reply without the session's secret and cannot close the session; an
     estimate forged on the session's pose key is not taken; the genuine ones are."""
+    from inhand_tracker.client.trust import Trust
     from inhand_tracker.protocol.identity import ServiceKey, signed
 
     svc = ServiceProcess(free_port(), timeout_s=5.0, key_file=str(tmp_path / "service.key"))
@@ -981,11 +988,14 @@ def test_a_robot_that_knows_its_service_s_key_accepts_no_fake_service_relay_or_f
             opened = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, q0=traj.truth.initial_q,
                                         worlds=4)  # fmt: skip
             assert opened.token and len(opened.token) == 32  # agreed, not sent
-            # A relay that forwards the robot's own open (same client key) gets no secret back.
-            request = _request(traj).model_copy(update={"client_key": robot.trust._exchange.public})
+            # A relay that forwards an open a robot made (its key, its proof) gets no secret back,
+            # and the same open sent again is refused.
+            request = Trust(fingerprint).request(_request(traj), robot.service_info())
             (reply,) = list(robot._zenoh.get(Keys("default").open, payload=encode(request), timeout=60))
             relayed = decode(bytes(reply.ok.payload.to_bytes()), SessionInfo)
             assert relayed.token == "" and relayed.signature
+            (reply,) = list(robot._zenoh.get(Keys("default").open, payload=encode(request), timeout=60))
+            assert "(a replay)" in decode(bytes(reply.err.payload.to_bytes()), Error).message
             with pytest.raises(TrackerError, match="forbidden"):
                 robot._get(Keys("default").close, CloseSession(session=opened.session, token=""), Error)
             for i in range(3):

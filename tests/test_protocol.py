@@ -86,8 +86,8 @@ def test_version_mismatch_names_both_versions():
 
 def test_keys_live_under_the_versioned_prefix_and_refuse_bad_names():
     keys = Keys("lab-1")
-    assert keys.frame("s1") == "inhand/v5/lab-1/s/s1/frame"
-    assert keys.open == "inhand/v5/lab-1/rpc/open" and keys.alive == "inhand/v5/lab-1/alive"
+    assert keys.frame("s1") == "inhand/v6/lab-1/s/s1/frame"
+    assert keys.open == "inhand/v6/lab-1/rpc/open" and keys.alive == "inhand/v6/lab-1/alive"
     for bad in ("a/b", "*", "", "x y"):
         with pytest.raises(ValueError, match="session name: expected 1-64 characters"):
             keys.pose(bad)

@@ -5,9 +5,9 @@
 # each robot its own certificate (its common name is what access-control rules match).
 # It also writes DIR/router.json5, the router's config with access control for those robots: a
 # robot may send frames and observations, open sessions under its own name, ask the service and
-# hear its answers; only the service's certificate may answer, publish estimates or declare the
-# service's liveliness token, and no robot receives another's frames. Run it again with every
-# robot to add one.
+# hear its answers, each on its own sessions' keys alone; only the service's certificate may answer,
+# publish estimates or declare the service's liveliness token, and no robot receives another's frames,
+# estimates or status. Run it again with every robot to add one.
 set -euo pipefail
 dir=$1 host=$2
 shift 2
@@ -29,16 +29,26 @@ issue inhand-service clientAuth
 for robot in "${robots[@]}"; do issue "$robot" clientAuth; done
 chmod 600 ./*.key
 names=$(printf '"%s", ' "${robots[@]}")
-# Each robot opens sessions under its own name only (rpc/open/NAME): the service's per-peer caps
-# then count what each certificate opens, and no robot can spend another's.
-open_rules="" open_subjects="" open_policies=""
+# Each robot opens sessions under its own name only (rpc/open/NAME), and a session opened under a
+# name has an id that starts with it (NAME~...): each robot then puts frames and observations,
+# holds a liveliness token, asks for estimates and status, and hears them, on its own sessions' keys
+# alone. The service's per-peer caps count what each certificate opens; no robot spends another's.
+own_rules="" own_subjects="" own_policies=""
 for robot in "${robots[@]}"; do
-  open_rules+="      { id: \"open-as-$robot\", permission: \"allow\", flows: [\"ingress\"], messages: [\"query\"],"
-  open_rules+=$'\n'"        key_exprs: [\"inhand/*/*/rpc/open/$robot\"] },"$'\n'
-  open_subjects+="      { id: \"robot-$robot\", cert_common_names: [\"$robot\"] },"$'\n'
-  open_policies+="      { id: \"open-as-$robot\", rules: [\"open-as-$robot\"], subjects: [\"robot-$robot\"] },"$'\n'
+  s="inhand/*/*/s/$robot~\$*"
+  own_rules+="      { id: \"own-$robot-sends\", permission: \"allow\", flows: [\"ingress\"], messages: [\"put\"],"
+  own_rules+=$'\n'"        key_exprs: [\"$s/frame\", \"$s/observation\"] },"$'\n'
+  own_rules+="      { id: \"own-$robot-present\", permission: \"allow\", flows: [\"ingress\"], messages: [\"liveliness_token\"],"
+  own_rules+=$'\n'"        key_exprs: [\"$s/robot\"] },"$'\n'
+  own_rules+="      { id: \"own-$robot-asks\", permission: \"allow\", flows: [\"ingress\"], messages: [\"query\"],"
+  own_rules+=$'\n'"        key_exprs: [\"inhand/*/*/rpc/open/$robot\", \"$s/pose\", \"$s/status\"] },"$'\n'
+  own_rules+="      { id: \"own-$robot-hears\", permission: \"allow\", flows: [\"egress\"], messages: [\"put\", \"reply\"],"
+  own_rules+=$'\n'"        key_exprs: [\"$s/pose\", \"$s/status\"] },"$'\n'
+  own_subjects+="      { id: \"robot-$robot\", cert_common_names: [\"$robot\"] },"$'\n'
+  own_policies+="      { id: \"policy-$robot\", rules: [\"own-$robot-sends\", \"own-$robot-present\", \"own-$robot-asks\", \"own-$robot-hears\"],"
+  own_policies+=$'\n'"        subjects: [\"robot-$robot\"] },"$'\n'
 done
-open_rules=${open_rules%$'\n'} open_subjects=${open_subjects%$'\n'} open_policies=${open_policies%$'\n'}
+own_rules=${own_rules%$'\n'} own_subjects=${own_subjects%$'\n'} own_policies=${own_policies%$'\n'}
 cat > router.json5 <<EOF
 // The zenohd router of docker/compose-tls.yml, written by make-certs.sh for: ${robots[*]}.
 // The only listening endpoint on the network: TLS with client certificates (mTLS), so only peers
@@ -61,26 +71,24 @@ cat > router.json5 <<EOF
     enabled: true,
     default_permission: "deny",
     rules: [
-      // what a robot sends: its frames and observations (signed per session), its presence, and questions
-      { id: "robot-sends", permission: "allow", flows: ["ingress"], messages: ["put"],
-        key_exprs: ["inhand/*/*/s/*/frame", "inhand/*/*/s/*/observation"] },
-      { id: "robot-present", permission: "allow", flows: ["ingress"], messages: ["liveliness_token"],
-        key_exprs: ["inhand/*/*/s/*/robot"] },
-      // a robot's publisher sends only where a subscriber is declared: the service's, on s/*/*
-      { id: "robot-is-heard", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"],
-        key_exprs: ["inhand/*/*/s/**"] },
+      // what every robot may do: ask the service, close what it opened (signed), and listen
       { id: "robot-asks", permission: "allow", flows: ["ingress"], messages: ["query"],
-        key_exprs: ["inhand/*/*/info", "inhand/*/*/rpc/close", "inhand/*/*/s/*/pose", "inhand/*/*/s/*/status"] },
+        key_exprs: ["inhand/*/*/info", "inhand/*/*/rpc/close"] },
+      // a robot's publisher sends, and its queries go, only where the service declared a subscriber or
+      // a queryable, on s/*/*
+      { id: "robot-is-heard", permission: "allow", flows: ["egress"], messages: ["declare_subscriber", "declare_queryable"],
+        key_exprs: ["inhand/*/*/s/**"] },
       { id: "robot-listens", permission: "allow", flows: ["ingress"],
         messages: ["liveliness_query", "declare_subscriber", "declare_liveliness_subscriber"],
         key_exprs: ["inhand/**"] },
-$open_rules
-      // what a robot hears: the service's answers, estimates, status and liveliness; never a frame
+      // each robot's own sessions (their ids start with its name): what it sends, holds, asks and hears
+$own_rules
+      // what every robot hears: the service's info, beats, answers to opens and closes, liveliness;
+      // never a frame, and another robot's estimates or status never (its own: the rules above)
       { id: "robot-hears", permission: "allow", flows: ["egress"],
         messages: ["put", "reply", "liveliness_token", "declare_queryable", "declare_subscriber",
                    "declare_liveliness_subscriber", "query", "liveliness_query"],
-        key_exprs: ["inhand/*/*/s/*/pose", "inhand/*/*/s/*/status", "inhand/*/*/alive", "inhand/*/*/info",
-                    "inhand/*/*/rpc/**"] },
+        key_exprs: ["inhand/*/*/alive", "inhand/*/*/info", "inhand/*/*/beat", "inhand/*/*/rpc/**"] },
       { id: "service-all", permission: "allow", flows: ["ingress", "egress"],
         messages: ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
@@ -89,12 +97,11 @@ $open_rules
     subjects: [
       { id: "robots", cert_common_names: [${names%, }] },
       { id: "service", cert_common_names: ["inhand-service"] },
-$open_subjects
+$own_subjects
     ],
     policies: [
-      { id: "robots", rules: ["robot-sends", "robot-present", "robot-is-heard", "robot-asks", "robot-listens",
-                              "robot-hears"], subjects: ["robots"] },
-$open_policies
+      { id: "robots", rules: ["robot-asks", "robot-is-heard", "robot-listens", "robot-hears"], subjects: ["robots"] },
+$own_policies
       { id: "service", rules: ["service-all"], subjects: ["service"] },
     ],
   },

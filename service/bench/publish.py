@@ -78,6 +78,7 @@ _TAIL = """## Reproduce
 - The physics alone: `inhand-tracker bench sim --worlds 40,1024,4096 --json`.
 - The service under load: `inhand-tracker bench load --sessions 4 --worlds 40 --rate 30 --seconds 10`
   (robots streaming through real clients to a service embedded on loopback).
+- Memory over populations built and dropped: `inhand-tracker bench rebuilds --cycles 1000 --json`.
 - The cost's ranking: `inhand-tracker bench cost-ranking --suite SUITE [--short] --method PBO --worlds 40`.
 """
 

@@ -339,3 +339,24 @@ def bench_publish(
     from inhand_tracker.service.bench.publish import render
 
     typer.echo(render(results, out))
+
+
+@bench.command("rebuilds")
+def bench_rebuilds(
+    ctx: typer.Context,
+    cycles: Annotated[int, typer.Option(help="populations built and dropped")] = 1000,
+    worlds: Annotated[int, typer.Option(help="K of each")] = 8,
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """Populations built and dropped in a loop: the service's resident and device memory before and after."""
+    gpu_stack()
+    from inhand_tracker.service.bench.rebuilds import as_dict, bench_rebuilds, format_table
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            result = bench_rebuilds(cycles, worlds, device)
+    except ValueError as exc:
+        raise fail(f"bench rebuilds: {exc}") from None
+    stamp = {"date": time.strftime("%Y-%m-%d"), "command": command_line(ctx)}
+    typer.echo(json.dumps(as_dict(result) | stamp, indent=2) if json_ else format_table(result))

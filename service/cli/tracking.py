@@ -35,7 +35,7 @@ def serve(
     config: Annotated[Path | None, typer.Option(help="service TOML (default configs/service.toml)")] = None,
     listen: Annotated[str | None, typer.Option(help="Zenoh endpoints to listen on, comma-separated")] = None,
     connect: Annotated[str | None, typer.Option(help="Zenoh endpoints to connect to (a router)")] = None,
-    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v5/NAME")] = None,
+    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v6/NAME")] = None,
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
     ros2: Annotated[bool | None, typer.Option("--ros2/--no-ros2", help="publish the estimates as ROS 2 topics")] = None,
     record: Annotated[Path | None, typer.Option(help="record every session to MCAP files in this folder")] = None,
@@ -192,6 +192,20 @@ def watch(
         except KeyboardInterrupt:
             pass
         watcher.undeclare()
+
+
+@app.command("robot-key")
+def robot_key(
+    file: Annotated[Path, typer.Argument(help="the robot's key file (made there if it does not exist)")],
+) -> None:
+    """A robot's own key: its fingerprint, for the service's robot_keys (TrackerClient(identity=FILE))."""
+    from inhand_tracker.protocol.identity import RobotKey
+
+    try:
+        key = RobotKey.load_or_create(file)
+    except (OSError, ValueError) as exc:
+        raise fail(f"robot-key: {exc}", ExitCode.FILES) from None
+    typer.echo(key.fingerprint)
 
 
 @app.command()

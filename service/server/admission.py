@@ -19,7 +19,7 @@ from inhand_tracker.sim_backend.kinematics import Kinematics
 
 from .budget import FrameTimes, affordable_worlds, ladder
 from .config import ServiceConfig
-from .pools import MEASURED_STEPS, Pool, PoolKey
+from .pools import MEASURED_STEPS, NOBODY, Pool, PoolKey, Session, Source
 
 __all__ = ["Admission", "Gate", "ServiceError"]
 
@@ -57,6 +57,8 @@ class Admission:
     its key is in :attr:`Gate.building`)."""
     peer: str = ""
     """The name the robot opened under ("" for none)."""
+    source: Source = NOBODY
+    """Who opened it (the robot key its open proved)."""
 
 
 class Gate:
@@ -79,11 +81,11 @@ class Gate:
         self.kinematics: dict[str, Kinematics] = {}
         """Each robot's own model (its joint layout), built once per robot."""
         self._opened: deque[float] = deque()
-        """When sessions were opened in the last minute [s, monotonic]."""
+        """When sessions were opened in the last minute by robots the service keeps no room for [s, monotonic]."""
         self._opened_by: dict[str, deque[float]] = {}
-        """The same per peer name, for the peers that opened in the last minute."""
+        """The same per account (a robot key, or a peer name), for the accounts that opened in the last minute."""
         self._built_by: dict[str, deque[float]] = {}
-        """When populations were built for each peer name's opens, in the last minute [s, monotonic]."""
+        """When populations were built for each account's opens, in the last minute [s, monotonic]."""
 
     # ------------------------------------------------------------------ the frame budget
     @property
@@ -179,19 +181,21 @@ class Gate:
         )
 
     # ------------------------------------------------------------------ an open
-    def admit(self, request: OpenSession, sessions: int, peer: str = "", peer_sessions: int = 0) -> Admission:
-        """Validate an open with ``sessions`` open now, ``peer_sessions`` of them under ``peer``'s
-        name (ServiceError with the field and the numbers), and find its population: one with a
-        free group, or none when one must be built or is on its way."""
-        robot = self._check(request, sessions)
-        self._check_peer(peer, peer_sessions)
+    def admit(
+        self, request: OpenSession, sessions: list[Session], peer: str = "", source: Source = NOBODY
+    ) -> Admission:
+        """Validate an open from ``source`` under ``peer``'s name with ``sessions`` open now
+        (ServiceError with the field and the numbers), and find its population: one with a free
+        group, or none when one must be built or is on its way."""
+        robot = self._check(request, sessions, source)
+        self._check_account(source.account, sum(s.source.account == source.account for s in sessions))
         tconf = self._tracker_config(request)
         self._check_q0(request, robot)
         overrides = tuple(sorted(request.overrides.items()))
         worlds, notice = self._grant(request, (request.robot, request.object, overrides))
         request = request.model_copy(update={"worlds": worlds})
         key = PoolKey(request.robot, request.object, worlds, overrides)
-        admission = Admission(request, key, robot, tconf, notice, peer=peer)
+        admission = Admission(request, key, robot, tconf, notice, peer=peer, source=source)
         for k, pool in self.pools.items():
             if k.unbuilt() == key and pool.joinable:
                 admission.pool = pool
@@ -206,6 +210,12 @@ class Gate:
                 f"populations: {populations} built, this service's limit is {cfg.max_populations} (max_populations)"
                 " (sessions share one when robot, object, worlds and overrides match)",
             )
+        kept = cfg.reserved_populations if cfg.robot_keys and not source.known else 0
+        theirs = sum(not any(s and s.source.known for s in p.sessions) for p in self.pools.values())
+        if kept and theirs + len(self.building) >= cfg.max_populations - kept:
+            raise ServiceError(ErrorCode.CAPACITY, f"populations: {theirs + len(self.building)} built for peers not in"
+                               f" robot_keys, their limit is {cfg.max_populations - kept} (max_populations less"
+                               " reserved_populations, kept for the robots in robot_keys)")  # fmt: skip
         in_use = self._worlds_in_use()
         if in_use + cfg.groups * worlds > cfg.max_worlds:
             raise ServiceError(
@@ -215,47 +225,75 @@ class Gate:
             )
         return admission
 
-    def opened(self, peer: str = "") -> None:
-        """Count an open against the per-minute caps (the service's, and its peer's)."""
-        self._opened.append(time.monotonic())
-        if peer:
-            _recent(self._opened_by, peer).append(time.monotonic())
+    def opened(self, source: Source) -> None:
+        """Count an open against the per-minute caps (the service's, unless the service keeps room
+        for its robot, and its account's)."""
+        if not source.known:
+            self._opened.append(time.monotonic())
+        if source.account:
+            _recent(self._opened_by, source.account).append(time.monotonic())
 
-    def build_for(self, peer: str) -> None:
-        """Count a population build for an open under ``peer``'s name, or refuse it past that
-        peer's per-minute builds (an open under no name is not counted)."""
-        if not peer:
+    def build_for(self, source: Source) -> None:
+        """Count a population build for an open from ``source``, or refuse it past its account's
+        per-minute builds (an open under no name and no key is not counted)."""
+        if not source.account:
             return
-        built = _recent(self._built_by, peer)
+        built = _recent(self._built_by, source.account)
         limit = self.config.max_builds_per_minute_per_peer
         if len(built) >= limit:
             raise ServiceError(
                 ErrorCode.CAPACITY,
-                f"builds: {len(built)} populations built for peer '{peer}' in the last 60 s, its limit is {limit}"
+                f"builds: {len(built)} populations built for {source.account} in the last 60 s, its limit is {limit}"
                 " (max_builds_per_minute_per_peer; open with settings a population already has)",
             )
         built.append(time.monotonic())
 
-    def _check_peer(self, peer: str, sessions: int) -> None:
-        """Refuse an open under ``peer``'s name past that peer's own caps."""
-        if not peer:
+    def _check_account(self, account: str, sessions: int) -> None:
+        """Refuse an open past its account's own caps (a robot key's, or a peer name's)."""
+        if not account:
             return
         cfg = self.config
         if sessions >= cfg.max_sessions_per_peer:
             raise ServiceError(
                 ErrorCode.CAPACITY,
-                f"sessions: {sessions} open under peer '{peer}', its limit is {cfg.max_sessions_per_peer}"
+                f"sessions: {sessions} open under {account}, its limit is {cfg.max_sessions_per_peer}"
                 " (max_sessions_per_peer)",
             )
-        opened = _recent(self._opened_by, peer)
+        opened = _recent(self._opened_by, account)
         if len(opened) >= cfg.max_opens_per_minute_per_peer:
             raise ServiceError(
                 ErrorCode.CAPACITY,
-                f"opens: {len(opened)} under peer '{peer}' in the last 60 s, its limit is"
+                f"opens: {len(opened)} under {account} in the last 60 s, its limit is"
                 f" {cfg.max_opens_per_minute_per_peer} (max_opens_per_minute_per_peer)",
             )
 
-    def _check(self, request: OpenSession, sessions: int) -> RobotSpec:
+    def _check_room(self, sessions: list[Session], source: Source) -> None:
+        """Refuse an open past the service's caps: its sessions, and for a robot it keeps no room
+        for, the sessions and opens per minute of all such robots together."""
+        cfg, n = self.config, len(sessions)
+        if n >= cfg.max_sessions:
+            raise ServiceError(
+                ErrorCode.CAPACITY, f"sessions: {n} open, this service's limit is {cfg.max_sessions} (max_sessions)"
+            )
+        if source.known:
+            return
+        kept = cfg.reserved_sessions if cfg.robot_keys else 0
+        theirs = sum(not s.source.known for s in sessions)
+        if kept and theirs >= cfg.max_sessions - kept:
+            raise ServiceError(ErrorCode.CAPACITY, f"sessions: {theirs} open by peers not in robot_keys, their limit"
+                               f" is {cfg.max_sessions - kept} (max_sessions less reserved_sessions, kept for the"
+                               " robots in robot_keys)")  # fmt: skip
+        now = time.monotonic()
+        while self._opened and now - self._opened[0] > 60.0:
+            self._opened.popleft()
+        if len(self._opened) >= cfg.max_opens_per_minute:
+            raise ServiceError(
+                ErrorCode.CAPACITY,
+                f"opens: {len(self._opened)} in the last 60 s, this service's limit is {cfg.max_opens_per_minute}"
+                " (max_opens_per_minute)" + (" for peers not in robot_keys" if cfg.robot_keys else ""),
+            )
+
+    def _check(self, request: OpenSession, sessions: list[Session], source: Source) -> RobotSpec:
         """The request's robot, after refusing what cannot be opened: a protocol version, robot,
         object, method or override not known here, or a cap reached."""
         try:
@@ -271,20 +309,7 @@ class Gate:
             )
         if request.method not in METHODS:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"method: expected one of {METHODS}, got '{request.method}'")
-        if sessions >= self.config.max_sessions:
-            limit = self.config.max_sessions
-            raise ServiceError(
-                ErrorCode.CAPACITY, f"sessions: {sessions} open, this service's limit is {limit} (max_sessions)"
-            )
-        now = time.monotonic()
-        while self._opened and now - self._opened[0] > 60.0:
-            self._opened.popleft()
-        if len(self._opened) >= self.config.max_opens_per_minute:
-            limit = self.config.max_opens_per_minute
-            raise ServiceError(
-                ErrorCode.CAPACITY,
-                f"opens: {len(self._opened)} in the last 60 s, this service's limit is {limit} (max_opens_per_minute)",
-            )
+        self._check_room(sessions, source)
         unknown = sorted(set(request.overrides) - set(_TUNABLE))
         if unknown:
             spelled = {n.rpartition(".")[2]: n for n in _TUNABLE}

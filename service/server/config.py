@@ -10,6 +10,7 @@ import inspect
 import itertools
 import json
 import os
+import re
 import textwrap
 import typing
 from pathlib import Path
@@ -26,6 +27,7 @@ from pydantic_settings import (
 
 from inhand_tracker.client.zenoh_session import check_endpoints
 from inhand_tracker.protocol import SESSION_NAME
+from inhand_tracker.protocol.keys import check_name
 from inhand_tracker.service.paths import CONFIG_DIR
 from inhand_tracker.sim_backend import PopulationConfig
 
@@ -40,6 +42,8 @@ __all__ = [
 ]
 
 DEFAULT_CONFIG = CONFIG_DIR / "service.toml"
+
+_FINGERPRINT = re.compile(r"[0-9a-f]{4}(-[0-9a-f]{4}){7}")
 
 # Lists come from the environment comma-separated (INHAND_LISTEN=tcp/a:1,tcp/b:2), not as JSON.
 Endpoints = Annotated[tuple[str, ...], NoDecode]
@@ -162,7 +166,7 @@ class ServiceConfig(BaseSettings):
     )
 
     name: str = "default"
-    """The service's name: its keys live under inhand/v5/{name}."""
+    """The service's name: its keys live under inhand/v6/{name}."""
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, cuda or cuda:N."""
     listen: Endpoints = ("tcp/127.0.0.1:7447",)
@@ -202,6 +206,18 @@ class ServiceConfig(BaseSettings):
     running sessions' steps, so a peer opening with new settings each time is refused, not served."""
     max_populations: int = Field(16, ge=1)
     """Populations at once at most: each distinct robot, object, K and overrides builds one."""
+    robot_keys: dict[str, str] = Field(default_factory=dict)
+    """The robots this service keeps room for, by peer name: the fingerprint of each robot's key
+    (``TrackerClient(peer=NAME, identity=FILE)``; ``inhand-tracker robot-key FILE`` prints it). An
+    open under a listed name must prove that key, and the last ``reserved_sessions`` sessions and
+    ``reserved_populations`` populations are theirs: no flood of other peers refuses their opens."""
+    reserved_sessions: int = Field(8, ge=0)
+    """Sessions kept for the robots in ``robot_keys`` (none while it is empty)."""
+    reserved_populations: int = Field(2, ge=0)
+    """Populations kept for the robots in ``robot_keys`` (none while it is empty)."""
+    reopen_window_s: float = Field(300.0, gt=0)
+    """How long a session's names (its name, its peer name) stay its robot key's after it ends, so
+    that its robot's reopen finds them free [s]."""
     robots: Endpoints = ("configs/robots/allegro.toml",)
     """Robot configs (TOML; relative paths are from the project root)."""
     objects: str = "configs/objects.toml"
@@ -293,6 +309,18 @@ class ServiceConfig(BaseSettings):
             return tuple(v for v in value.split(",") if v)
         return value
 
+    @field_validator("robot_keys")
+    @classmethod
+    def _fingerprints(cls, keys: dict[str, str]) -> dict[str, str]:
+        spelled = {}
+        for name, key in keys.items():
+            check_name("peer", name)
+            fp = key.strip().lower().replace(":", "-")
+            if not _FINGERPRINT.fullmatch(fp):
+                raise ValueError(f"'{name}': expected a robot key's fingerprint, 8 groups of 4 hex digits, got {key!r}")
+            spelled[name] = fp
+        return spelled
+
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, value: tuple[str, ...], info) -> tuple[str, ...]:
@@ -333,7 +361,9 @@ def _toml_entry(name: str, field) -> list[str]:
     """A setting as TOML: its description as comments, then its default (commented out when unset)."""
     text = " ".join((field.description or "").split())
     out = [f"# {line}" for line in textwrap.wrap(text, 98)]
-    value = field.default
+    value = field.get_default(call_default_factory=True)
+    if value == {}:  # an inline table to fill in (a [table] here would swallow the keys after it): an example
+        return [*out, f'# {name} = {{ robot-1 = "d771-c60a-a2ab-c576-5733-16af-67e3-9644" }}', ""]
     if value is None:
         return [*out, f"# {name} =", ""]
     if name == "ros2_sessions":  # an array of tables, which TOML writes after every plain key: an example
@@ -362,6 +392,8 @@ def _toml_value(value) -> str:
         return json.dumps(value)
     if isinstance(value, tuple | list):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
     return repr(value)
 
 

@@ -389,7 +389,7 @@ class TrackerNode:
         admission.notice = admission.notice or notice
         if admission.pool is None:
             if admission.key not in m.building:  # the first open of a population builds it
-                m.gate.build_for(peer)  # or is refused, before it waits for anything
+                m.gate.build_for(admission.source)  # or is refused, before it waits for anything
                 m.reserve(admission)
                 robot, obj, worlds = admission.key.robot, admission.key.object, admission.key.worlds
                 log.info("building a population of %d x %d worlds (%s, %s)", self.config.groups, worlds, robot, obj)

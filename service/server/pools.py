@@ -19,7 +19,18 @@ from inhand_tracker.sim_backend import ObjectSpec, Population, RobotSpec
 
 from .config import PhysicsSettings
 
-__all__ = ["MEASURED_STEPS", "SILENT_AFTER", "Pool", "PoolKey", "Session", "Turn", "build_pool", "idle_pose"]
+__all__ = [
+    "MEASURED_STEPS",
+    "NOBODY",
+    "SILENT_AFTER",
+    "Pool",
+    "PoolKey",
+    "Session",
+    "Source",
+    "Turn",
+    "build_pool",
+    "idle_pose",
+]
 
 MEASURED_STEPS = 100
 """A population's own p99 replaces the prediction for it once it stepped this often."""
@@ -146,6 +157,23 @@ _SENSINGS = ("joints", "force", "touch")
 """The sensings a status reports residuals of, in :attr:`.GroupEstimates.residual`'s order."""
 
 
+@dataclass(frozen=True)
+class Source:
+    """Who an open comes from."""
+
+    key: str = ""
+    """The fingerprint of the robot key the open proved; "" for an open without one."""
+    known: bool = False
+    """A robot the service was told of (``robot_keys``): it may use the room kept for them."""
+    account: str = ""
+    """What the per-peer caps count it under: ``robot key FINGERPRINT``, ``peer 'NAME'``, or ""
+    (the service's caps only)."""
+
+
+NOBODY = Source()
+"""An open with no key and no name."""
+
+
 @dataclass
 class Session:
     id: str
@@ -159,7 +187,10 @@ class Session:
     name: str = ""
     """The session's name: its ROS 2 topics and TF frame follow it."""
     peer: str = ""
-    """The name its robot opened under ("" for none): per-peer caps count it."""
+    """The name its robot opened under ("" for none)."""
+    source: Source = NOBODY
+    """Who opened it: the robot key its open proved, whether the service keeps room for it, and
+    what its per-peer caps count it under."""
     keyed: bool = False
     """Opened with a client key: its secret was agreed, and its estimates carry a MAC."""
     next_seq: int = 0

@@ -167,7 +167,7 @@ class SessionRecorder(Output):
     def open(self, info: SessionInfo, request: OpenSession) -> None:
         # Named by the session's name (what a launch file knows it by; a namespace's ``/`` as ``.``)
         # and id (unique across runs).
-        folder = self.folder / f"{(info.name or 'session').replace('/', '.')}_{info.session}"
+        folder = self.folder / f"{(info.name or 'session').replace('/', '.')}_{info.session.rpartition('~')[2]}"
         with self._guarded(info.session):
             self._files[info.session] = _File(folder, info, request, self.service, self.frame_id)
             log.info("recording session %s to %s", info.session, folder)

@@ -33,6 +33,7 @@ from inhand_tracker.protocol import (
 )
 from inhand_tracker.protocol.auth import mac_of, verify, verify_query
 from inhand_tracker.protocol.identity import ServiceKey, signed
+from inhand_tracker.protocol.keys import session_id
 from inhand_tracker.service.tracker import Frame, TrackerConfig
 from inhand_tracker.sim_backend import ObjectSpec, RobotSpec, resolve_device
 from inhand_tracker.sim_backend.kinematics import Kinematics
@@ -42,6 +43,7 @@ from .budget import STEP_TIME_MOTION, FrameTimes, device_name, measure_step_time
 from .config import ServiceConfig
 from .frames import frame_problem, fresh, in_order
 from .pools import MEASURED_STEPS, SILENT_AFTER, Pool, PoolKey, Session, Turn, build_pool, idle_pose
+from .sources import Sources
 
 __all__ = ["Admission", "ServiceError", "Session", "SessionManager"]
 
@@ -92,6 +94,8 @@ class SessionManager:
         """p99 step time of a population by its worlds, on this device and physics setting."""
         self.gate = Gate(config, robots, objects, self.frame_times, self.pools, self.building, self.device)
         """The caps and the frame budget every open passes."""
+        self.sources = Sources(config, self.identity)
+        """Who opens: the robot keys proven, and the names they hold."""
 
     @property
     def budget_ms(self) -> float:
@@ -112,7 +116,7 @@ class SessionManager:
         another thread: :meth:`admit`, :meth:`build`, :meth:`adopt`, :meth:`attach`)."""
         admission = self.admit(request, peer)
         if admission.pool is None:
-            self.gate.build_for(peer)
+            self.gate.build_for(admission.source)
             self.reserve(admission)
             try:
                 self.adopt(self.build(admission))
@@ -123,12 +127,11 @@ class SessionManager:
         return self.attach(admission)
 
     def admit(self, request: OpenSession, peer: str = "") -> Admission:
-        """Validate an open under ``peer``'s name ("" for none; ServiceError with the field and the
-        numbers) and find its population: one with a free group, or none when one must be built or
-        is on its way."""
+        """Validate an open under ``peer``'s name ("" for none; ServiceError naming the field and the
+        numbers) and find its population: one with a free group, or none when one must be built."""
         self._check_name(request.name)
-        mine = sum(s.peer == peer for s in self.sessions.values()) if peer else 0
-        return self.gate.admit(request, len(self.sessions), peer, mine)
+        source = self.sources.source(request, peer)
+        return self.gate.admit(request, list(self.sessions.values()), peer, source)
 
     def _check_name(self, name: str | None) -> None:
         if name is not None and any(s.name == name for s in self.sessions.values()):
@@ -183,14 +186,15 @@ class SessionManager:
         layout = self.gate.kinematics[request.robot].layout
         q0 = layout.default_q if request.q0 is None else request.q0
         group = pool.sessions.index(None)
-        sid = uuid.uuid4().hex[:12]
+        sid = session_id(admission.peer, uuid.uuid4().hex[:12])
         # A keyed open's secret is agreed, never sent: a peer that relays the open learns nothing.
         keyed = bool(request.client_key)
         token = self.identity.session_secret(request.client_key, sid) if keyed else secrets.token_hex(16)
+        name, source = self._name(request, admission.peer), admission.source
+        self.sources.opened(request, source, admission.peer, name)  # a replay waiting on the same build stops here
         session = Session(
-            sid, token, request.robot, request.object, request.method, pool, group,
-            self._name(request, admission.peer), admission.peer, keyed=keyed,
-        )  # fmt: skip
+            sid, token, request.robot, request.object, request.method, pool, group, name, admission.peer, source, keyed
+        )
         tracker = pool.tracker
         tracker.set_method(group, request.method)
         mask = np.zeros(tracker.G, bool)
@@ -207,7 +211,7 @@ class SessionManager:
         # Registered only now: an open that failed on the way leaves nothing behind.
         pool.sessions[group] = session
         self.sessions[session.id] = session
-        self.gate.opened(admission.peer)
+        self.gate.opened(source)
         info = SessionInfo(
             session=session.id,
             token="" if keyed else session.token,
@@ -246,6 +250,8 @@ class SessionManager:
         pool = session.pool
         pool.sessions[session.group] = None
         del self.sessions[session_id]
+        same = any(s.source.key == session.source.key and s.peer == session.peer for s in self.sessions.values())
+        self.sources.closed(session.source.key, session.peer, session.name, same)
         if not pool.active:
             del self.pools[pool.key]
 
