@@ -17,6 +17,17 @@ from .common import Device, IntList, Json, bench, command_line, fail, gpu_stack,
 log = logging.getLogger("inhand_tracker")
 
 
+@contextlib.contextmanager
+def _running(name: str):
+    """A benchmark's run: what a library prints goes to stderr (stdout is for the table or the
+    JSON), and a ValueError is the command's one-line refusal."""
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            yield
+    except ValueError as exc:
+        raise fail(f"bench {name}: {exc}") from None
+
+
 @bench.command("sim")
 def bench_sim(
     worlds: IntList = "40,256,1024,4096",
@@ -87,21 +98,18 @@ def bench_speed(
             r.physics_median_ms, r.ratio,
         )  # fmt: skip
 
-    try:
-        with contextlib.redirect_stdout(sys.stderr):  # anything a library prints; stdout is for the table or JSON
-            results = bench_speed(
-                worlds,
-                groups,
-                substeps or [PopulationConfig.substeps],
-                frames=frames,
-                device=device,
-                caps=solver_caps,
-                physics=physics,
-                progress=show,
-                **({"jacobians": jacobian.split(",")} if jacobian else {}),
-            )
-    except ValueError as exc:
-        raise fail(f"bench speed: {exc}") from None
+    with _running("speed"):
+        results = bench_speed(
+            worlds,
+            groups,
+            substeps or [PopulationConfig.substeps],
+            frames=frames,
+            device=device,
+            caps=solver_caps,
+            physics=physics,
+            progress=show,
+            **({"jacobians": jacobian.split(",")} if jacobian else {}),
+        )
     if json_:
         head = {"device": device_name(resolve_device(device)), "date": time.strftime("%Y-%m-%d")}
         head["command"] = command_line(ctx)
@@ -127,11 +135,8 @@ def bench_load(
     gpu_stack()
     from inhand_tracker.service.bench.load import as_dicts, bench_load, format_table
 
-    try:
-        with contextlib.redirect_stdout(sys.stderr):
-            results = bench_load(sessions, worlds, rate, seconds, device, connect=tuple(names(connect)), churn=churn)
-    except ValueError as exc:
-        raise fail(f"bench load: {exc}") from None
+    with _running("load"):
+        results = bench_load(sessions, worlds, rate, seconds, device, connect=tuple(names(connect)), churn=churn)
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
 
 
@@ -245,17 +250,14 @@ def bench_calibration(
     chosen = suite_named(suite, False)
     out = out or Path(f"bench-results/calibration-{suite}")
     out.mkdir(parents=True, exist_ok=True)
-    try:
-        with contextlib.redirect_stdout(sys.stderr):
-            traj = excitation_recording(chosen, device, seconds)
-            traj.save(out / f"{suite}-calibration.traj")
-            spec, obj = robot_spec(chosen.robot), catalog_object(traj.object)
-            fit = fit_servos(
-                spec, obj, [traj], tuple(names(settings) or ()), worlds, generations, device,
-                joint_noise=chosen.sensors.joint_sigma,
-            )  # fmt: skip
-    except ValueError as exc:
-        raise fail(f"bench calibration: {exc}") from None
+    with _running("calibration"):
+        traj = excitation_recording(chosen, device, seconds)
+        traj.save(out / f"{suite}-calibration.traj")
+        spec, obj = robot_spec(chosen.robot), catalog_object(traj.object)
+        fit = fit_servos(
+            spec, obj, [traj], tuple(names(settings) or ()), worlds, generations, device,
+            joint_noise=chosen.sensors.joint_sigma,
+        )  # fmt: skip
     config = CONFIG_DIR / "robots" / f"{chosen.robot}.toml"
     overlay = write_overlay(fit, config, out / f"{chosen.robot}.calibrated.toml", command_line(ctx))
     typer.echo(calibration_report(fit) + f"\noverlay: {overlay}")
@@ -353,10 +355,7 @@ def bench_rebuilds(
     gpu_stack()
     from inhand_tracker.service.bench.rebuilds import as_dict, bench_rebuilds, format_table
 
-    try:
-        with contextlib.redirect_stdout(sys.stderr):
-            result = bench_rebuilds(cycles, worlds, device)
-    except ValueError as exc:
-        raise fail(f"bench rebuilds: {exc}") from None
+    with _running("rebuilds"):
+        result = bench_rebuilds(cycles, worlds, device)
     stamp = {"date": time.strftime("%Y-%m-%d"), "command": command_line(ctx)}
     typer.echo(json.dumps(as_dict(result) | stamp, indent=2) if json_ else format_table(result))
