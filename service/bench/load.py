@@ -75,7 +75,7 @@ def bench_load(
     with ``churn``, beside a peer that opens and closes sessions with new settings all the while."""
     if sessions < 1 or worlds < 1 or rate <= 0 or seconds <= 0:
         got = f"{sessions}, {worlds}, {rate}, {seconds}"
-        raise ValueError(f"load: expected sessions, worlds, rate and seconds > 0, got {got}")
+        raise ValueError(f"expected sessions, worlds, rate and seconds > 0, got {got}")
     traj = Trajectory.load(file or DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
     if connect:
         endpoints, service = list(connect), contextlib.nullcontext()

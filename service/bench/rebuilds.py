@@ -58,7 +58,7 @@ def bench_rebuilds(cycles: int = 1000, worlds: int = 8, device: str = "auto") ->
     worlds with the bundled robot and object; a population held by another session stays all along
     (the service is never empty, as in use)."""
     if cycles < 10 or worlds < 1:
-        raise ValueError(f"rebuilds: expected cycles >= 10 and worlds >= 1, got {cycles}, {worlds}")
+        raise ValueError(f"expected cycles >= 10 and worlds >= 1, got {cycles}, {worlds}")
     traj = Trajectory.load(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
     robot = load_robot(CONFIG_DIR / "robots/allegro.toml")
     config = ServiceConfig(
