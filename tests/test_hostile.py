@@ -309,7 +309,7 @@ def test_a_session_s_name_is_its_own(traj):
     with pytest.raises(ServiceError, match="name: 'left_hand' is another open session's"):
         manager.open(_request(traj, name="left_hand"))
     assert manager.open(_request(traj)).name == "allegro_foam_brick"
-    with pytest.raises(ServiceError, match="default name 'allegro_foam_brick' is another open session's ROS 2 topic"):
+    with pytest.raises(ServiceError, match="default name 'allegro_foam_brick' is another session's ROS 2 topic"):
         manager.open(_request(traj))
     assert manager.open(_request(traj), peer="cell-2.arm").name == "cell_2_arm/allegro_foam_brick"
     assert manager.open(_request(traj, name="lab2/left_hand")).name == "lab2/left_hand"

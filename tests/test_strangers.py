@@ -115,6 +115,13 @@ def test_an_unlisted_robot_keeps_its_names_and_its_own_caps(traj):
     exc = _refused(manager, _request(traj, name="arm"))
     assert exc.code == ErrorCode.FORBIDDEN and "(its session)" in exc.message
     assert manager.open(_proven(manager, robot, _request(traj, name="arm")), "lab").name == "arm"
+    # An unnamed session's default name is kept for its key too: a stranger's open is numbered past it.
+    other = RobotKey()
+    unnamed = manager.open(_proven(manager, other, _request(traj)))
+    assert unnamed.name == "allegro_foam_brick"
+    manager.drop(unnamed.session)
+    assert manager.open(_request(traj)).name == "allegro_foam_brick_2"
+    assert manager.open(_proven(manager, other, _request(traj))).name == "allegro_foam_brick"
 
 
 def test_an_open_proves_its_key_once_and_only_while_it_is_fresh(traj):

@@ -137,7 +137,7 @@ class SessionManager:
         if name is not None and any(s.name == name for s in self.sessions.values()):
             raise ServiceError(ErrorCode.BAD_REQUEST, f"name: '{name}' is another open session's; choose another")
 
-    def _name(self, request: OpenSession, peer: str) -> str:
+    def _name(self, request: OpenSession, peer: str, key: str = "") -> str:
         """The session's name: the one asked for, else its default (:attr:`OpenSession.name`), the
         same on every run. Where the name is a ROS 2 topic (setting ``ros2``), a session that would
         take one another holds is refused, not numbered: a number would hang on which robot opened
@@ -147,11 +147,11 @@ class SessionManager:
             return request.name
         name = _token(f"{request.robot}_{request.object}")
         name = f"{_token(peer)}/{name}" if peer else name
-        taken = {s.name for s in self.sessions.values()}
+        taken = {s.name for s in self.sessions.values()} | self.sources.held(key)  # and kept for a reopen
         if name in taken and self.config.ros2:
             raise ServiceError(
                 ErrorCode.BAD_REQUEST,
-                f"name: this session's default name '{name}' is another open session's ROS 2 topic; give it a name of"
+                f"name: this session's default name '{name}' is another session's ROS 2 topic; give it a name of"
                 " its own",
             )
         return next(n for n in (name, *(f"{name}_{i}" for i in range(2, len(taken) + 3))) if n not in taken)
@@ -190,7 +190,7 @@ class SessionManager:
         # A keyed open's secret is agreed, never sent: a peer that relays the open learns nothing.
         keyed = bool(request.client_key)
         token = self.identity.session_secret(request.client_key, sid) if keyed else secrets.token_hex(16)
-        name, source = self._name(request, admission.peer), admission.source
+        name, source = self._name(request, admission.peer, admission.source.key), admission.source
         self.sources.opened(request, source, admission.peer, name)  # a replay waiting on the same build stops here
         session = Session(
             sid, token, request.robot, request.object, request.method, pool, group, name, admission.peer, source, keyed

@@ -82,6 +82,11 @@ class Sources:
         self._proofs[request.proof] = until, False
         return fingerprint(request.client_key)
 
+    def held(self, key: str) -> set[str]:
+        """The session names that keys other than ``key`` hold now."""
+        now = time.monotonic()
+        return {n for (kind, n), (k, until) in self._held.items() if kind == "name" and k != key and until > now}
+
     def opened(self, request: OpenSession, source: Source, peer: str, name: str) -> None:
         """A session opened for ``source``: its proof is spent, its names are its key's."""
         if not source.key:
