@@ -199,6 +199,8 @@ def add_object(world: newton.ModelBuilder, obj: ObjectSpec) -> int:
     # The object's friction rules in contacts with the hand (MuJoCo takes the max otherwise).
     attrs = {"mujoco:geom_priority": 1, "mujoco:condim": obj.condim}
     body = world.add_body(label=f"object/{obj.name}")  # comes with a free joint
+    start = world.joint_qd_start[world.joint_count - 1]
+    world.joint_damping[start : start + 6] = [obj.damping] * 6
     volume = float(abs(obj.mesh.volume))
     cfg = newton.ModelBuilder.ShapeConfig(
         density=obj.mass / volume, mu=obj.friction, mu_torsional=obj.torsional_friction

@@ -151,12 +151,12 @@ def test_the_hands_contact_pairs_collide_as_the_file_names_them(hand):
     demo = Demo("pinch", controls, away, kin.layout.default_q.copy(), phases=())
     pop = Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu"))
     # Frictionless, as the file's pairs say (condim 1): fingers pressing each other slide. The block
-    # touches them with its own settings (3).
+    # touches them with its own settings (its scenes' condim 4).
     condim = pop.solver.mj_model.geom_condim[pop.solver.newton_shape_to_mjc_geom.numpy()]
     label = list(pop.model.shape_label)
     shape = lambda name: next(i for i, lbl in enumerate(label) if lbl.endswith(name))  # noqa: E731
     shapes = ("robot0:C_thdistal", "robot0:C_ffdistal", "robot0:C_palm0", "block")
-    assert [condim[shape(n)] for n in shapes] == [1, 1, 1, 3]
+    assert [condim[shape(n)] for n in shapes] == [1, 1, 1, 4]
     touch = record(pop, demo, np.array([obj.mass]), np.array([obj.friction])).touch[-10:, 0].mean(0)
     zones = kin.layout.zone_names
     felt = lambda *links: sum(t for t, z in zip(touch, zones, strict=True) if z.startswith(links))  # noqa: E731

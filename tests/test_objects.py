@@ -90,18 +90,25 @@ def test_a_mesh_object_in_the_default_objects_file_loads_at_import(tmp_path, mon
 _BLOCK = "[block]\nbox = [0.05, 0.05, 0.05]\nmass = 0.07\nmass_range = [0.04, 0.12]\n"
 
 
-def test_an_object_s_contact_dimension_and_torsional_friction_reach_its_worlds(tmp_path):
-    """A box that resists a twist on a palm (MuJoCo's condim 4) is said in the objects file; the
-    worlds' solver gives the object's contacts that dimension (the object's priority rules them)."""
+def test_an_object_s_contact_dimension_torsional_friction_and_damping_reach_its_worlds(tmp_path):
+    """A box that resists a twist on a palm (MuJoCo's condim 4), and the damping a scene gives its
+    object's free joint, are said in the objects file; the worlds' solver gives the object's contacts
+    that dimension (the object's priority rules them) and its six degrees of freedom that damping."""
     objects = tmp_path / "objects.toml"
-    objects.write_text(_BLOCK + "condim = 4\ntorsional_friction = 0.01\n")
+    objects.write_text(_BLOCK + "condim = 4\ntorsional_friction = 0.01\ndamping = 0.02\n")
     block = load_catalog(objects)["block"]
-    assert (block.condim, block.torsional_friction) == (4, 0.01)
-    assert (CATALOG["block"].condim, CATALOG["block"].torsional_friction) == (3, 0.005)  # MuJoCo's defaults
-    pop = Population(HandSpec(), block, PopulationConfig(worlds=1, device="cpu", use_graph=False))
+    assert (block.condim, block.torsional_friction, block.damping) == (4, 0.01, 0.02)
+    shipped = CATALOG["block"]  # gymnasium-robotics' block scenes' own: condim 4, free joint damping 0.01
+    assert (shipped.condim, shipped.torsional_friction, shipped.damping) == (4, 0.005, 0.01)
+    assert CATALOG["foam_brick"].damping == 0.0
+    pop = Population(HandSpec(), block, PopulationConfig(worlds=2, device="cpu", use_graph=False))
     geom_condim = pop.solver.mjw_model.geom_condim.numpy()
     assert geom_condim.max() == 4 and (geom_condim == 4).sum() == 1  # the block's shape alone
-    bad = tmp_path / "bad.toml"
-    bad.write_text(_BLOCK + "condim = 5\n")
-    with pytest.raises(ValueError, match="object 'block' condim: expected 1, 3, 4 or 6, got 5"):
-        load_catalog(bad)
+    damping = pop.solver.mjw_model.dof_damping.numpy()
+    assert np.allclose(damping[:, -6:], 0.02) and not np.isclose(damping[:, :-6], 0.02).any()  # its free joint's alone
+    for entry, words in [("condim = 5", "condim: expected 1, 3, 4 or 6, got 5"),
+                         ("damping = -1.0", "damping: expected >= 0 N s/m, got -1.0")]:  # fmt: skip
+        bad = tmp_path / "bad.toml"
+        bad.write_text(_BLOCK + entry + "\n")
+        with pytest.raises(ValueError, match=f"object 'block' {words}"):
+            load_catalog(bad)
