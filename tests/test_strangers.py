@@ -95,6 +95,22 @@ def test_a_listed_robot_opens_and_reopens_under_any_stranger_s_flood(traj):
     assert own.worlds == 4 and len(manager.pools) == 4
 
 
+def test_strangers_fill_only_the_frame_budget_not_kept_for_listed_robots(traj, tmp_path):
+    """With a frame budget, peers not in ``robot_keys`` may fill the share of it the kept populations
+    leave (here 3 of 4: 60 of 80 ms); a listed robot's population still fits in the rest."""
+    robot = RobotKey()
+    manager = _manager(groups=1, rate_hz=10, min_worlds=4, frame_time_cache=str(tmp_path), max_populations=4,
+                       reserved_populations=1, robot_keys={"robot": robot.fingerprint})  # fmt: skip
+    manager.frame_times.points = {1: 5.0, 64: 40.0}  # 64 worlds step in 40 ms; the budget: 10 Hz x 0.8 = 80 ms
+    first = manager.open(_request(traj, worlds=64, q0=traj.truth.initial_q))
+    assert first.worlds == 64  # 40 ms of the 60 strangers may fill
+    exc = _refused(manager, _request(traj, worlds=64, q0=traj.truth.initial_q, overrides={"seed": 1}))
+    assert "frame budget of 60.0 ms (10 Hz x 0.8 x 0.75 not kept for robot_keys)" in exc.message, exc.message
+    listed = manager.open(_proven(manager, robot, _request(traj, worlds=64, q0=traj.truth.initial_q,
+                                                           overrides={"seed": 1})), "robot")  # fmt: skip
+    assert listed.worlds == 64  # 80 of the whole 80 ms
+
+
 def test_an_unlisted_robot_keeps_its_names_and_its_own_caps(traj):
     """Without ``robot_keys`` the service keeps no room, but what a key holds is its own: its caps
     count per key (a stranger opening under its peer name spends nothing of it), and its session's

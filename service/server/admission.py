@@ -120,11 +120,12 @@ class Gate:
     def _worlds_in_use(self) -> int:
         return sum(p.worlds for p in self.pools.values()) + sum(self.building.values())
 
-    def _grant(self, request: OpenSession, kind: tuple) -> tuple[int, str | None]:
+    def _grant(self, request: OpenSession, kind: tuple, source: Source = NOBODY) -> tuple[int, str | None]:
         """The K an open gets, and why it is fewer than asked for (when it is): what was asked,
         if it fits the frame budget; a population of the same ``kind`` (robot, object,
         overrides) with a free group costs nothing more; else the most that fits, for "auto" or
-        ``allow_fewer``; else a refusal naming the numbers."""
+        ``allow_fewer``; else a refusal naming the numbers. An open from a peer the service keeps
+        no room for fits only the share of the budget not kept (as of the populations)."""
         cfg, asked = self.config, request.worlds
         if asked != AUTO and asked > cfg.max_worlds:
             raise ServiceError(
@@ -136,7 +137,7 @@ class Gate:
         joinable += [k.worlds for k in self.building if k.kind == kind]
         if asked != AUTO and asked in joinable:
             return asked, None
-        load, budget, g = self.load_ms(), self.budget_ms, cfg.groups
+        load, budget, g = self.load_ms(), self.budget_ms * self._share(source), cfg.groups
         room = (cfg.max_worlds - self._worlds_in_use()) // g
         if asked != AUTO and asked <= room and load + self.frame_times.predict(g * asked) <= budget:
             return asked, None
@@ -144,7 +145,9 @@ class Gate:
         sizes, before = ladder(cfg.min_worlds, cfg.max_worlds), self.frame_times.granted.get(str(kind))
         new = affordable_worlds(self.frame_times, load, budget, g, sizes, cap, before if asked == AUTO else None)
         best = max([new, *(k for k in joinable if k <= cap)])
-        per = f"{cfg.rate_hz:g} Hz x {cfg.budget_share:g}"
+        per = f"{cfg.rate_hz:g} Hz x {cfg.budget_share:g}" + (
+            f" x {self._share(source):.3g} not kept for robot_keys" if self._share(source) < 1 else ""
+        )
         if asked == AUTO:
             if best:
                 if best != before:
@@ -172,6 +175,14 @@ class Gate:
         fit = f"at most {best} fit now (allow_fewer to take them)" if best else "none fit now"
         raise ServiceError(ErrorCode.CAPACITY, f"worlds: {why}; {fit}{self._budget_hint()}")
 
+    def _share(self, source: Source) -> float:
+        """The share of the frame budget an open from ``source`` may fill: all of it for a robot the
+        service keeps room for (or when it keeps none), else what the kept populations leave."""
+        cfg = self.config
+        if source.known or not cfg.robot_keys:
+            return 1.0
+        return max(0.0, 1.0 - cfg.reserved_populations / cfg.max_populations)
+
     def _budget_hint(self) -> str:
         """Which of the service's settings would admit more worlds, and what they are now."""
         cfg = self.config
@@ -192,7 +203,7 @@ class Gate:
         tconf = self._tracker_config(request)
         self._check_q0(request, robot)
         overrides = tuple(sorted(request.overrides.items()))
-        worlds, notice = self._grant(request, (request.robot, request.object, overrides))
+        worlds, notice = self._grant(request, (request.robot, request.object, overrides), source)
         request = request.model_copy(update={"worlds": worlds})
         key = PoolKey(request.robot, request.object, worlds, overrides)
         admission = Admission(request, key, robot, tconf, notice, peer=peer, source=source)

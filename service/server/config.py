@@ -214,7 +214,8 @@ class ServiceConfig(BaseSettings):
     reserved_sessions: int = Field(8, ge=0)
     """Sessions kept for the robots in ``robot_keys`` (none while it is empty)."""
     reserved_populations: int = Field(2, ge=0)
-    """Populations kept for the robots in ``robot_keys`` (none while it is empty)."""
+    """Populations kept for the robots in ``robot_keys``, and the same share of the frame budget
+    (none while it is empty)."""
     reopen_window_s: float = Field(300.0, gt=0)
     """How long a session's names (its name, its peer name) stay its robot key's after it ends, so
     that its robot's reopen finds them free [s]."""
