@@ -814,7 +814,7 @@ def test_a_tls_session_tracks_and_a_plain_peer_is_kept_out(traj, tmp_path):
 
 
 @contextlib.contextmanager
-def _hardened(tmp_path: Path):
+def _hardened(tmp_path: Path, **settings: str):
     """docker/compose-tls.yml's deployment from its Zenoh files as shipped, their certificate paths
     and port moved here: make-certs.sh's certificates for two robots ("robot", "observer") and its
     router.json5 with their access rules, a router running it, and the service as its client with
@@ -838,13 +838,43 @@ def _hardened(tmp_path: Path):
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     assert router.stdout.readline().strip() == "up"
-    svc = ServiceProcess(0, listen=False, connect="", zenoh_config=str(shipped("service.json5")))
+    svc = ServiceProcess(0, listen=False, connect="", zenoh_config=str(shipped("service.json5")), **settings)
     try:
         yield f"tls/127.0.0.1:{port}", shipped, svc
     finally:
         svc.stop()
         router.kill()
         router.wait()
+
+
+def test_under_the_hardened_router_a_robot_opens_and_reopens_while_another_floods(traj, tmp_path):
+    """Behind the shipped router a second robot with a valid certificate may open only under its own
+    name: its flood fills its own caps and is refused there, while the first robot, listed in the
+    service's robot_keys, opens, closes and opens again."""
+    from inhand_tracker.protocol.identity import RobotKey
+
+    listed = RobotKey.load_or_create(tmp_path / "robot.key").fingerprint
+    # The flood's sessions hold no liveliness token: a long robot timeout keeps them open meanwhile.
+    caps = {"max_sessions_per_peer": "2", "robot_timeout_s": "60", "robot_keys": f'{{"robot": "{listed}"}}'}
+    with _hardened(tmp_path, **caps) as (endpoint, shipped, svc):
+        with TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5", robot="observer")) as flood:
+            svc.wait_ready(flood)
+            answers = []
+            for peer in ["observer"] * 4 + ["robot"] * 2:  # under its own name, then under the robot's
+                payload = encode(_request(traj).model_copy(update={"worlds": 2}))
+                wait = 60 if peer == "observer" else 3
+                replies = list(flood._zenoh.get(Keys("default", peer).open, payload=payload, timeout=wait))
+                answers.append("none" if not replies else "ok" if replies[0].ok is not None else "refused")
+            assert answers == ["ok", "ok", "refused", "refused", "none", "none"], answers
+        robot = TrackerClient(connect=[endpoint], zenoh_file=shipped("robot.json5"), peer="robot",
+                              identity=tmp_path / "robot.key")  # fmt: skip
+        with robot:
+            info = robot.open_session(traj.robot, traj.object, traj.truth.initial_pose, worlds=2)
+            assert info.session.startswith("robot~")
+            robot.close_session()
+            again = robot.reopen()
+            robot.send(traj.frame(0, again.session))
+            assert robot.latest_pose(timeout=60, after_seq=0).seq == 0
 
 
 def test_the_hardened_compose_runs_the_service_and_robots_as_clients_of_an_mtls_router(traj, tmp_path):
