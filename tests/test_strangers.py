@@ -121,7 +121,7 @@ def test_an_unlisted_robot_keeps_its_names_and_its_own_caps(traj):
     for request in [_request(traj), _proven(manager, stranger, _request(traj))]:
         exc = _refused(manager, request, "lab")
         assert exc.code == ErrorCode.FORBIDDEN
-        assert f"peer: 'lab' is held by robot key {robot.fingerprint}" in exc.message
+        assert f"peer: 'lab' is held by robot key {robot.fingerprint} (its session)" in exc.message
     assert "name: 'arm' is another open session's" in _refused(manager, _request(traj, name="arm")).message
     for _ in range(2):  # a stranger's own key fills its own caps
         manager.open(_proven(manager, stranger, _request(traj)), "elsewhere")

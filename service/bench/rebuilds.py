@@ -19,6 +19,7 @@ from inhand_tracker.sim_backend import load_catalog, load_robot
 
 from .load import _rss_mib
 from .progress import progress_bar
+from .sim import used_bytes
 
 __all__ = ["RebuildResult", "bench_rebuilds", "format_table"]
 
@@ -44,13 +45,7 @@ class RebuildResult:
 
 
 def _device_mib(device) -> float:
-    if not device.is_cuda:
-        return 0.0
-    import torch
-    import warp as wp
-
-    pool = wp.get_mempool_used_mem_current(device) if wp.is_mempool_enabled(device) else 0
-    return (pool + torch.cuda.memory_allocated(wp.device_to_torch(device))) / 2**20
+    return used_bytes(device) / 2**20 if device.is_cuda else 0.0  # on a CPU used_bytes is the RSS
 
 
 def bench_rebuilds(cycles: int = 1000, worlds: int = 8, device: str = "auto") -> RebuildResult:

@@ -137,7 +137,8 @@ class Gate:
         joinable += [k.worlds for k in self.building if k.kind == kind]
         if asked != AUTO and asked in joinable:
             return asked, None
-        load, budget, g = self.load_ms(), self.budget_ms * self._share(source), cfg.groups
+        share = self._share(source)
+        load, budget, g = self.load_ms(), self.budget_ms * share, cfg.groups
         room = (cfg.max_worlds - self._worlds_in_use()) // g
         if asked != AUTO and asked <= room and load + self.frame_times.predict(g * asked) <= budget:
             return asked, None
@@ -145,9 +146,8 @@ class Gate:
         sizes, before = ladder(cfg.min_worlds, cfg.max_worlds), self.frame_times.granted.get(str(kind))
         new = affordable_worlds(self.frame_times, load, budget, g, sizes, cap, before if asked == AUTO else None)
         best = max([new, *(k for k in joinable if k <= cap)])
-        per = f"{cfg.rate_hz:g} Hz x {cfg.budget_share:g}" + (
-            f" x {self._share(source):.3g} not kept for robot_keys" if self._share(source) < 1 else ""
-        )
+        kept = f" x {share:.3g} not kept for robot_keys" if share < 1 else ""
+        per = f"{cfg.rate_hz:g} Hz x {cfg.budget_share:g}{kept}"
         if asked == AUTO:
             if best:
                 if best != before:

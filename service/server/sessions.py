@@ -138,16 +138,15 @@ class SessionManager:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"name: '{name}' is another open session's; choose another")
 
     def _name(self, request: OpenSession, peer: str, key: str = "") -> str:
-        """The session's name: the one asked for, else its default (:attr:`OpenSession.name`), the
-        same on every run. Where the name is a ROS 2 topic (setting ``ros2``), a session that would
-        take one another holds is refused, not numbered: a number would hang on which robot opened
-        first, and a launch file could not name its topic. Elsewhere it is numbered from 2."""
+        """The session's name: the one asked for, else its default (:attr:`OpenSession.name`), the same
+        on every run and none another robot key holds. Where names are ROS 2 topics (``ros2``) a taken
+        one is refused (a launch file could not name a topic numbered by open order), else numbered from 2."""
         if request.name is not None:
             self._check_name(request.name)  # taken while its population was built
             return request.name
         name = _token(f"{request.robot}_{request.object}")
         name = f"{_token(peer)}/{name}" if peer else name
-        taken = {s.name for s in self.sessions.values()} | self.sources.held(key)  # and kept for a reopen
+        taken = {s.name for s in self.sessions.values()} | self.sources.held(key)
         if name in taken and self.config.ros2:
             raise ServiceError(
                 ErrorCode.BAD_REQUEST,
@@ -181,7 +180,7 @@ class SessionManager:
 
     def attach(self, admission: Admission) -> SessionInfo:
         """Open the session in a free group of ``admission.pool``."""
-        request, pool = admission.request, admission.pool
+        request, pool, source = admission.request, admission.pool, admission.source
         assert pool is not None, "attach: the admission has no population yet"
         layout = self.gate.kinematics[request.robot].layout
         q0 = layout.default_q if request.q0 is None else request.q0
@@ -190,8 +189,8 @@ class SessionManager:
         # A keyed open's secret is agreed, never sent: a peer that relays the open learns nothing.
         keyed = bool(request.client_key)
         token = self.identity.session_secret(request.client_key, sid) if keyed else secrets.token_hex(16)
-        name, source = self._name(request, admission.peer, admission.source.key), admission.source
-        self.sources.opened(request, source, admission.peer, name)  # a replay waiting on the same build stops here
+        name = self._name(request, admission.peer, source.key)
+        self.sources.spend(request)
         session = Session(
             sid, token, request.robot, request.object, request.method, pool, group, name, admission.peer, source, keyed
         )
@@ -212,6 +211,7 @@ class SessionManager:
         pool.sessions[group] = session
         self.sessions[session.id] = session
         self.gate.opened(source)
+        self.sources.bind(source, admission.peer, session.name)
         info = SessionInfo(
             session=session.id,
             token="" if keyed else session.token,

@@ -26,6 +26,7 @@ __all__ = ["OPEN_WINDOW_S", "Sources"]
 
 OPEN_WINDOW_S = 30.0
 """A proven open whose stamp is further than this from the service's clock is refused [s]."""
+_REPLAY = "proof: this open was sent before (a replay); open anew"
 
 
 class Sources:
@@ -53,7 +54,8 @@ class Sources:
             holder, until = self._held.get((kind, name), ("", 0.0))
             if name and holder and holder != key and until > now:
                 said = f"{kind}: '{name}' is held by robot key {holder}"
-                why = "the robot_keys setting names it" if until == math.inf and kind == "peer" else "its session"
+                listed = kind == "peer" and name in self.config.robot_keys
+                why = "the robot_keys setting names it" if listed else "its session"
                 raise ServiceError(ErrorCode.FORBIDDEN, f"{said} ({why}); open under a name of your own")
         known = bool(key) and key in self.config.robot_keys.values()
         return Source(key, known, f"robot key {key}" if key else (f"peer '{peer}'" if peer else ""))
@@ -78,7 +80,7 @@ class Sources:
             del self._proofs[proof]
         until, opened = self._proofs.get(request.proof, (now + 2 * OPEN_WINDOW_S, False))
         if opened:
-            raise ServiceError(ErrorCode.FORBIDDEN, "proof: this open was sent before (a replay); open anew")
+            raise ServiceError(ErrorCode.FORBIDDEN, _REPLAY)
         self._proofs[request.proof] = until, False
         return fingerprint(request.client_key)
 
@@ -87,17 +89,19 @@ class Sources:
         now = time.monotonic()
         return {n for (kind, n), (k, until) in self._held.items() if kind == "name" and k != key and until > now}
 
-    def opened(self, request: OpenSession, source: Source, peer: str, name: str) -> None:
-        """A session opened for ``source``: its proof is spent, its names are its key's."""
-        if not source.key:
-            return
+    def spend(self, request: OpenSession) -> None:
+        """Spend an open's proof as its session opens: a replay admitted while the open it copies
+        waited for a build is refused here."""
         if request.proof in self._proofs:
             until, opened = self._proofs[request.proof]
             if opened:
-                raise ServiceError(ErrorCode.FORBIDDEN, "proof: this open was sent before (a replay); open anew")
+                raise ServiceError(ErrorCode.FORBIDDEN, _REPLAY)
             self._proofs[request.proof] = until, True
+
+    def bind(self, source: Source, peer: str, name: str) -> None:
+        """A session of ``source`` opened: its peer name and name are its key's while it lives."""
         for held in (("peer", peer), ("name", name)):
-            if held[1]:
+            if source.key and held[1]:
                 self._held[held] = source.key, math.inf
 
     def closed(self, key: str, peer: str, name: str, peer_open: bool) -> None:
