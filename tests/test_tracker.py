@@ -249,11 +249,12 @@ class _OpCounter(TorchDispatchMode):
 
 
 @pytest.mark.parametrize(
-    ("method", "evidence", "servos"), [("PBO", 0, 0), ("REPS", 0, 0), ("PBO", 10, 0), ("PBO", 0, 0.5)]
+    ("method", "evidence", "servos", "scaled"),
+    [("PBO", 0, 0, False), ("REPS", 0, 0, False), ("PBO", 10, 0, False), ("PBO", 0, 0.5, False), ("REPS", 0, 0, True)],
 )
-def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording, method, evidence, servos):
+def test_a_frame_is_a_fixed_number_of_torch_ops_whatever_g_and_k(hand, recording, method, evidence, servos, scaled):
     counts = {}
-    optimizer = OptimizerConfig(method=method, min_pose_evidence=evidence)
+    optimizer = OptimizerConfig(method=method, min_pose_evidence=evidence, by_evidence=scaled)
     for groups, worlds in ((1, 4), (2, 16)):
         explore = {"servos.servo_sigma0": servos}
         tr = _tracker(hand, worlds=worlds, groups=groups, settings=explore, optimizer=optimizer, update_every=5)
@@ -533,19 +534,24 @@ def test_a_group_held_back_for_want_of_separation_keeps_gathering_its_window(han
 def test_a_robot_whose_declared_noise_explains_every_difference_is_tracked_open_loop(hand, recording):
     """Under ``optimizer.by_evidence`` the robot's declared sensor noise bounds what its cost
     differences can mean. Where that noise dwarfs every difference the worlds show, no update
-    replaces or perturbs a world: they run as EYE's worlds do (which never resample), the estimate
-    is the plain mean of those that hold the object, and the reported strength is 0. The same hand
-    declaring exact sensing is updated: the grasp's forces tell its worlds apart."""
+    replaces or perturbs a world: they run as EYE's worlds do (which never resample), the reported
+    strength is 0, and the estimate is the open-loop world's: what OLP reports from the same start
+    (full-strength updates restart that world from the best one).
+    Without the open-loop world it is the plain mean of the worlds that hold the object. The same
+    hand declaring exact sensing is updated: the grasp's forces tell its worlds apart."""
     spec, _ = hand
     obj = catalog_object(OBJECT)
+    noisy = replace(spec, joint_noise=5.0, force_noise=500.0)
     worlds, runs, holds = {}, {}, {}
-    for name, robot, method in (
-        ("exact", spec, "REPS"),
-        ("noisy", replace(spec, joint_noise=5.0, force_noise=500.0), "REPS"),
-        ("eye", spec, "EYE"),
+    for name, robot, method, anchored in (
+        ("exact", spec, "REPS", True),
+        ("noisy", noisy, "REPS", True),
+        ("noisy, no open-loop world", noisy, "REPS", False),
+        ("eye", spec, "EYE", True),
+        ("olp", spec, "OLP", True),
     ):
         pop = Population(robot, obj, PopulationConfig(groups=2, worlds=12, device="cpu"))
-        optimizer = OptimizerConfig(method=method, by_evidence=True)
+        optimizer = OptimizerConfig(method=method, by_evidence=True, open_loop_world=anchored)
         tr = Tracker(pop, TrackerConfig(optimizer=optimizer, seed=5, update_every=5))
         tr.start(_noisy_start(recording), recording.initial_q)
         runs[name], plain = [], []
@@ -555,14 +561,23 @@ def test_a_robot_whose_declared_noise_explains_every_difference_is_tracked_open_
             plain.append(((tr.pop.obs.object_pose[..., :3] * held).sum(1) / held.sum(1)).numpy())
         worlds[name] = tr.pop.obs.object_pose.clone()
         holds[name] = tr.scored() < HELD_COST
-        if name == "noisy":  # but on update frames, which replace worlds that lost the object after the estimate
+        if name.startswith("noisy,"):  # but on update frames, which replace worlds that lost the object after it
             said = np.array([e.pose[:, :3] for e in runs[name]])
             between = np.arange(recording.frames) % 5 != 4
             assert np.allclose(said[between], np.array(plain)[between], atol=1e-6)
+    said = {name: np.array([e.pose for e in est]) for name, est in runs.items()}
+    assert np.allclose(said["noisy"][-1], worlds["noisy"][:, 0].numpy(), atol=1e-6), "the open-loop world's pose"
+    # OLP's world from the same start: another population's, so equal to rounding (0.05 mm here).
+    off = {name: np.abs(said[name] - said["olp"])[..., :3].max() for name in said}
+    assert off["noisy"] < 1e-3 and off["noisy, no open-loop world"] > 1e-2, off
     strengths = {name: np.array([e.evidence for e in est]) for name, est in runs.items()}
     assert (strengths["noisy"] == 0).all() and (np.array([e.separation for e in runs["noisy"]])[5:] > 0).all()
     assert strengths["exact"].max() > 0.5, strengths["exact"].max(0)
+    assert off["exact"] > 1e-2, "the evidence moves the estimate"
     # Where EYE's worlds still hold the object: a group held back still replaces those that lost it.
     held = holds["eye"] & holds["noisy"]
     apart = {name: (worlds[name] - worlds["eye"])[..., :3].norm(dim=-1)[held].max().item() for name in worlds}
     assert apart["noisy"] < 1e-4 and apart["exact"] > 1e-2, apart
+    # Without evidence the open-loop world is OLP's; full-strength updates restarted it from the best world.
+    olp_world = {name: (worlds[name][:, 0] - worlds["olp"][:, 0])[:, :3].abs().max().item() for name in worlds}
+    assert olp_world["noisy"] < 1e-3 and olp_world["exact"] > 1e-2 and strengths["exact"].max() == 1.0, olp_world

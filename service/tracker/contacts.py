@@ -5,15 +5,19 @@ parameters, run inside the captured update."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import torch
 
-from inhand_tracker.sim_backend import Population
+from inhand_tracker.sim_backend import Population, PopulationConfig
 
 from .config import ContactExploration
 from .sampling import clipped_normal
 
-__all__ = ["CONTACT_SPAN", "ContactExplorer"]
+__all__ = ["CONTACT_SPAN", "ContactExplorer", "say_overflow"]
+
+log = logging.getLogger(__name__)
 
 CONTACT_SPAN = float(np.log(4.0))
 """How far the worlds' contact parameters may stray from the model's, in their logarithm: a
@@ -57,11 +61,11 @@ class ContactExplorer:
             return zero  # draws nothing: the generator's stream is what it was without them
         return clipped_normal(zero, self._sigma0, -CONTACT_SPAN, CONTACT_SPAN, self.gen)
 
-    def seeded(self, sel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def seeded(self, sel: torch.Tensor, nominal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The contacts of a seeding of groups ``sel`` (G, 1) bool: a group whose contacts were
-        found wrong draws them again, the others keep the model's; groups not seeded keep theirs.
-        Returns the time constants and impratios, (G, K) each."""
-        drawn = self.around_model().masked_fill(~self.open[:, None, None], 0.0).exp()
+        found wrong draws them again, the others keep the model's, as do the worlds ``nominal``
+        (G, K) bool; groups not seeded keep theirs. Returns the time constants and impratios, (G, K) each."""
+        drawn = self.around_model().masked_fill(~self.open[:, None, None] | nominal[..., None], 0.0).exp()
         return torch.where(sel[..., None], drawn * self.nominal, self.current()).unbind(-1)
 
     def gate(self, lowest: torch.Tensor, explores: torch.Tensor) -> torch.Tensor:
@@ -87,3 +91,12 @@ class ContactExplorer:
         logs = torch.where((explore & self.open[:, None])[..., None], step, model)
         logs = torch.where(opens[:, None, None], self.around_model(), logs)
         return (logs.exp() * self.nominal).unbind(-1)
+
+
+def say_overflow(groups: np.ndarray, config: PopulationConfig) -> None:
+    """Say that worlds of ``groups`` ran out of contact room, and which settings give them more."""
+    log.warning(
+        "contacts: worlds of groups %s made more contacts than the %d a world holds (or more than its %d"
+        " constraint rows); the excess was dropped from their physics: raise the population's"
+        " contacts_per_world (and constraints_per_world)", groups.tolist(), config.contacts_per_world,
+        config.constraints_per_world)  # fmt: skip

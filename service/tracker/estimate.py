@@ -10,7 +10,7 @@ import torch
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 from .config import EstimateConfig
-from .optimizers import estimate_pmf
+from .optimizers import HELD_COST, estimate_pmf
 from .sampling import weighted_mean
 
 __all__ = ["pose_modes", "pose_statistics", "unresolved_variance"]
@@ -48,12 +48,16 @@ def pose_statistics(
     origin: torch.Tensor,
     config: EstimateConfig,
     sharpness: torch.Tensor | None = None,
+    anchor: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The lowest-cost world of each group, (G,), and the estimate's pose fields from every world's
     ``object_pose`` (G, K, 7) weighted by its ``window`` cost (G, K): ``pose``, ``best_pose``,
     ``mean_pose`` (G, 7), ``covariance`` (G, 6, 6), ``modes`` (G, 2, 7), ``mode_weights`` (G, 2).
     ``origin`` (7,) stands in for a NaN world's pose; ``sharpness`` (G, 1): each group's factor on
-    ``estimate_lambda`` (0 weighs every held world alike)."""
+    ``estimate_lambda`` (0 weighs every held world alike). ``anchor`` (G, K) bool: each group's
+    open-loop world, which the reported pose leans on by 1 - ``sharpness`` while it holds the
+    object (the spread, modes and ``mean_pose`` stay the population's); none in an OLP group, whose
+    worlds are all open loop."""
     best = window.argmin(-1)
     # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
     poses = torch.where(torch.isfinite(object_pose).all(-1, keepdim=True), object_pose, origin)
@@ -71,13 +75,19 @@ def pose_statistics(
         dim=-1,
     )
     modes, mode_weights, first = pose_modes(poses, pose, weights, config.mode_angle, config.mode_distance)
-    reported = mean_pose
+    reported, reported_weights = mean_pose, weights
     if config.mean_over_mode:
         # A mean across two modes (an object in the hand and one that rolled off it) lies where
         # neither is: the report takes the lowest-cost world's mode, all the worlds where they agree.
         # Where the costs say nothing of the poses (sharpness 0) the lowest is no mode's: all count.
         mode = first if sharpness is None else first | (sharpness <= 0)
-        reported = weighted_mean(weights * mode / (weights * mode).sum(-1, keepdim=True), position, quat)
+        reported_weights = weights * mode / (weights * mode).sum(-1, keepdim=True)
+        reported = weighted_mean(reported_weights, position, quat)
+    if anchor is not None and sharpness is not None:
+        # Dead reckoning as far as the costs do not tell the poses apart: where they say nothing the
+        # report is the open-loop world's, not the mean of worlds spread by the priors alone.
+        lean = (1.0 - sharpness) * (anchor & (window < HELD_COST)).any(-1, keepdim=True)
+        reported = weighted_mean((1.0 - lean) * reported_weights + lean * anchor.float(), position, quat)
     return best, {
         "pose": reported if config.mean_estimate else pose,
         "best_pose": pose,

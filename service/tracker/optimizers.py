@@ -23,6 +23,7 @@ __all__ = [
     "estimate_pmf",
     "in_place",
     "method_rows",
+    "open_loop_worlds",
     "reps_eta",
     "reps_pmf",
     "systematic_resample",
@@ -69,6 +70,15 @@ class OptimizerConfig:
     are better beyond what noise alone gives (:func:`.evidence.evidence_strength`). Where the worlds are no
     further apart than their own frame-to-frame noise would make them, the group runs open loop and
     its window goes on gathering. Off: every update at full strength, as the paper."""
+
+    open_loop_world: bool = True
+    """Under ``by_evidence``, keep world 0 of each group as one open-loop world: seeded at the start
+    estimate with the nominal physics and never perturbed, so it follows the robot as dead reckoning
+    does; an update at full strength restarts it from the lowest-cost world (state and physics). The
+    reported pose leans on it as far as the evidence falls short of a full update (weight 1 - strength
+    on the poses), so a group whose sensing tells its worlds nothing reports what one open-loop world
+    would, not the mean of worlds spread by its priors, and a lapse of evidence falls back to dead
+    reckoning from the last sure estimate."""
 
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
@@ -196,6 +206,13 @@ def duplicates(index: torch.Tensor) -> torch.Tensor:
     return first.gather(1, index) != slots
 
 
+def open_loop_worlds(config: OptimizerConfig, worlds: int, device: torch.device) -> torch.Tensor:
+    """Which world of each group is kept as its open-loop world (``config.open_loop_world``), (1, K)
+    bool: world 0 under ``by_evidence`` where a group has more than one; none otherwise."""
+    anchored = config.by_evidence and config.open_loop_world and worlds > 1
+    return (torch.arange(worlds, device=device) == 0)[None] & anchored
+
+
 def update(
     cost: torch.Tensor,
     config: OptimizerConfig,
@@ -204,6 +221,7 @@ def update(
     rows: dict[str, torch.Tensor] | None = None,
     separated: torch.Tensor | None = None,
     strength: torch.Tensor | None = None,
+    open_loop: torch.Tensor | None = None,
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
@@ -216,7 +234,8 @@ def update(
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
     ``rows`` maps each method present to its groups, a (G,) bool tensor on the device; a caller
-    that captures the update passes it, since building it from ``methods`` copies from the host."""
+    that captures the update passes it, since building it from ``methods`` copies from the host.
+    ``open_loop`` (1, K) bool (:func:`open_loop_worlds`): worlds that stay their own, unperturbed."""
     informative = cost.amax(-1) - cost.amin(-1) > config.min_spread
     held_back = torch.zeros_like(informative)
     if separated is not None and config.min_separation > 0:
@@ -227,15 +246,18 @@ def update(
     if methods is None or len(set(methods)) == 1:
         method = config.method if methods is None else methods[0]
         part = _update(cost, method, config, gen, informative, strength)
-        return Update(index=part.index, explore=part.explore, held_back=held_back)
-    if rows is None:
-        rows = method_rows(methods, cost.device)
-    index = explore = None
-    for method in sorted(set(methods)):
-        part = _update(cost, method, config, gen, informative, strength)
-        mine = rows[method][:, None]
-        index = part.index if index is None else torch.where(mine, part.index, index)
-        explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
+        index, explore = part.index, part.explore
+    else:
+        rows = method_rows(methods, cost.device) if rows is None else rows
+        index = explore = None
+        for method in sorted(set(methods)):
+            part = _update(cost, method, config, gen, informative, strength)
+            mine = rows[method][:, None]
+            index = part.index if index is None else torch.where(mine, part.index, index)
+            explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
+    if open_loop is not None:  # dead reckoning, kept: its own source, never perturbed
+        index = torch.where(open_loop, torch.arange(cost.shape[-1], device=cost.device), index)
+        explore = explore & ~open_loop
     return Update(index=index, explore=explore, held_back=held_back)
 
 

@@ -27,14 +27,14 @@ from inhand_tracker.sim_backend import HEALTH_AWAY, HEALTH_NAN, HEALTH_OK, Popul
 
 from .capture import CapturedOps
 from .config import TrackerConfig
-from .contacts import ContactExplorer
+from .contacts import ContactExplorer, say_overflow
 from .cost import TERMS, Cost, RealObservation
 from .estimate import pose_statistics, unresolved_variance
 from .evidence import Residuals, declared_scatter, evidence_strength, pose_sources
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver, draw_around
-from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, update
+from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, open_loop_worlds, update
 from .recovery import Recovery
 from .sampling import (
     clipped_normal,
@@ -111,6 +111,8 @@ class Tracker:
         """The pose that stands in for a NaN world's in the estimate's sums, (7,)."""
         self._sharpness = torch.ones(self.G, 1, device=dev)
         """Each group's factor on the estimate's weights, (G, 1): how far its poses explain its costs."""
+        self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
+        """Which world of each group is its open-loop world, (1, K) bool (``optimizer.open_loop_world``)."""
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
         """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
         self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
@@ -130,7 +132,7 @@ class Tracker:
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self.observations = PoseObserver(cfg.observations, self.K)
         self.overflows = 0
-        """Frames on which a world dropped contacts for want of room (:meth:`_overflowed`)."""
+        """Frames on which a world dropped contacts for want of room (:func:`.contacts.say_overflow`)."""
         self.recovery.open_loop[:] = self.olp.cpu().numpy()
 
     # ------------------------------------------------------------------ start
@@ -210,8 +212,9 @@ class Tracker:
         nominal_friction = torch.full((self.G, self.K), obj.friction, device=dev)
         mass = clipped_normal(nominal_mass, cfg.seeding.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
         friction = clipped_normal(nominal_friction, cfg.seeding.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
-        # OLP (and any single world) simulates the estimate itself with the nominal physics.
-        open_loop = (self.olp | (self.K == 1))[:, None]
+        # OLP (and any single world, and a group's open-loop world) simulates the estimate itself
+        # with the nominal physics.
+        open_loop = (self.olp | (self.K == 1))[:, None] | self._anchor
         poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
         if on_table:
             poses[..., 2] = 0.002 - lowest_point(poses[..., 3:], self._hull)
@@ -220,7 +223,7 @@ class Tracker:
         sel = torch.as_tensor(groups, device=dev)[:, None]
         mass = torch.where(sel, mass, self.pop.mass)
         friction = torch.where(sel, friction, self.pop.friction)
-        timeconst, impratio = self.contacts.seeded(sel)
+        timeconst, impratio = self.contacts.seeded(sel, open_loop.expand(self.G, self.K))
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
         self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
@@ -302,22 +305,13 @@ class Tracker:
             estimate.reseeded |= r.groups
         estimate.status = self.recovery.status.copy()
         if estimate.overflow.any():
-            self._overflowed(np.flatnonzero(estimate.overflow))
+            self.overflows += 1
+            if self.overflows == 1:  # once per population: every frame after would say it again
+                say_overflow(np.flatnonzero(estimate.overflow), self.pop.config)
         estimate.covariance[:, self._diagonal, self._diagonal] += unresolved_variance(
             estimate.cost, self._seeded, self.K, self.config.estimate
         )
         return estimate
-
-    def _overflowed(self, groups: np.ndarray) -> None:
-        """Say, once per population, that worlds of ``groups`` ran out of contact room."""
-        self.overflows += 1
-        if self.overflows == 1:
-            cfg = self.pop.config
-            log.warning(
-                "contacts: worlds of groups %s made more contacts than the %d a world holds (or more than its %d"
-                " constraint rows); the excess was dropped from their physics: raise the population's"
-                " contacts_per_world (and constraints_per_world)", groups.tolist(), cfg.contacts_per_world,
-                cfg.constraints_per_world)  # fmt: skip
 
     def _frame_ops(self) -> None:
         """The captured frame: controls in, physics, forward kinematics of the real joints, cost,
@@ -370,8 +364,9 @@ class Tracker:
     def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
         copy; ``lost`` (G, K) says which worlds lost their object."""
-        pop = self.pop
-        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, self._sharpness)
+        pop, sharp = self.pop, self._sharpness
+        anchor = self._anchor & ~self.olp[:, None]  # an OLP group's worlds are all open loop: it reports their mean
+        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, sharp, anchor)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         self.residuals.add(self.cost.last_terms, best)
         return ESTIMATE.pack(
@@ -403,7 +398,7 @@ class Tracker:
         if cfg.optimizer.by_evidence:  # parameter noise, wrench and roughening as strong as the selection
             strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.reps_epsilon)
             scale = scale * strength
-        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
+        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength, self._anchor)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
@@ -414,6 +409,10 @@ class Tracker:
         if strength is not None:  # what the update did to the poses, and so to the estimate
             self._evidence[:, 1:].copy_(sharpness)
         self._sharpness.copy_(sharpness)
+        # A full-strength update restarts the open-loop world from the best: dead reckoning from the last sure estimate.
+        restart = self._anchor & (sharpness >= 1.0) & upd.explore.any(-1, keepdim=True)
+        best = cost.argmin(-1, keepdim=True).expand_as(state)
+        state, upd.index = torch.where(restart, best, state), torch.where(restart, best, upd.index)
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, ex, gen = upd.explore, cfg.exploration, self.gen
