@@ -221,7 +221,6 @@ def update(
     rows: dict[str, torch.Tensor] | None = None,
     separated: torch.Tensor | None = None,
     strength: torch.Tensor | None = None,
-    open_loop: torch.Tensor | None = None,
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
@@ -234,8 +233,7 @@ def update(
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
     ``rows`` maps each method present to its groups, a (G,) bool tensor on the device; a caller
-    that captures the update passes it, since building it from ``methods`` copies from the host.
-    ``open_loop`` (1, K) bool (:func:`open_loop_worlds`): worlds that stay their own, unperturbed."""
+    that captures the update passes it, since building it from ``methods`` copies from the host."""
     informative = cost.amax(-1) - cost.amin(-1) > config.min_spread
     held_back = torch.zeros_like(informative)
     if separated is not None and config.min_separation > 0:
@@ -246,18 +244,15 @@ def update(
     if methods is None or len(set(methods)) == 1:
         method = config.method if methods is None else methods[0]
         part = _update(cost, method, config, gen, informative, strength)
-        index, explore = part.index, part.explore
-    else:
-        rows = method_rows(methods, cost.device) if rows is None else rows
-        index = explore = None
-        for method in sorted(set(methods)):
-            part = _update(cost, method, config, gen, informative, strength)
-            mine = rows[method][:, None]
-            index = part.index if index is None else torch.where(mine, part.index, index)
-            explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
-    if open_loop is not None:  # dead reckoning, kept: its own source, never perturbed
-        index = torch.where(open_loop, torch.arange(cost.shape[-1], device=cost.device), index)
-        explore = explore & ~open_loop
+        return Update(index=part.index, explore=part.explore, held_back=held_back)
+    if rows is None:
+        rows = method_rows(methods, cost.device)
+    index = explore = None
+    for method in sorted(set(methods)):
+        part = _update(cost, method, config, gen, informative, strength)
+        mine = rows[method][:, None]
+        index = part.index if index is None else torch.where(mine, part.index, index)
+        explore = part.explore if explore is None else torch.where(mine, part.explore, explore)
     return Update(index=index, explore=explore, held_back=held_back)
 
 

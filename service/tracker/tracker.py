@@ -398,7 +398,7 @@ class Tracker:
         if cfg.optimizer.by_evidence:  # parameter noise, wrench and roughening as strong as the selection
             strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.reps_epsilon)
             scale = scale * strength
-        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength, self._anchor)
+        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
@@ -409,10 +409,12 @@ class Tracker:
         if strength is not None:  # what the update did to the poses, and so to the estimate
             self._evidence[:, 1:].copy_(sharpness)
         self._sharpness.copy_(sharpness)
-        # A full-strength update restarts the open-loop world from the best: dead reckoning from the last sure estimate.
-        restart = self._anchor & (sharpness >= 1.0) & upd.explore.any(-1, keepdim=True)
-        best = cost.argmin(-1, keepdim=True).expand_as(state)
-        state, upd.index = torch.where(restart, best, state), torch.where(restart, best, upd.index)
+        # The open-loop world keeps its own state, unperturbed, but for a full-strength update, which restarts
+        # it from the best world: dead reckoning from the last sure estimate.
+        restart = (sharpness >= 1.0) & upd.explore.any(-1, keepdim=True)
+        source = torch.where(restart, cost.argmin(-1, keepdim=True), 0)
+        state, upd.index = torch.where(self._anchor, source, state), torch.where(self._anchor, source, upd.index)
+        upd.explore = upd.explore & ~self._anchor
         self.pop.copy_worlds(state, upd.index)
         if not set(self.methods) <= {"OLP", "EYE"}:
             explore, ex, gen = upd.explore, cfg.exploration, self.gen
