@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import warnings
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 
@@ -116,10 +117,11 @@ def contact_capacity(built: BuiltModel, cfg: PopulationConfig) -> PopulationConf
 
 
 def resolve_physics(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout | None = None) -> PopulationConfig:
-    """``cfg`` with the physics options it leaves open resolved: the friction cone, impratio and
-    integrator. Precedence, each later source winning: the defaults (elliptic, impratio 10,
-    implicitfast); the robot's file (``layout.options``: an MJCF's ``<option>``, MuJoCo's defaults
-    where it says none, which is what MuJoCo C runs it with); the robot config (:class:`.ContactModel`);
+    """``cfg`` with the physics options it leaves open resolved: the friction cone, impratio,
+    integrator and collision. Precedence, each later source winning: the defaults (elliptic,
+    impratio 10, implicitfast, Newton's collision); the robot's file (``layout.options``: an MJCF's
+    ``<option>``, MuJoCo's defaults where it says none, and MuJoCo's collision: what MuJoCo C runs
+    it with); the robot config (:class:`.ContactModel`);
     ``cfg``'s own (the service's ``[physics]``, a benchmark's ``--set population.cone``): a
     user's explicit choice wins. A model tuned under MuJoCo's pyramidal cone grips differently
     under an elliptic one."""
@@ -127,7 +129,8 @@ def resolve_physics(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout
     cone = cfg.cone or robot.cone or file.get("cone") or DEFAULT_CONE
     impratio = cfg.impratio or robot.impratio or file.get("impratio") or DEFAULT_IMPRATIO
     integrator = cfg.integrator or file.get("integrator") or DEFAULT_INTEGRATOR
-    return replace(cfg, cone=cone, impratio=impratio, integrator=integrator)
+    collision = cfg.collision or robot.collision or file.get("collision") or "newton"
+    return replace(cfg, cone=cone, impratio=impratio, integrator=integrator, collision=collision)
 
 
 _SAID: set[tuple[str, float, float]] = set()
@@ -152,12 +155,15 @@ def say_timestep(name: str, layout: RobotLayout, cfg: PopulationConfig) -> None:
 
 
 def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.Device) -> Physics:
-    """The MuJoCo-Warp solver with ``cfg``'s budget, and Newton's collision pipeline feeding it."""
+    """The MuJoCo-Warp solver with ``cfg``'s budget, and the contacts ``cfg.collision`` names:
+    Newton's collision pipeline feeding it, or its own. The pipeline is kept either way: it also
+    separates freshly drawn objects from the hand (:mod:`.separate`)."""
     settings = cfg.solver_settings
-    with wp.ScopedDevice(device):
+    with wp.ScopedDevice(device), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         solver = newton.solvers.SolverMuJoCo(
             model,
-            use_mujoco_contacts=False,
+            use_mujoco_contacts=cfg.collision == "mujoco",
             solver=settings.solver,
             integrator=cfg.integrator,
             cone=cfg.cone,
@@ -172,6 +178,7 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
             # No root is ever switched to kinematic, so no unused weld constraints (two kernels a substep).
             kinematic_switchable_roots=False,
         )
+        _say_zeroed_margins(caught)
         # Iteration-limit warnings are printf'd from inside kernels, once per world and step;
         # at thousands of worlds they flood the log. Non-converged steps still finish.
         solver.mjw_model.opt.warn_overflow = 0
@@ -186,6 +193,23 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
         # the pipeline's capacity, constraint rows past njmax), so that no overflow is silent.
         observables = solver.observables(kinds=["contact_f", "overflow"], contacts=contacts)
     return Physics(solver, pipeline, contacts, observables)
+
+
+def _say_zeroed_margins(caught: list[warnings.WarningMessage]) -> None:
+    """Say in one line what Newton warns once per geom: under MuJoCo-Warp's collision the file's
+    geom margins are zeroed (its convex collision takes none). Pass on every other warning."""
+    zeroed = [w for w in caught if "zeroed for NATIVECCD" in str(w.message)]
+    for w in caught:
+        if w not in zeroed:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if zeroed and len(zeroed) not in _SAID_MARGINS:
+        _SAID_MARGINS.add(len(zeroed))
+        log.info("%d geoms' margins of the robot's file are zeroed under MuJoCo-Warp's collision, which takes "
+                 "none; population.collision=newton keeps them", len(zeroed))  # fmt: skip
+
+
+_SAID_MARGINS: set[int] = set()
+"""The counts of zeroed margins :func:`_say_zeroed_margins` has said, so it says each once."""
 
 
 def contact_points(contacts: newton.Contacts) -> list[wp.array]:

@@ -88,7 +88,13 @@ class PopulationConfig:
     """Shapes closer than this make (speculative) contacts [m]."""
     drop_duplicate_contacts: bool = False
     """Make a contact that Newton's narrow phase writes twice (same shapes, points and normal)
-    count once, as MuJoCo C does (:mod:`.duplicates`)."""
+    count once, as MuJoCo C does (:mod:`.duplicates`). Newton's collision only."""
+    collision: str | None = None
+    """Who finds the contacts: "mujoco" (MuJoCo-Warp's own collision, as MuJoCo C collides the
+    file it was written for) or "newton" (Newton's collision pipeline, with ``broad_phase``,
+    ``contact_gap`` and ``drop_duplicate_contacts``); None: the robot's, else "mujoco" for a robot
+    from an MJCF and "newton" for the rest (:func:`.build.resolve_physics`). The touch sensing
+    reads either's contacts and forces."""
     constraints_per_world: int | None = None
     """MuJoCo constraint rows per world (njmax); None: five per contact the world holds."""
     slip_speed: float = 0.01
@@ -133,6 +139,8 @@ class PopulationConfig:
             raise ValueError(f"population.frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
         # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
         # MuJoCo's friction singular or flag every world lost, far from where it was set.
+        if self.collision not in (None, "newton", "mujoco"):
+            raise ValueError(f"population.collision: expected 'newton' or 'mujoco', got {self.collision!r}")
         if self.cone not in (None, "pyramidal", "elliptic"):
             raise ValueError(f"population.cone: expected 'pyramidal' or 'elliptic', got {self.cone!r}")
         for name in ("impratio", "slip_speed", "spin_speed", "lost_distance", "lost_speed"):

@@ -207,8 +207,8 @@ _MUJOCO_OPTIONS = {"cone": ("pyramidal", ("pyramidal", "elliptic")), "impratio":
 
 def _file_options(builder: newton.ModelBuilder) -> dict:
     """The options the MJCF states (its ``<option>``, as the importer read it), MuJoCo's defaults
-    for the rest: what MuJoCo C runs the file with."""
-    out = {}
+    for the rest: what MuJoCo C runs the file with, its own collision detection included."""
+    out = {"collision": "mujoco"}
     for name, (default, names) in _MUJOCO_OPTIONS.items():
         attr = builder.custom_attributes.get(f"mujoco:{name}")
         values = attr.values if attr is not None else {}

@@ -97,7 +97,7 @@ class RobotLayout:
     """Each zone's box in its link's frame, shape (Z, 6): centre then half extents [m]."""
     options: dict = field(default_factory=dict)
     """The physics options the robot's file runs under, by PopulationConfig's names ("cone",
-    "impratio", "integrator"), and its "timestep" [s]: an MJCF's ``<option>``, MuJoCo's defaults
+    "impratio", "integrator", "collision"), and its "timestep" [s]: an MJCF's ``<option>``, MuJoCo's defaults
     where it says none; empty for a URDF and the procedural hand (:func:`.build.resolve_physics`
     states the precedence; the timestep is said where the worlds' differs, :func:`.build.say_timestep`)."""
     actuated: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
@@ -136,11 +136,16 @@ class ContactModel:
     impratio: float | None = None
     """The frictional-to-normal impedance ratio (an MJCF's ``<option impratio>``, MuJoCo's default
     1); None: the service's default (10)."""
+    collision: str | None = None
+    """Who finds the contacts, "mujoco" or "newton" (:attr:`.PopulationConfig.collision`); None:
+    MuJoCo's own for a robot from an MJCF, Newton's for the rest."""
 
     def __post_init__(self) -> None:
         name = getattr(self, "name", "")
         if self.cone is not None and self.cone not in CONES:
             raise ValueError(f"robot '{name}' cone: expected one of {CONES}, got {self.cone!r}")
+        if self.collision not in (None, "mujoco", "newton"):
+            raise ValueError(f"robot '{name}' collision: expected 'mujoco' or 'newton', got {self.collision!r}")
         if self.impratio is not None and not self.impratio > 0:
             raise ValueError(f"robot '{name}' impratio: expected > 0, got {self.impratio}")
         super().__post_init__()

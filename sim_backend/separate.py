@@ -124,3 +124,7 @@ def separate_objects(d: Worlds, worlds: torch.Tensor | np.ndarray, passes: int =
                 wp.to_torch(state.joint_q).view(n.G, n.K, n.coords)[..., n.free_coords][..., :3] += step
         for state in (d.state_0, d.state_1):
             newton.eval_fk(d.model, state.joint_q, state.joint_qd, state, mask=articulations)
+        if d.config.collision == "mujoco":
+            # The solver exports its own contacts into this buffer: surface points, no offsets.
+            c.rigid_contact_offset0.zero_()
+            c.rigid_contact_offset1.zero_()

@@ -77,10 +77,12 @@ def simulate(d: Worlds) -> None:
             wp.launch(ramp_targets, dim=(n.W, n.D),
                       inputs=[d.goal, d.last_goal, (i + 1) / cfg.substeps, n.coords, ix.coord_index],
                       outputs=[d.control.joint_target_q])  # fmt: skip
-        d.pipeline.collide(s_in, d.contacts)
-        if cfg.drop_duplicate_contacts:
-            drop_duplicate_contacts(d.contacts)
-        # Only the last substep's contact forces are observed: earlier ones would be overwritten.
+        if cfg.collision == "newton":
+            d.pipeline.collide(s_in, d.contacts)
+            if cfg.drop_duplicate_contacts:
+                drop_duplicate_contacts(d.contacts)
+        # Only the last substep's contacts and forces are observed: earlier ones would be
+        # overwritten. Under MuJoCo's collision that export also writes the contacts themselves.
         observables = d.observables if i == cfg.substeps - 1 else None
         d.solver.step(s_in, s_out, d.control, d.contacts, dt, observables=observables)
     b.wrench.zero_()  # a perturbation lasts one frame

@@ -531,8 +531,9 @@ def test_ramped_targets_move_the_wrist_across_the_frame_from_where_it_stands(han
 
 
 def test_the_contact_model_s_precedence_is_defaults_then_the_file_then_the_robot_then_the_user(hand):
-    """The defaults (elliptic, impratio 10, implicitfast) where nobody names one; the robot file's
-    own options over them (an MJCF stating none runs MuJoCo's defaults, as MuJoCo C does); the robot
+    """The defaults (elliptic, impratio 10, implicitfast, Newton's collision) where nobody names one;
+    the robot file's own options over them (an MJCF stating none runs MuJoCo's defaults and collides
+    as MuJoCo does, as MuJoCo C does); the robot
     config's over the file's; the service's ``[physics]`` or ``--set population.*`` over all."""
     from inhand_tracker.sim_backend import Kinematics
     from inhand_tracker.sim_backend.build import resolve_physics
@@ -544,18 +545,25 @@ def test_the_contact_model_s_precedence_is_defaults_then_the_file_then_the_robot
 
     def resolved(robot, **cfg):
         c = resolve_physics(robot, PopulationConfig(**cfg), layouts.get(id(robot)))
-        return c.cone, c.impratio, c.integrator
+        return c.cone, c.impratio, c.integrator, c.collision
 
-    assert resolved(spec) == ("elliptic", 10.0, "implicitfast")
-    assert resolved(shadow) == ("pyramidal", 1.0, "euler")  # the file's
-    assert resolved(shadow, impratio=30.0) == ("pyramidal", 30.0, "euler")
-    assert resolved(shadow, cone="elliptic", integrator="implicitfast") == ("elliptic", 1.0, "implicitfast")
-    configured = replace(shadow, impratio=3.0)
+    assert resolved(spec) == ("elliptic", 10.0, "implicitfast", "newton")
+    assert resolved(shadow) == ("pyramidal", 1.0, "euler", "mujoco")  # the file's, and its engine's collision
+    assert resolved(shadow, impratio=30.0) == ("pyramidal", 30.0, "euler", "mujoco")
+    assert resolved(shadow, cone="elliptic", integrator="implicitfast", collision="newton") == (
+        "elliptic", 1.0, "implicitfast", "newton"
+    )  # fmt: skip
+    configured = replace(shadow, impratio=3.0, collision="newton")
     layouts[id(configured)] = layouts[id(shadow)]
-    assert resolved(configured) == ("pyramidal", 3.0, "euler")  # the config over the file
-    assert resolved(replace(spec, impratio=2.0), cone="pyramidal") == ("pyramidal", 2.0, "implicitfast")
+    assert resolved(configured) == ("pyramidal", 3.0, "euler", "newton")  # the config over the file
+    assert resolved(configured, collision="mujoco")[3] == "mujoco"  # the user over the config
+    assert resolved(replace(spec, impratio=2.0), cone="pyramidal") == ("pyramidal", 2.0, "implicitfast", "newton")
     with pytest.raises(ValueError, match="robot 'allegro' cone: expected one of"):
         replace(spec, cone="round")
+    with pytest.raises(ValueError, match="robot 'allegro' collision: expected 'mujoco' or 'newton', got 'bullet'"):
+        replace(spec, collision="bullet")
+    with pytest.raises(ValueError, match=r"population\.collision: expected 'newton' or 'mujoco', got 'bullet'"):
+        PopulationConfig(collision="bullet")
     # The worlds' solver runs what the precedence resolved.
     robot = replace(spec, impratio=2.0)
     for cfg, impratio in (({}, 2.0), ({"impratio": 5.0}, 5.0)):

@@ -112,8 +112,10 @@ def test_every_shipped_file_robot_runs_its_file_s_actuators_and_contact_model():
     for name in ("shadow_hand", "shadow_touch", "allegro_palm", "allegro_palm_grid"):
         robot = load_robot(ROOT / f"configs/robots/{name}.toml")
         physics = resolve_physics(robot, PopulationConfig(), Kinematics(robot).layout)
-        # The files state no <option>: MuJoCo's defaults, as MuJoCo C runs them.
-        assert (physics.cone, physics.impratio, physics.integrator) == ("pyramidal", 1.0, "euler"), name
+        # The files state no <option>: MuJoCo's defaults and its own collision, as MuJoCo C runs them.
+        assert (physics.cone, physics.impratio, physics.integrator, physics.collision) == (
+            "pyramidal", 1.0, "euler", "mujoco"
+        ), name  # fmt: skip
 
 
 @pytest.mark.slow

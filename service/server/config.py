@@ -60,6 +60,7 @@ SERVICE_PHYSICS = (
     "cone",
     "impratio",
     "drop_duplicate_contacts",
+    "collision",
 )
 """PopulationConfig's settings the service's ``[physics]`` may set: the solver's budget per frame,
 the worlds' room for contacts, and the contact model (which beats the robot config's)."""
