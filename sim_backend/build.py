@@ -159,6 +159,9 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
     Newton's collision pipeline feeding it, or its own. The pipeline is kept either way: it also
     separates freshly drawn objects from the hand (:mod:`.separate`)."""
     settings = cfg.solver_settings
+    if cfg.drop_duplicate_contacts and cfg.collision == "mujoco":
+        log.warning("population.drop_duplicate_contacts: not used, these worlds collide as MuJoCo does"
+                    " (population.collision = 'mujoco'); it acts on Newton's collision pipeline")  # fmt: skip
     with wp.ScopedDevice(device), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         solver = newton.solvers.SolverMuJoCo(

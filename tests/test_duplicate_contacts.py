@@ -114,3 +114,17 @@ def test_worlds_step_with_the_copies_dropped(drop):
     for _ in range(3):
         pop.step()
     assert np.isfinite(pop.obs.force.cpu().numpy()).all()
+
+
+def test_the_setting_is_said_unused_where_the_worlds_collide_as_mujoco_does(caplog):
+    """A robot from an MJCF collides with MuJoCo-Warp's own collision, which writes no copies: the
+    setting would do nothing there, and the service says so rather than take it silently."""
+    from inhand_tracker.service.paths import CONFIG_DIR
+    from inhand_tracker.sim_backend import Population, PopulationConfig, load_catalog, load_robot
+
+    robot = load_robot(CONFIG_DIR / "robots/allegro_palm.toml")
+    config = PopulationConfig(worlds=1, device="cpu", use_graph=False, drop_duplicate_contacts=True)
+    with caplog.at_level("WARNING"):
+        pop = Population(robot, load_catalog()["block"], config)
+    assert pop.config.collision == "mujoco"
+    assert "population.drop_duplicate_contacts: not used" in caplog.text
