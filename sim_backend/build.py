@@ -7,6 +7,7 @@ import contextlib
 import logging
 import math
 import warnings
+from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 
@@ -162,8 +163,7 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
     if cfg.drop_duplicate_contacts and cfg.collision == "mujoco":
         log.warning("population.drop_duplicate_contacts: not used, these worlds collide as MuJoCo does"
                     " (population.collision = 'mujoco'); it acts on Newton's collision pipeline")  # fmt: skip
-    with wp.ScopedDevice(device), warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with wp.ScopedDevice(device), margins_said():
         solver = newton.solvers.SolverMuJoCo(
             model,
             use_mujoco_contacts=cfg.collision == "mujoco",
@@ -181,7 +181,6 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
             # No root is ever switched to kinematic, so no unused weld constraints (two kernels a substep).
             kinematic_switchable_roots=False,
         )
-        _say_zeroed_margins(caught)
         # Iteration-limit warnings are printf'd from inside kernels, once per world and step;
         # at thousands of worlds they flood the log. Non-converged steps still finish.
         solver.mjw_model.opt.warn_overflow = 0
@@ -198,21 +197,26 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
     return Physics(solver, pipeline, contacts, observables)
 
 
-def _say_zeroed_margins(caught: list[warnings.WarningMessage]) -> None:
-    """Say in one line what Newton warns once per geom: under MuJoCo-Warp's collision the file's
-    geom margins are zeroed (its convex collision takes none). Pass on every other warning."""
+@contextlib.contextmanager
+def margins_said() -> Iterator[None]:
+    """Around building a MuJoCo solver: say in one line what Newton warns once per geom, that under
+    MuJoCo's collision the file's geom margins are zeroed (its convex collision takes none), and
+    pass on every other warning."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
     zeroed = [w for w in caught if "zeroed for NATIVECCD" in str(w.message)]
     for w in caught:
         if w not in zeroed:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     if zeroed and len(zeroed) not in _SAID_MARGINS:
         _SAID_MARGINS.add(len(zeroed))
-        log.info("%d geoms' margins of the robot's file are zeroed under MuJoCo-Warp's collision, which takes "
-                 "none; population.collision=newton keeps them", len(zeroed))  # fmt: skip
+        log.info("%d geoms' margins of the robot's file are zeroed under MuJoCo's collision, which takes "
+                 "none in MuJoCo-Warp; population.collision=newton keeps them", len(zeroed))  # fmt: skip
 
 
 _SAID_MARGINS: set[int] = set()
-"""The counts of zeroed margins :func:`_say_zeroed_margins` has said, so it says each once."""
+"""The counts of zeroed margins :func:`margins_said` has said, so it says each once."""
 
 
 def contact_points(contacts: newton.Contacts) -> list[wp.array]:

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from inhand_tracker.protocol import SENSING
 from inhand_tracker.sim_backend import PopulationConfig, RobotSpec, observe
-from inhand_tracker.sim_backend.build import build_model, resolve_physics
+from inhand_tracker.sim_backend.build import build_model, margins_said, resolve_physics
 from inhand_tracker.sim_backend.objects import ObjectSpec
 
 from .demos import FRAME_RATE, Demo
@@ -72,7 +72,7 @@ def export_scene(robot: RobotSpec, obj: ObjectSpec, xml: Path) -> MujocoScene:
     built = build_model(robot, obj, config, cpu)
     config = resolve_physics(robot, config, built.layout)
     xml.parent.mkdir(parents=True, exist_ok=True)
-    with wp.ScopedDevice(cpu):
+    with wp.ScopedDevice(cpu), margins_said():
         solver = newton.solvers.SolverMuJoCo(
             built.model,
             use_mujoco_cpu=True,
