@@ -91,10 +91,10 @@ class PopulationConfig:
     count once, as MuJoCo C does (:mod:`.duplicates`). Newton's collision only."""
     collision: str | None = None
     """Who finds the contacts: "mujoco" (MuJoCo-Warp's own collision, as MuJoCo C collides the
-    file it was written for) or "newton" (Newton's collision pipeline, with ``broad_phase``,
-    ``contact_gap`` and ``drop_duplicate_contacts``); None: the robot's, else "mujoco" for a robot
-    from an MJCF and "newton" for the rest (:func:`.build.resolve_physics`). The touch sensing
-    reads either's contacts and forces."""
+    file it was written for) or "newton" (Newton's collision pipeline, with ``broad_phase`` and
+    ``drop_duplicate_contacts``); None: the robot's, else "mujoco" for a robot from an MJCF and
+    "newton" for the rest (:func:`.build.resolve_physics`). Both detect within ``contact_gap``; the
+    touch sensing reads either's contacts and forces."""
     constraints_per_world: int | None = None
     """MuJoCo constraint rows per world (njmax); None: five per contact the world holds."""
     slip_speed: float = 0.01
@@ -137,10 +137,10 @@ class PopulationConfig:
                 raise ValueError(f"population.{name}: expected 0 < {name} < 1, got {getattr(self, name)}")
         if not (0.0 < self.frame_rate <= 1000.0):
             raise ValueError(f"population.frame_rate: expected 0 < rate <= 1000 Hz, got {self.frame_rate}")
-        # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
-        # MuJoCo's friction singular or flag every world lost, far from where it was set.
         if self.collision not in (None, "newton", "mujoco"):
             raise ValueError(f"population.collision: expected 'newton' or 'mujoco', got {self.collision!r}")
+        # Settable from `bench accuracy --set population.NAME`: a zero or negative one would make
+        # MuJoCo's friction singular or flag every world lost, far from where it was set.
         if self.cone not in (None, "pyramidal", "elliptic"):
             raise ValueError(f"population.cone: expected 'pyramidal' or 'elliptic', got {self.cone!r}")
         for name in ("impratio", "slip_speed", "spin_speed", "lost_distance", "lost_speed"):
