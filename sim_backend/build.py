@@ -134,8 +134,16 @@ def resolve_physics(robot: RobotSpec, cfg: PopulationConfig, layout: RobotLayout
     return replace(cfg, cone=cone, impratio=impratio, integrator=integrator, collision=collision)
 
 
-_SAID: set[tuple[str, float, float]] = set()
-"""The robots, file timesteps and substeps :func:`say_timestep` has said, so it says each once."""
+_SAID: set[tuple] = set()
+"""What :func:`_say_once` has said, by key: a population is built per session, and the same
+robot and settings would say the same line at every build."""
+
+
+def _say_once(key: tuple, level: int, message: str, *args: object) -> None:
+    """Log ``message`` % ``args`` at ``level`` the first time ``key`` comes, never again."""
+    if key not in _SAID:
+        _SAID.add(key)
+        log.log(level, message, *args)
 
 
 def say_timestep(name: str, layout: RobotLayout, cfg: PopulationConfig) -> None:
@@ -145,11 +153,11 @@ def say_timestep(name: str, layout: RobotLayout, cfg: PopulationConfig) -> None:
     are named)."""
     file_dt = layout.options.get("timestep")
     dt = cfg.frame_dt / cfg.substeps
-    if file_dt is None or abs(dt / file_dt - 1.0) <= 0.25 or (name, file_dt, dt) in _SAID:
+    if file_dt is None or abs(dt / file_dt - 1.0) <= 0.25:
         return
-    _SAID.add((name, file_dt, dt))
     closest = max(2, 2 * round(cfg.frame_dt / file_dt / 2))
-    log.info(
+    _say_once(
+        ("timestep", name, file_dt, dt), logging.INFO,
         "robot '%s': its file steps at %.2f ms, the worlds at %.2f ms (%d substeps of a %g Hz frame);"
         " population.substeps=%d comes closest", name, file_dt * 1e3, dt * 1e3, cfg.substeps, cfg.frame_rate, closest,
     )  # fmt: skip
@@ -161,8 +169,9 @@ def make_physics(model: newton.Model, cfg: PopulationConfig, device: wp.context.
     separates freshly drawn objects from the hand (:mod:`.separate`)."""
     settings = cfg.solver_settings
     if cfg.drop_duplicate_contacts and cfg.collision == "mujoco":
-        log.warning("population.drop_duplicate_contacts: not used, these worlds collide as MuJoCo does"
-                    " (population.collision = 'mujoco'); it acts on Newton's collision pipeline")  # fmt: skip
+        _say_once(("drop_duplicate_contacts",), logging.WARNING,
+                  "population.drop_duplicate_contacts: not used, these worlds collide as MuJoCo does"
+                  " (population.collision = 'mujoco'); it acts on Newton's collision pipeline")  # fmt: skip
     with wp.ScopedDevice(device), margins_said():
         solver = newton.solvers.SolverMuJoCo(
             model,
@@ -209,14 +218,10 @@ def margins_said() -> Iterator[None]:
     for w in caught:
         if w not in zeroed:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    if zeroed and len(zeroed) not in _SAID_MARGINS:
-        _SAID_MARGINS.add(len(zeroed))
-        log.info("%d geoms' margins of the robot's file are zeroed under MuJoCo's collision, which takes "
-                 "none in MuJoCo-Warp; population.collision=newton keeps them", len(zeroed))  # fmt: skip
-
-
-_SAID_MARGINS: set[int] = set()
-"""The counts of zeroed margins :func:`margins_said` has said, so it says each once."""
+    if zeroed:
+        _say_once(("margins", len(zeroed)), logging.INFO,
+                  "%d geoms' margins of the robot's file are zeroed under MuJoCo's collision, which takes "
+                  "none in MuJoCo-Warp; population.collision=newton keeps them", len(zeroed))  # fmt: skip
 
 
 def contact_points(contacts: newton.Contacts) -> list[wp.array]:
