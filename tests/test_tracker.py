@@ -171,6 +171,23 @@ def test_the_open_loop_baseline_never_re_seeds(hand, recording):
     assert moved < 0.1, f"the open-loop world jumped {moved:.3f} m: it was re-seeded"
 
 
+def test_the_open_loop_baseline_reports_one_world_however_its_copies_spread(hand, recording):
+    """OLP is one dead-reckoned world: where its group's copies drift apart (float atomics on a
+    GPU; here moved by hand), it reports its first world's pose, not their mean."""
+    spec, _ = hand
+    pop = Population(spec, catalog_object(OBJECT), PopulationConfig(groups=2, worlds=4, device="cpu"))
+    tr = Tracker(pop, TrackerConfig(), methods=["OLP", "OLP"])
+    tr.start(recording.initial_pose, recording.initial_q)
+    poses = np.repeat(np.asarray(recording.initial_pose, np.float32)[:, None], 4, axis=1)
+    poses[:, 1:, 0] += np.array([0.003, 0.006, 0.009], np.float32)  # the copies 3-9 mm away along x
+    pop.reset_state(torch.as_tensor(poses), np.asarray(recording.initial_q, np.float32))
+    est = tr.step(_frame(recording, 0))
+    first = pop.obs.object_pose[:, 0, :3].numpy()
+    mean = pop.obs.object_pose[:, :, :3].mean(1).numpy()
+    assert (np.linalg.norm(mean - first, axis=-1) > 0.004).all(), "the copies did not spread"
+    np.testing.assert_allclose(est.pose[:, :3], first, atol=1e-6)
+
+
 def test_a_contact_overflow_is_reported_with_the_numbers(hand, recording, caplog):
     """Worlds that make more contacts than they hold drop the excess from their physics: never
     silently. The estimate flags the groups, and the log names the capacity and the setting."""

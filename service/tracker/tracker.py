@@ -113,6 +113,8 @@ class Tracker:
         """Each group's factor on the estimate's weights, (G, 1): how far its poses explain its costs."""
         self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
         """Which world of each group is its open-loop world, (1, K) bool (``optimizer.open_loop_world``)."""
+        self._first = torch.arange(self.K, device=dev)[None] == 0
+        """World 0 of each group, (1, K) bool: the one an OLP group reports."""
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
         """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
         self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
@@ -125,9 +127,8 @@ class Tracker:
         obj = pop.object
         self._mass_range, self._friction_range = obj.mass_range, obj.friction_range
         points = obj.surface_points(1000).astype(np.float64)
-        self.recovery = Recovery(
-            cfg, self.G, self.L, moment=points.T @ points / len(points), falls=not pop.layout.carries_on_palm
-        )
+        falls = not pop.layout.carries_on_palm
+        self.recovery = Recovery(cfg, self.G, self.L, moment=points.T @ points / len(points), falls=falls)
         self._hull = torch.as_tensor(obj.mesh.convex_hull.vertices, dtype=torch.float32, device=dev)
         """The object's hull vertices in its frame, (V, 3) [m]: where it rests when it falls."""
         self.observations = PoseObserver(cfg.observations, self.K)
@@ -212,17 +213,14 @@ class Tracker:
         nominal_friction = torch.full((self.G, self.K), obj.friction, device=dev)
         mass = clipped_normal(nominal_mass, cfg.seeding.mass_sigma0 * (m_hi - m_lo), m_lo, m_hi, self.gen)
         friction = clipped_normal(nominal_friction, cfg.seeding.friction_sigma0 * (f_hi - f_lo), f_lo, f_hi, self.gen)
-        # OLP (and any single world, and a group's open-loop world) simulates the estimate itself
-        # with the nominal physics.
+        # OLP, a single world and a group's open-loop world simulate the estimate with the nominal physics.
         open_loop = (self.olp | (self.K == 1))[:, None] | self._anchor
         poses = torch.where(open_loop[..., None], mean_t[:, None], poses)
         if on_table:
             poses[..., 2] = 0.002 - lowest_point(poses[..., 3:], self._hull)
-        mass = torch.where(open_loop, nominal_mass, mass)
-        friction = torch.where(open_loop, nominal_friction, friction)
+        mass, friction = torch.where(open_loop, nominal_mass, mass), torch.where(open_loop, nominal_friction, friction)
         sel = torch.as_tensor(groups, device=dev)[:, None]
-        mass = torch.where(sel, mass, self.pop.mass)
-        friction = torch.where(sel, friction, self.pop.friction)
+        mass, friction = torch.where(sel, mass, self.pop.mass), torch.where(sel, friction, self.pop.friction)
         timeconst, impratio = self.contacts.seeded(sel, open_loop.expand(self.G, self.K))
         self.pop.reset_state(poses, np.asarray(q, dtype=np.float32).reshape(self.G, self.D), groups=groups)
         # A pose drawn around an object lying on a palm or a table is often a few millimetres inside it.
@@ -286,8 +284,7 @@ class Tracker:
             self._host_out.copy_(self._packed, non_blocking=True)
             if self._fetched is not None:
                 self._fetched.record()
-        self.frame += 1
-        self.window_frames += 1
+        self.frame, self.window_frames = self.frame + 1, self.window_frames + 1
         if self.window_frames >= self.config.update_every:
             self._update_graph()  # queued behind the copy: the host does not wait for it
             self.window_frames = 0
@@ -364,8 +361,11 @@ class Tracker:
     def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
         copy; ``lost`` (G, K) says which worlds lost their object."""
-        pop, sharp = self.pop, self._sharpness
-        anchor = self._anchor & ~self.olp[:, None]  # an OLP group's worlds are all open loop: it reports their mean
+        pop, olp = self.pop, self.olp[:, None]
+        # An OLP group reports its first world: on a GPU its identical worlds drift apart by float
+        # atomics, and their mean would be an ensemble, not the one dead-reckoned world OLP stands for.
+        anchor = torch.where(olp, self._first, self._anchor)
+        sharp = self._sharpness.masked_fill(olp, 0.0)
         best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, sharp, anchor)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         self.residuals.add(self.cost.last_terms, best)
