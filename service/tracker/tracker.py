@@ -362,7 +362,7 @@ class Tracker:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
         copy; ``lost`` (G, K) says which worlds lost their object."""
         pop, olp = self.pop, self.olp[:, None]
-        # An OLP group reports its first world: on a GPU its identical worlds drift apart by float
+        # An OLP group reports its first world: on a GPU its identical worlds can drift apart by float
         # atomics, and their mean would be an ensemble, not the one dead-reckoned world OLP stands for.
         anchor = torch.where(olp, self._first, self._anchor)
         sharp = self._sharpness.masked_fill(olp, 0.0)
