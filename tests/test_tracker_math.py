@@ -29,6 +29,7 @@ from inhand_tracker.service.tracker.optimizers import (
     wrs_pmf,
 )
 from inhand_tracker.service.tracker.sampling import (
+    chance_shift,
     recentre,
     roughening_sigma,
     sample_poses,
@@ -299,6 +300,25 @@ def test_pose_evidence_tells_costs_the_poses_explain_from_costs_the_mass_explain
     assert (kept > 0.9).float().mean() > 0.9 and (state[:, 3] == 0).all()
     with pytest.raises(ValueError, match="min_pose_evidence: expected >= 0, got -1"):
         OptimizerConfig(min_pose_evidence=-1.0)
+
+
+def test_a_resampling_s_move_of_the_mean_is_undone_as_far_as_chance_explains_it():
+    """A selection at random moves the worlds' mean by chance alone: it is undone. One that keeps
+    the worlds on one side along x moves it far beyond chance along x: kept there, undone along the
+    directions it left to chance. A lost world, far off, stays out of the mean."""
+    gen = torch.Generator().manual_seed(2)
+    g, k = 64, 40
+    mean = torch.tensor([[0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 1.0]]).repeat(g, 1)
+    pose = sample_poses(mean, 0.005, 0.1, k, gen)
+    held = torch.ones(g, k, dtype=torch.bool)
+    pose[:, 7, :3], held[:, 7] = -1.0, False
+    at_random = torch.randint(0, k, (g, k), generator=gen)
+    before, undo = chance_shift(pose, held, at_random)
+    assert before[:, :3].sub(mean[:, :3]).abs().max() < 0.005, "the lost world stays out of the mean"
+    assert undo.median() == 1.0 and (undo > 0).float().mean() > 0.9, undo
+    sources = pose[..., 0].argsort(-1, descending=True)[:, : k // 2].repeat(1, 2)  # the +x half, twice each
+    _, undo = chance_shift(pose, held, sources)
+    assert undo[:, 0].max() == 0.0 and undo[:, 1:].median() == 1.0, undo
 
 
 def test_eye_and_olp_never_move_worlds():

@@ -112,6 +112,15 @@ class Exploration:
     by their physics rather than their poses (an object resting on a palm). Where the costs do rank
     the poses it undoes what the update learned, and where the worlds split into modes it moves the
     copies between them: off."""
+    undo_chance_shift: bool = False
+    """After every update, along each direction of the object's pose (translation along the world's
+    axes, rotation about the mean's), the displaced copies move together to undo the resampling's
+    move of the worlds' mean as far as a selection at random with the same copy counts would have
+    made it (:func:`.sampling.chance_shift`): kept from twice that chance's standard deviation,
+    undone within once it. The belief's mean then moves only as far as the costs tell, not by the
+    draw: an object lying on a palm and felt through its weight keeps its place along the palm and
+    its turn about the vertical through updates that rank the worlds by their mass. ``keep_mean``
+    on keeps every direction whatever the update."""
 
     def __post_init__(self) -> None:
         _check(

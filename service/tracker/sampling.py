@@ -11,7 +11,9 @@ import torch
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_exp, quat_log, quat_multiply, quat_rotate
 
 __all__ = [
+    "chance_shift",
     "clipped_normal",
+    "group_mean",
     "lowest_point",
     "perturb_within",
     "recentre",
@@ -88,18 +90,53 @@ def weighted_mean(weights: torch.Tensor, position: torch.Tensor, quat: torch.Ten
     return torch.cat([(weights[..., None] * position).sum(1), mean_q], dim=-1)
 
 
-def recentre(pose: torch.Tensor, target: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
-    """Displacements (G, K, 6) of the ``moved`` (G, K) worlds, alike within a group, that bring the
-    group's mean of ``pose`` (G, K, 7) to ``target`` (G, 7), as :meth:`Population.displace_object`
-    takes them; zero in a group where none moved. Torch ops only: it runs inside the captured update."""
-    g, k = pose.shape[:2]
+def group_mean(pose: torch.Tensor, held: torch.Tensor | None = None) -> torch.Tensor:
+    """Each group's unweighted mean pose (G, 7) of its worlds' ``pose`` (G, K, 7), over the ``held``
+    (G, K) bool ones where given, the quaternions first brought into the hemisphere of the group's
+    first. A NaN pose counts as not held; a group with none held gives the origin."""
+    held = torch.ones_like(pose[..., 0], dtype=torch.bool) if held is None else held
+    held = held & torch.isfinite(pose).all(-1)
+    pose = torch.where(held[..., None], pose, torch.eye(7, device=pose.device, dtype=pose.dtype)[6])
     quat = pose[..., 3:]
     quat = torch.where((quat * quat[:, :1]).sum(-1, keepdim=True) < 0, -quat, quat)
-    mean = weighted_mean(torch.full((g, k), 1.0 / k, device=pose.device), pose[..., :3], quat)
+    return weighted_mean(held / held.sum(-1, keepdim=True).clamp_min(1), pose[..., :3], quat)
+
+
+def recentre(pose: torch.Tensor, target: torch.Tensor, moved: torch.Tensor, share: torch.Tensor | None = None):
+    """Displacements (G, K, 6) of the ``moved`` (G, K) worlds, alike within a group, that bring the
+    group's mean of ``pose`` (G, K, 7) to ``target`` (G, 7), as :meth:`Population.displace_object`
+    takes them; zero in a group where none moved. ``share`` (G, 6): how far along each direction
+    (translation in the world frame, rotation about the mean's axes); all the way where None. Torch
+    ops only: it runs inside the captured update."""
+    k = pose.shape[1]
+    mean = group_mean(pose)
     goal_q = torch.where((target[:, 3:] * mean[:, 3:]).sum(-1, keepdim=True) < 0, -target[:, 3:], target[:, 3:])
     turn = quat_log(quat_multiply(quat_conjugate(mean[:, 3:]), goal_q))
     gap = torch.cat([target[:, :3] - mean[:, :3], turn], dim=-1)  # (G, 6)
+    gap = gap if share is None else gap * share
     return (gap * (k / moved.sum(-1, keepdim=True).clamp_min(1)))[:, None] * moved[..., None]
+
+
+def chance_shift(pose: torch.Tensor, held: torch.Tensor, sources: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How much of a resampling's move of the worlds' mean chance alone explains: the group's mean
+    pose before it (G, 7), over the ``held`` (G, K) worlds of ``pose`` (G, K, 7), and per direction
+    (translation in the world frame, rotation about the mean's axes) the share of the move to undo,
+    (G, 6). ``sources`` (G, K): the world each world takes its state from. A selection at random
+    with the same copy counts moves the mean by a standard deviation of the worlds' spread times
+    sqrt(1 / ESS - 1 / K): the move is undone where it is within one, kept from two, in proportion
+    between. (Written here: resampling schemes keep the mean only in expectation, not per draw.)"""
+    k = pose.shape[1]
+    before = group_mean(pose, held)
+    held = held & torch.isfinite(pose).all(-1)
+    quat = torch.where((pose[..., 3:] * before[:, None, 3:]).sum(-1, keepdim=True) < 0, -pose[..., 3:], pose[..., 3:])
+    turn = quat_log(quat_multiply(quat_conjugate(before[:, None, 3:]).expand_as(quat), quat))
+    x = torch.nan_to_num(torch.cat([pose[..., :3] - before[:, None, :3], turn], dim=-1)) * held[..., None]
+    n = held.sum(-1, keepdim=True).clamp_min(1)
+    counts = torch.zeros_like(x[..., 0]).scatter_add_(1, sources, torch.ones_like(x[..., 0]))
+    ess = k * k / counts.square().sum(-1, keepdim=True)
+    chance = (x.square().sum(1) / n - (x.sum(1) / n).square()) * (1.0 / ess - 1.0 / k).clamp_min(0.0)
+    moved = (counts[..., None] * x).sum(1) / k - x.sum(1) / n
+    return before, (2.0 - moved.abs() / chance.sqrt().clamp_min(1e-9)).clamp(0.0, 1.0)
 
 
 def shrink_toward_mean(pose: torch.Tensor, factor: float) -> torch.Tensor:

@@ -34,9 +34,10 @@ from .evidence import Residuals, declared_scatter, evidence_strength, pose_sourc
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
 from .observations import PoseObserver, draw_around
-from .optimizers import METHODS, duplicates, estimate_pmf, method_rows, open_loop_worlds, update
+from .optimizers import HELD_COST, METHODS, duplicates, estimate_pmf, method_rows, open_loop_worlds, update
 from .recovery import Recovery
 from .sampling import (
+    chance_shift,
     clipped_normal,
     lowest_point,
     perturb_within,
@@ -113,8 +114,7 @@ class Tracker:
         """Each group's factor on the estimate's weights, (G, 1): how far its poses explain its costs."""
         self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
         """Which world of each group is its open-loop world, (1, K) bool (``optimizer.open_loop_world``)."""
-        self._first = torch.arange(self.K, device=dev)[None] == 0
-        """World 0 of each group, (1, K) bool: the one an OLP group reports."""
+        self._first = torch.arange(self.K, device=dev)[None] == 0  # (1, K): the world an OLP group reports
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
         """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
         self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
@@ -159,10 +159,9 @@ class Tracker:
         self.contacts.start(started, self.olp)
         self.servos.start(started)
         # Under evidence scaling a group's first estimate weighs its worlds alike: nothing has told them apart yet.
-        scaled = cfg.optimizer.by_evidence
-        self._sharpness.masked_fill_(started[:, None], 0.0 if scaled else 1.0)
+        self._sharpness.masked_fill_(started[:, None], 0.0 if cfg.optimizer.by_evidence else 1.0)
         self._evidence[:, 0].masked_fill_(started, 0.0)
-        self._evidence[:, 1].masked_fill_(started, 0.0 if scaled else 1.0)
+        self._evidence[:, 1].masked_fill_(started, 0.0 if cfg.optimizer.by_evidence else 1.0)
         self.residuals.start(started)
         self.seed_groups(mask, p0, q0, cfg.seeding.sigma_t if sigma_t is None else sigma_t,
                    cfg.seeding.sigma_r if sigma_r is None else sigma_r)  # fmt: skip
@@ -305,9 +304,8 @@ class Tracker:
             self.overflows += 1
             if self.overflows == 1:  # once per population: every frame after would say it again
                 say_overflow(np.flatnonzero(estimate.overflow), self.pop.config)
-        estimate.covariance[:, self._diagonal, self._diagonal] += unresolved_variance(
-            estimate.cost, self._seeded, self.K, self.config.estimate
-        )
+        unresolved = unresolved_variance(estimate.cost, self._seeded, self.K, self.config.estimate)
+        estimate.covariance[:, self._diagonal, self._diagonal] += unresolved
         return estimate
 
     def _frame_ops(self) -> None:
@@ -340,8 +338,7 @@ class Tracker:
         return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
 
     def weights(self) -> torch.Tensor:
-        """Each world's share of the estimate now, (G, K), from the window's cost
-        (uniform right after an update, before any frame was scored)."""
+        """Each world's share of the estimate now, (G, K), from the window's cost (uniform after an update)."""
         return estimate_pmf(torch.nan_to_num(self.scored(), nan=0.0), self.config.estimate.estimate_lambda)
 
     def scored(self) -> torch.Tensor:
@@ -427,14 +424,15 @@ class Tracker:
             wrench = sample_wrenches((self.G, self.K), ex.wrench_force, ex.wrench_torque, self.gen, self.device)
             # The wrench and the roughening explore the poses: only where the poses were resampled.
             self.pop.set_wrench(wrench * ((explore & posed)[..., None] * pose_scale[..., None]))
-            self._move_copies(state, explore & posed, pose_scale, in_place=strength is not None)
+            keep = chance_shift(pose, cost < HELD_COST, state) if ex.undo_chance_shift and not ex.keep_mean else None
+            self._move_copies(state, explore & posed, pose_scale, strength is not None, keep)
         self.windows.restart(upd.held_back, upd.index)
 
-    def _move_copies(self, state: torch.Tensor, explore: torch.Tensor, scale: torch.Tensor, in_place: bool) -> None:
+    def _move_copies(self, state, explore, scale, in_place: bool, keep: tuple | None = None) -> None:
         """Roughen the object poses of the resampled worlds' copies (of ``state`` (G, K), where
-        ``explore``), then move them together to keep the estimate's mean (``keep_mean``). Only the
-        copies move: each surviving world keeps one copy where it was, so the estimate does not jitter
-        with the spread it buys."""
+        ``explore``), then move them together to keep the estimate's mean (``keep_mean``), or ``keep``'s
+        pose (G, 7) by its share (G, 6) per direction (``undo_chance_shift``). Only the copies move:
+        each surviving world keeps one copy where it was, so the estimate does not jitter with it."""
         # In place a world that took another's state is a copy; else each source's first slot holds the original.
         copies = state != torch.arange(self.K, device=self.device) if in_place else duplicates(state)
         cfg, moved = self.config.exploration, explore & copies
@@ -448,3 +446,5 @@ class Tracker:
             self.pop.displace_object(shift * (moved[..., None] * scale[..., None]))
         if cfg.keep_mean:  # the frame before packed the estimate's mean over all worlds
             self.pop.displace_object(recentre(self.pop.object_coords, ESTIMATE.view(self._packed, "mean_pose"), moved))
+        elif keep is not None:
+            self.pop.displace_object(recentre(self.pop.object_coords, keep[0], moved, keep[1]))
