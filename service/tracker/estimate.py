@@ -10,10 +10,10 @@ import torch
 from inhand_tracker.sim_backend.rotations import quat_conjugate, quat_log, quat_multiply
 
 from .config import EstimateConfig
-from .optimizers import HELD_COST, estimate_pmf
+from .optimizers import HELD_COST, OptimizerConfig, estimate_pmf
 from .sampling import weighted_mean
 
-__all__ = ["pose_modes", "pose_statistics", "unresolved_variance"]
+__all__ = ["open_loop_share", "pose_modes", "pose_statistics", "unresolved_variance"]
 
 _MISMATCH_CAP = 16.0
 """The most the floor's variance grows with the cost (4x its deviation): a population that lost its
@@ -49,6 +49,7 @@ def pose_statistics(
     config: EstimateConfig,
     sharpness: torch.Tensor | None = None,
     anchor: torch.Tensor | None = None,
+    reckon: torch.Tensor | float = 0.0,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The lowest-cost world of each group, (G,), and the estimate's pose fields from every world's
     ``object_pose`` (G, K, 7) weighted by its ``window`` cost (G, K): ``pose``, ``best_pose``,
@@ -56,8 +57,8 @@ def pose_statistics(
     ``origin`` (7,) stands in for a NaN world's pose; ``sharpness`` (G, 1): each group's factor on
     ``estimate_lambda`` (0 weighs every held world alike). ``anchor`` (G, K) bool: each group's
     open-loop world, which the reported pose leans on by 1 - ``sharpness`` while it holds the
-    object (the spread, modes and ``mean_pose`` stay the population's); none in an OLP group, whose
-    worlds are all open loop."""
+    object (the spread, modes and ``mean_pose`` stay the population's), and by at least ``reckon``
+    (G, 1) (:func:`open_loop_share`); none in an OLP group, whose worlds are all open loop."""
     best = window.argmin(-1)
     # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
     poses = torch.where(torch.isfinite(object_pose).all(-1, keepdim=True), object_pose, origin)
@@ -86,7 +87,7 @@ def pose_statistics(
     if anchor is not None and sharpness is not None:
         # Dead reckoning as far as the costs do not tell the poses apart: where they say nothing the
         # report is the open-loop world's, not the mean of worlds spread by the priors alone.
-        lean = (1.0 - sharpness) * (anchor & (window < HELD_COST)).any(-1, keepdim=True)
+        lean = (1.0 - sharpness).clamp_min(reckon) * (anchor & (window < HELD_COST)).any(-1, keepdim=True)
         reported = weighted_mean((1.0 - lean) * reported_weights + lean * anchor.float(), position, quat)
     return best, {
         "pose": reported if config.mean_estimate else pose,
@@ -96,6 +97,23 @@ def pose_statistics(
         "modes": modes,
         "mode_weights": mode_weights,
     }
+
+
+def open_loop_share(
+    sums: torch.Tensor, window: torch.Tensor, anchor: torch.Tensor, config: OptimizerConfig
+) -> torch.Tensor:
+    """How far each group reports its open-loop world, (G, 1): 1 while the ``anchor`` (1, K) world's
+    window cost summed over the frames is within ``config.open_loop_ratio`` of the lowest-cost
+    world's, or within ``config.min_spread`` of it (before the hand touches the object every cost is
+    about 0), else 0; 0 where the ratio is 0. ``sums`` (G, 2), the two sums since the group was
+    seeded, gain this frame's ``window`` (G, K) in place. Sums, not one frame's costs, which differ
+    by noise."""
+    if config.open_loop_ratio <= 0:
+        return torch.zeros_like(window[:, :1])
+    sums[:, 0].add_((window * anchor).sum(-1))
+    sums[:, 1].add_(window.amin(-1))
+    within = torch.maximum(config.open_loop_ratio * sums[:, 1:], sums[:, 1:] + config.min_spread)
+    return (sums[:, :1] <= within).float()
 
 
 def unresolved_variance(cost: np.ndarray, seeded: np.ndarray, worlds: int, config: EstimateConfig) -> np.ndarray:

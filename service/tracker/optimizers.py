@@ -80,6 +80,15 @@ class OptimizerConfig:
     would, not the mean of worlds spread by its priors, and a lapse of evidence falls back to dead
     reckoning from the last sure estimate."""
 
+    open_loop_ratio: float = 0.0
+    """Keep world 0 of each group as its open-loop world (as ``open_loop_world``, but never restarted)
+    and report its pose while its window cost summed since the group was seeded is within this
+    factor of the lowest-cost world's: where the costs do not tell the worlds' poses apart (an object
+    on a palm felt through its weight) the population's best explains the robot no better than dead
+    reckoning, and its mean wanders where dead reckoning does not. Once dead reckoning falls behind,
+    the group reports the population. A factor, not equality: the lowest of K costs is below one
+    world's by selection alone. 0: off."""
+
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
     physics parameters explain (:func:`.evidence.pose_evidence`, an F ratio, over this); elsewhere only the
@@ -96,6 +105,8 @@ class OptimizerConfig:
             raise ValueError(f"optimizer.pbo_rank_power: expected >= 0, got {self.pbo_rank_power}")
         if self.min_pose_evidence < 0:
             raise ValueError(f"optimizer.min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
+        if self.open_loop_ratio != 0 and not 1.0 <= self.open_loop_ratio <= 10.0:
+            raise ValueError(f"optimizer.open_loop_ratio: expected 0 (off) or 1 to 10, got {self.open_loop_ratio}")
         if self.min_separation < 0:
             raise ValueError(f"optimizer.min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
@@ -208,8 +219,9 @@ def duplicates(index: torch.Tensor) -> torch.Tensor:
 
 def open_loop_worlds(config: OptimizerConfig, worlds: int, device: torch.device) -> torch.Tensor:
     """Which world of each group is kept as its open-loop world (``config.open_loop_world``), (1, K)
-    bool: world 0 under ``by_evidence`` where a group has more than one; none otherwise."""
-    anchored = config.by_evidence and config.open_loop_world and worlds > 1
+    bool: world 0 under ``by_evidence`` or ``open_loop_ratio`` where a group has more than one; none
+    otherwise."""
+    anchored = ((config.by_evidence and config.open_loop_world) or config.open_loop_ratio > 0) and worlds > 1
     return (torch.arange(worlds, device=device) == 0)[None] & anchored
 
 

@@ -29,7 +29,7 @@ from .capture import CapturedOps
 from .config import TrackerConfig
 from .contacts import ContactExplorer, say_overflow
 from .cost import TERMS, Cost, RealObservation
-from .estimate import pose_statistics, unresolved_variance
+from .estimate import open_loop_share, pose_statistics, unresolved_variance
 from .evidence import Residuals, declared_scatter, evidence_strength, pose_sources
 from .joint_check import JointCheck
 from .layout import ESTIMATE, Frame, GroupEstimates, InputLayout
@@ -113,8 +113,9 @@ class Tracker:
         self._sharpness = torch.ones(self.G, 1, device=dev)
         """Each group's factor on the estimate's weights, (G, 1): how far its poses explain its costs."""
         self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
-        """Which world of each group is its open-loop world, (1, K) bool (``optimizer.open_loop_world``)."""
+        """Which world of each group is its open-loop world, (1, K) bool (``optimizer.open_loop_world``, ``_ratio``)."""
         self._first = torch.arange(self.K, device=dev)[None] == 0  # (1, K): the world an OLP group reports
+        self._reckoned = torch.zeros(self.G, 2, device=dev)  # (G, 2): open_loop_share's sums
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
         """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
         self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
@@ -226,6 +227,7 @@ class Tracker:
         self.pop.separate_object(np.repeat(np.asarray(groups, bool)[:, None], self.K, axis=1))
         self.pop.write_params(mass, friction, timeconst, impratio)  # drawn inside their ranges
         self.windows.clear(sel)
+        self._reckoned.masked_fill_(sel, 0.0)
 
     def observe(self, group: int, pose: np.ndarray, covariance: np.ndarray) -> bool:
         """Score ``group``'s worlds against an observed object pose (7,) with its ``covariance``
@@ -333,8 +335,7 @@ class Tracker:
         and counting it lost there re-seeded every frame after a drop, as soon as the hand moved on."""
         health, real, threshold = self.pop.obs.health, self.real, self.config.cost.contact_threshold
         feels = (torch.linalg.vector_norm(real.force, dim=-1) > threshold).any(-1) | (real.touch > threshold).any(-1)
-        unsensed = (real.has_force < 0.5) | self.pop.layout.carries_on_palm
-        holds = feels | ((real.has_touch < 0.5) & unsensed)  # (G,)
+        holds = feels | ((real.has_touch < 0.5) & ((real.has_force < 0.5) | self.pop.layout.carries_on_palm))  # (G,)
         return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
 
     def weights(self) -> torch.Tensor:
@@ -358,12 +359,12 @@ class Tracker:
     def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
         """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
         copy; ``lost`` (G, K) says which worlds lost their object."""
-        pop, olp = self.pop, self.olp[:, None]
+        pop, olp, cfg = self.pop, self.olp[:, None], self.config
         # An OLP group reports its first world: on a GPU its identical worlds can drift apart by float
         # atomics, and their mean would be an ensemble, not the one dead-reckoned world OLP stands for.
-        anchor = torch.where(olp, self._first, self._anchor)
-        sharp = self._sharpness.masked_fill(olp, 0.0)
-        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, self.config.estimate, sharp, anchor)
+        anchor, sharp = torch.where(olp, self._first, self._anchor), self._sharpness.masked_fill(olp, 0.0)
+        reckon = open_loop_share(self._reckoned, window, self._anchor, cfg.optimizer)
+        best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, cfg.estimate, sharp, anchor, reckon)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         self.residuals.add(self.cost.last_terms, best)
         return ESTIMATE.pack(
@@ -399,8 +400,7 @@ class Tracker:
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
-        params = torch.stack([self.pop.mass, self.pop.friction], dim=-1)
-        pose = self.pop.obs.object_pose
+        params, pose = torch.stack([self.pop.mass, self.pop.friction], dim=-1), self.pop.obs.object_pose
         state, posed, sharpness = pose_sources(upd.index, cost, pose, params, cfg.optimizer, strength, self.gen)
         pose_scale = scale if strength is None else self._exploration[:, None] * sharpness
         if strength is not None:  # what the update did to the poses, and so to the estimate
@@ -408,7 +408,7 @@ class Tracker:
         self._sharpness.copy_(sharpness)
         # The open-loop world keeps its own state, unperturbed, but for a full-strength update, which restarts
         # it from the best world: dead reckoning from the last sure estimate.
-        restart = (sharpness >= 1.0) & upd.explore.any(-1, keepdim=True)
+        restart = (sharpness >= 1.0) & upd.explore.any(-1, keepdim=True) & cfg.optimizer.by_evidence
         source = torch.where(restart, cost.argmin(-1, keepdim=True), 0)
         state, upd.index = torch.where(self._anchor, source, state), torch.where(self._anchor, source, upd.index)
         upd.explore = upd.explore & ~self._anchor
