@@ -81,13 +81,13 @@ class OptimizerConfig:
     reckoning from the last sure estimate."""
 
     open_loop_ratio: float = 0.0
-    """Keep world 0 of each group as its open-loop world (as ``open_loop_world``, but never restarted)
-    and report its pose while its window cost summed since the group was seeded is within this
-    factor of the lowest-cost world's: where the costs do not tell the worlds' poses apart (an object
-    on a palm felt through its weight) the population's best explains the robot no better than dead
-    reckoning, and its mean wanders where dead reckoning does not. Once dead reckoning falls behind,
-    the group reports the population. A factor, not equality: the lowest of K costs is below one
-    world's by selection alone. 0: off."""
+    """Keep world 0 of each group as its open-loop world (as ``open_loop_world``; without
+    ``by_evidence`` never restarted) and report its pose while its window cost summed since the
+    group was seeded is within this factor of the lowest-cost world's: where the costs do not tell
+    the worlds' poses apart (an object on a palm felt through its weight) the population's best
+    explains the robot no better than dead reckoning, and its mean wanders where dead reckoning's
+    does not. Once dead reckoning falls behind, the group reports the population. A factor, not
+    equality: the lowest of K costs is below one world's by selection alone. 0: off."""
 
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its

@@ -406,8 +406,8 @@ class Tracker:
         if strength is not None:  # what the update did to the poses, and so to the estimate
             self._evidence[:, 1:].copy_(sharpness)
         self._sharpness.copy_(sharpness)
-        # The open-loop world keeps its own state, unperturbed, but for a full-strength update, which restarts
-        # it from the best world: dead reckoning from the last sure estimate.
+        # The open-loop world keeps its own state, unperturbed, but under by_evidence for a full-strength update,
+        # which restarts it from the best world: dead reckoning from the last sure estimate.
         restart = (sharpness >= 1.0) & upd.explore.any(-1, keepdim=True) & cfg.optimizer.by_evidence
         source = torch.where(restart, cost.argmin(-1, keepdim=True), 0)
         state, upd.index = torch.where(self._anchor, source, state), torch.where(self._anchor, source, upd.index)
