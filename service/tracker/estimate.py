@@ -49,7 +49,7 @@ def pose_statistics(
     config: EstimateConfig,
     sharpness: torch.Tensor | None = None,
     anchor: torch.Tensor | None = None,
-    reckon: torch.Tensor | float = 0.0,
+    reckon: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The lowest-cost world of each group, (G,), and the estimate's pose fields from every world's
     ``object_pose`` (G, K, 7) weighted by its ``window`` cost (G, K): ``pose``, ``best_pose``,
@@ -58,7 +58,12 @@ def pose_statistics(
     ``estimate_lambda`` (0 weighs every held world alike). ``anchor`` (G, K) bool: each group's
     open-loop world, which the reported pose leans on by 1 - ``sharpness`` while it holds the
     object (the spread, modes and ``mean_pose`` stay the population's), and by at least ``reckon``
-    (G, 1) (:func:`open_loop_share`); none in an OLP group, whose worlds are all open loop."""
+    (G, 1) (:func:`open_loop_share`), which makes it a hypothesis apart: it weighs nothing in the
+    population's statistics, where a drifting world would pull the mean by its share of the weights.
+    None in an OLP group, whose worlds are all open loop."""
+    held = window  # the anchor's own cost: does it hold the object
+    if reckon is not None and anchor is not None:
+        window = window.masked_fill(anchor, HELD_COST)
     best = window.argmin(-1)
     # A NaN world weighs nothing, but 0 * NaN is NaN: its pose must not reach the sums.
     poses = torch.where(torch.isfinite(object_pose).all(-1, keepdim=True), object_pose, origin)
@@ -87,7 +92,8 @@ def pose_statistics(
     if anchor is not None and sharpness is not None:
         # Dead reckoning as far as the costs do not tell the poses apart: where they say nothing the
         # report is the open-loop world's, not the mean of worlds spread by the priors alone.
-        lean = (1.0 - sharpness).clamp_min(reckon) * (anchor & (window < HELD_COST)).any(-1, keepdim=True)
+        lean = 1.0 - sharpness if reckon is None else (1.0 - sharpness).clamp_min(reckon)
+        lean = lean * (anchor & (held < HELD_COST)).any(-1, keepdim=True)
         reported = weighted_mean((1.0 - lean) * reported_weights + lean * anchor.float(), position, quat)
     return best, {
         "pose": reported if config.mean_estimate else pose,
@@ -101,15 +107,15 @@ def pose_statistics(
 
 def open_loop_share(
     sums: torch.Tensor, window: torch.Tensor, anchor: torch.Tensor, config: OptimizerConfig
-) -> torch.Tensor:
+) -> torch.Tensor | None:
     """How far each group reports its open-loop world, (G, 1): 1 while the ``anchor`` (1, K) world's
     window cost summed over the frames is within ``config.open_loop_ratio`` of the lowest-cost
     world's, or within ``config.min_spread`` of it (before the hand touches the object every cost is
-    about 0), else 0; 0 where the ratio is 0. ``sums`` (G, 2), the two sums since the group was
+    about 0), else 0; None where the ratio is 0. ``sums`` (G, 2), the two sums since the group was
     seeded, gain this frame's ``window`` (G, K) in place. Sums, not one frame's costs, which differ
     by noise."""
     if config.open_loop_ratio <= 0:
-        return torch.zeros_like(window[:, :1])
+        return None
     sums[:, 0].add_((window * anchor).sum(-1))
     sums[:, 1].add_(window.amin(-1))
     within = torch.maximum(config.open_loop_ratio * sums[:, 1:], sums[:, 1:] + config.min_spread)
