@@ -56,12 +56,12 @@ def pose_statistics(
     ``mean_pose`` (G, 7), ``covariance`` (G, 6, 6), ``modes`` (G, 2, 7), ``mode_weights`` (G, 2).
     ``origin`` (7,) stands in for a NaN world's pose; ``sharpness`` (G, 1): each group's factor on
     ``estimate_lambda`` (0 weighs every held world alike). ``anchor`` (G, K) bool: each group's
-    open-loop world, which the reported pose leans on by 1 - ``sharpness`` while it holds the
-    object (the spread, modes and ``mean_pose`` stay the population's), and by at least ``reckon``
-    (G, 1) (:func:`open_loop_share`), which makes it a hypothesis apart: it weighs nothing in the
-    population's statistics, where a drifting world would pull the mean by its share of the weights.
-    None in an OLP group, whose worlds are all open loop."""
-    held = window  # the anchor's own cost: does it hold the object
+    open-loop world (an OLP group's first, at sharpness 0), which the reported pose leans on by
+    1 - ``sharpness`` while it holds the object (the spread, modes and ``mean_pose`` stay the
+    population's), and by at least ``reckon`` (G, 1) (:func:`open_loop_share`), which makes it a
+    hypothesis apart: it weighs nothing in the population's statistics, where a drifting world
+    would pull the mean by its share of the weights."""
+    own = window  # every world's own cost, the anchor's included: does it hold the object
     if reckon is not None and anchor is not None:
         window = window.masked_fill(anchor, HELD_COST)
     best = window.argmin(-1)
@@ -93,7 +93,7 @@ def pose_statistics(
         # Dead reckoning as far as the costs do not tell the poses apart: where they say nothing the
         # report is the open-loop world's, not the mean of worlds spread by the priors alone.
         lean = 1.0 - sharpness if reckon is None else (1.0 - sharpness).clamp_min(reckon)
-        lean = lean * (anchor & (held < HELD_COST)).any(-1, keepdim=True)
+        lean = lean * (anchor & (own < HELD_COST)).any(-1, keepdim=True)
         reported = weighted_mean((1.0 - lean) * reported_weights + lean * anchor.float(), position, quat)
     return best, {
         "pose": reported if config.mean_estimate else pose,
