@@ -610,15 +610,19 @@ def test_a_group_reports_its_open_loop_world_while_dead_reckoning_explains_the_r
     best world's; a lenient excess, against worlds whose contacts come late as well, all the way.
     Within a ratio of 1 (dead reckoning as good as the best world), or a tenth of the mean world's
     excess, the grasp's forces soon say otherwise."""
-    runs, worlds = {}, {}
+    runs, worlds, reckoning = {}, {}, {}
     cases = {"lenient": {"open_loop_ratio": 10.0}, "strict": {"open_loop_ratio": 1.0}, "olp": {}}
     cases |= {"excess-lenient": {"open_loop_excess": 10.0}, "excess-strict": {"open_loop_excess": 0.1}}
     for name, setting in cases.items():
         optimizer = OptimizerConfig(method="OLP" if name == "olp" else "REPS", **setting)
         tr = _tracker(hand, worlds=12, optimizer=optimizer, seed=5, update_every=5)
         tr.start(_noisy_start(recording), recording.initial_q)
-        runs[name] = np.array([tr.step(_frame(recording, f)).pose for f in range(recording.frames)])
+        said = [tr.step(_frame(recording, f)) for f in range(recording.frames)]
+        runs[name], reckoning[name] = np.array([e.pose for e in said]), np.array([e.reckoning for e in said])
         worlds[name] = tr.pop.obs.object_pose.clone()
+    # Each says how far its pose is dead reckoning: OLP's always, the strict ones' seldom.
+    assert reckoning["olp"].min() == 1.0 and reckoning["excess-lenient"].min() == 1.0, reckoning
+    assert reckoning["strict"].mean() < 0.5 and reckoning["excess-strict"].mean() < 0.5, reckoning
     # OLP's is another population's: equal to rounding.
     apart = {name: (np.abs(runs[name] - runs["olp"])[..., :3].max((1, 2)) > 1e-3).mean() for name in runs}
     assert apart["lenient"] < 0.1 and apart["excess-lenient"] < 0.01, apart

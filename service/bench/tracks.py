@@ -27,7 +27,7 @@ from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, robot_spec
 __all__ = ["TrackResult", "TrackSetting", "per_frame", "plan_tracks", "run_tracks", "save_frames"]
 
 _ADDS_EVERY = 10
-_KEPT = ("cost", "lost", "separation", "evidence")
+_KEPT = ("cost", "lost", "separation", "evidence", "reckoning")
 """What :func:`_follow` said per frame that a track keeps beside its errors."""
 """ADD-S is scored on every tenth frame (a nearest-point search per surface point)."""
 
@@ -76,11 +76,13 @@ class TrackResult:
     """What the estimate said each frame against the truth (:func:`save_frames`): ``error`` (F, 6)
     the true pose seen from the estimate [m, rad], ``covariance`` (F, 6, 6) as reported, ``cost``
     (F,) the lowest window cost, ``lost`` (F,) the share of worlds that lost the object,
-    ``separation`` (F,) and ``evidence`` (F,) the last update's F ratio and strength."""
+    ``separation`` (F,) and ``evidence`` (F,) the last update's F ratio and strength, ``reckoning``
+    (F,) how far the pose was the open-loop world's."""
 
     def evidence(self) -> dict[str, float]:
         """The median over the track's updates of their separation F ratio and strength (after the
-        first update; empty where the frames were not kept)."""
+        first update), and the mean over its frames of how far the pose was the open-loop world's
+        (empty where the frames were not kept)."""
         if not self.frames or "separation" not in self.frames:
             return {}
         f, s = self.frames["separation"], self.frames["evidence"]
@@ -88,7 +90,10 @@ class TrackResult:
         if after.size == 0:
             return {}
         first = after[0]
-        return {"separation_median": float(np.median(f[first:])), "evidence_median": float(np.median(s[first:]))}
+        return {
+            "separation_median": float(np.median(f[first:])),
+            "evidence_median": float(np.median(s[first:])),
+        } | ({"reckoning_mean": float(np.mean(self.frames["reckoning"]))} if "reckoning" in self.frames else {})
 
     def after_event(self, within: float = 0.01, hold: int = 15) -> tuple[float | None, float | None]:
         """Seconds from the loss to the status first saying anything but tracking, and to the
@@ -278,6 +283,7 @@ def _follow(
         "lost": np.empty((frames, groups), np.float32),
         "separation": np.empty((frames, groups), np.float32),
         "evidence": np.empty((frames, groups), np.float32),
+        "reckoning": np.empty((frames, groups), np.float32),
     }
     diverged = np.zeros(groups, np.int64)
     seen = _observed(rec, run.observations)[:, rows]  # (F, G)

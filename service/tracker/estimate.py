@@ -60,7 +60,8 @@ def pose_statistics(
     1 - ``sharpness`` while it holds the object (the spread, modes and ``mean_pose`` stay the
     population's), and by at least ``reckon`` (G, 1) (:func:`open_loop_share`), which makes it a
     hypothesis apart: it weighs nothing in the population's statistics, where a drifting world
-    would pull the mean by its share of the weights."""
+    would pull the mean by its share of the weights. ``reckoning`` (G,): how far the pose is the
+    open-loop world's, 0 to 1."""
     own = window  # every world's own cost, the anchor's included: does it hold the object
     if reckon is not None and anchor is not None:
         window = window.masked_fill(anchor, HELD_COST)
@@ -82,6 +83,7 @@ def pose_statistics(
     )
     modes, mode_weights, first = pose_modes(poses, pose, weights, config.mode_angle, config.mode_distance)
     reported, reported_weights = mean_pose, weights
+    lean = torch.zeros_like(window[:, :1])
     if config.mean_over_mode:
         # A mean across two modes (an object in the hand and one that rolled off it) lies where
         # neither is: the report takes the lowest-cost world's mode, all the worlds where they agree.
@@ -102,6 +104,7 @@ def pose_statistics(
         "covariance": torch.einsum("gk,gki,gkj->gij", weights, delta, delta),
         "modes": modes,
         "mode_weights": mode_weights,
+        "reckoning": lean[:, 0],
     }
 
 

@@ -90,6 +90,7 @@ ESTIMATE = Columns.of(
         "overflow": (),
         "separation": (),
         "evidence": (),
+        "reckoning": (),
         "residual": (3,),
     }
 )
@@ -194,6 +195,10 @@ class GroupEstimates:
     sensing told them apart no better than noise, or ranked them by their physics alone) to 1 (full
     strength); 0 before the first update, and always 1 where every update runs at full strength
     (``optimizer.by_evidence`` off)."""
+    reckoning: np.ndarray | None = None
+    """How far each group's pose is its open-loop world's, (G,): 0, the population's, to 1, dead
+    reckoning (``optimizer.open_loop_ratio`` or ``open_loop_excess`` while dead reckoning explains
+    the robot as well, or ``by_evidence`` as far as the last update fell short of full strength)."""
     residual: np.ndarray | None = None
     """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
     (G, 3): joints (RMS per joint) [rad or m], each fingertip force's magnitude [N], each touch
@@ -224,5 +229,6 @@ class GroupEstimates:
             overflow=v("overflow") > 0.5,
             separation=v("separation"),
             evidence=v("evidence"),
+            reckoning=v("reckoning"),
             residual=v("residual"),
         )
