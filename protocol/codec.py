@@ -37,7 +37,7 @@ MEDIA_TYPE = "application/msgpack"
 
 def encoding_of(model: type[BaseModel]) -> str:
     """The Zenoh encoding every sample and reply of ``model`` carries: msgpack, with the message's
-    name and protocol version as its schema (``application/msgpack;inhand.v6.Estimate``)."""
+    name and protocol version as its schema (``application/msgpack;inhand.v7.Estimate``)."""
     return f"{MEDIA_TYPE};inhand.v{PROTOCOL_VERSION}.{model.__name__}"
 
 

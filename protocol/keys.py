@@ -1,6 +1,6 @@
 """Every Zenoh key expression of the protocol, in one place.
 
-``inhand/v6/{service}/...``: the version is the protocol's; it changes when a message changes
+``inhand/v7/{service}/...``: the version is the protocol's; it changes when a message changes
 incompatibly.
 """
 

@@ -44,8 +44,8 @@ __all__ = [
     "check_version",
 ]
 
-PROTOCOL_VERSION = 6
-"""Bumped, with the key prefix's ``v6``, whenever a message gains or changes a field."""
+PROTOCOL_VERSION = 7
+"""Bumped, with the key prefix's ``v7``, whenever a message gains or changes a field."""
 DEFAULT_WORLDS = 40
 """K, the paper's: a session's worlds where no frame budget decides (``worlds="auto"`` on a
 service without one, benchmarks)."""
@@ -116,7 +116,7 @@ class ServiceInfo(WireMessage):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     name: str
-    """The service's name: its keys live under ``inhand/v6/{name}``."""
+    """The service's name: its keys live under ``inhand/v7/{name}``."""
     device: str
     """Where its simulations run (``cuda:0``, ``cpu``)."""
     robots: list[str]
@@ -256,7 +256,7 @@ class SessionInfo(WireMessage):
     protocol: int = PROTOCOL_VERSION
     """The service's protocol version."""
     session: str
-    """The session's id: its keys are ``inhand/v6/{service}/s/{session}/...``."""
+    """The session's id: its keys are ``inhand/v7/{service}/s/{session}/...``."""
     token: str
     """The session's secret: every frame, close, status and pose query must carry it. Zenoh's
     access control (or mTLS) decides who may connect and read; the token keeps peers that may

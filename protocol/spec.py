@@ -79,7 +79,8 @@ def examples() -> dict[str, BaseModel]:
         "Estimate": Estimate(
             session="3fa9c01b2d4e", seq=42, stamp=1.4, pose=pose, mean_pose=pose, covariance=cov, cost=0.125,
             mass=0.03, friction=0.8, status="ambiguous", modes=np.stack([pose, pose]),
-            mode_weights=np.array([0.625, 0.375], np.float32), evidence=0.75, latency_ms=12.5, notice=None,
+            mode_weights=np.array([0.625, 0.375], np.float32), evidence=0.75, dead_reckoning=0.25, latency_ms=12.5,
+            notice=None,
         ),
         "SessionStatus": SessionStatus(
             session="3fa9c01b2d4e", frames=43, gaps=0, duplicates=1, late=0, errors=1, stale=0, resyncs=0,

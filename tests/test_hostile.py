@@ -248,6 +248,28 @@ def test_settings_are_overridden_by_their_dotted_names_and_no_other_spelling(tra
         manager.open(_request(traj, overrides={"population.impratio": 3}))  # the service's physics, not a session's
 
 
+def test_each_estimate_says_how_far_its_pose_is_dead_reckoning(traj):
+    """OLP is dead reckoning; a population reports none of it by default, and its open-loop world's
+    pose under ``optimizer.open_loop_excess`` while no world explains the robot better (here every
+    world's costs, before the hand closes, are alike)."""
+    manager = _manager(groups=3)
+    settings = {"OLP": {}, "REPS": {}, "excess": {"optimizer.open_loop_excess": 10.0}}
+    infos = {
+        name: manager.open(_request(traj, method="REPS" if name == "excess" else name, overrides=overrides))
+        for name, overrides in settings.items()
+    }
+    names = {info.session: name for name, info in infos.items()}
+    said = {name: [] for name in infos}
+    for i in range(3):
+        for info in infos.values():
+            manager.submit(traj.frame(i, info.session, token=info.token))
+        pools = {id(pool): pool for pool in (manager.sessions[session].pool for session in names)}
+        for pool in pools.values():
+            for est in manager.step(pool):
+                said[names[est.session]].append(est.dead_reckoning)
+    assert said == {"OLP": [1.0] * 3, "REPS": [0.0] * 3, "excess": [1.0] * 3}, said
+
+
 def test_a_peer_sharing_the_population_cannot_poison_it(traj):
     """An attacker opens with the victim's robot, object and K (so it joins the victim's population)
     and sends joints of 1e20 rad: refused at the boundary, naming the joint; the victim's estimates
@@ -585,7 +607,7 @@ def test_mtls_admits_robots_with_a_certificate_and_access_control_denies_a_key(t
     acl = {"access_control": {
         "enabled": True, "default_permission": "allow",
         "rules": [{"id": "no-queries", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                   "key_exprs": ["inhand/v6/default/**"]}],
+                   "key_exprs": ["inhand/v7/default/**"]}],
         "subjects": [{"id": "observers", "cert_common_names": ["observer"]}],
         "policies": [{"rules": ["no-queries"], "subjects": ["observers"]}],
     }}  # fmt: skip

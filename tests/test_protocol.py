@@ -80,14 +80,15 @@ def test_malformed_oversized_and_pickled_payloads_are_refused():
 
 def test_version_mismatch_names_both_versions():
     check_version(PROTOCOL_VERSION)
-    with pytest.raises(ValueError, match=f"client speaks v7, service speaks v{PROTOCOL_VERSION}"):
-        check_version(7)
+    newer = PROTOCOL_VERSION + 1
+    with pytest.raises(ValueError, match=f"client speaks v{newer}, service speaks v{PROTOCOL_VERSION}"):
+        check_version(newer)
 
 
 def test_keys_live_under_the_versioned_prefix_and_refuse_bad_names():
     keys = Keys("lab-1")
-    assert keys.frame("s1") == "inhand/v6/lab-1/s/s1/frame"
-    assert keys.open == "inhand/v6/lab-1/rpc/open" and keys.alive == "inhand/v6/lab-1/alive"
+    assert keys.frame("s1") == "inhand/v7/lab-1/s/s1/frame"
+    assert keys.open == "inhand/v7/lab-1/rpc/open" and keys.alive == "inhand/v7/lab-1/alive"
     for bad in ("a/b", "*", "", "x y"):
         with pytest.raises(ValueError, match="session name: expected 1-64 characters"):
             keys.pose(bad)

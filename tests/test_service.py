@@ -241,7 +241,7 @@ def test_a_wildcard_pose_query_answers_once_per_open_session(service):
             replies = list(watcher._zenoh.get(selector, timeout=10))
             keys = sorted(str(r.ok.key_expr) for r in replies)
             assert keys == sorted(Keys("default").pose(s) for s in sessions), (selector, keys)
-            # Every sample names its message: msgpack, with the schema inhand.v6.Estimate.
+            # Every sample names its message: msgpack, with the schema inhand.v7.Estimate.
             assert {str(r.ok.encoding) for r in replies} == {f"application/msgpack;inhand.v{PROTOCOL_VERSION}.Estimate"}
         a.close_session()
         assert watcher.poses().keys() == {b.info.session}

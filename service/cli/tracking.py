@@ -35,7 +35,7 @@ def serve(
     config: Annotated[Path | None, typer.Option(help="service TOML (default configs/service.toml)")] = None,
     listen: Annotated[str | None, typer.Option(help="Zenoh endpoints to listen on, comma-separated")] = None,
     connect: Annotated[str | None, typer.Option(help="Zenoh endpoints to connect to (a router)")] = None,
-    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v6/NAME")] = None,
+    name: Annotated[str | None, typer.Option(help="service name: keys under inhand/v7/NAME")] = None,
     device: Annotated[str | None, typer.Option(help="auto, cpu, cuda or cuda:N")] = None,
     ros2: Annotated[bool | None, typer.Option("--ros2/--no-ros2", help="publish the estimates as ROS 2 topics")] = None,
     record: Annotated[Path | None, typer.Option(help="record every session to MCAP files in this folder")] = None,

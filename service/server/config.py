@@ -167,7 +167,7 @@ class ServiceConfig(BaseSettings):
     )
 
     name: str = "default"
-    """The service's name: its keys live under inhand/v6/{name}."""
+    """The service's name: its keys live under inhand/v7/{name}."""
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, cuda or cuda:N."""
     listen: Endpoints = ("tcp/127.0.0.1:7447",)

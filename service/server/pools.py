@@ -314,6 +314,7 @@ class Session:
             modes=est.modes[g],
             mode_weights=est.mode_weights[g],
             evidence=float(est.evidence[g]),
+            dead_reckoning=float(est.reckoning[g]),
             latency_ms=latency,
             notice=s.notice,
         )
