@@ -113,7 +113,7 @@ class Tracker:
         self._sharpness = torch.ones(self.G, 1, device=dev)
         """Each group's factor on the estimate's weights, (G, 1): how far its poses explain its costs."""
         self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
-        """Which world of each group is its open-loop world, (1, K) bool (``optimizer.open_loop_world``, ``_ratio``)."""
+        """Each group's open-loop world, (1, K) bool (:func:`.optimizers.open_loop_worlds`)."""
         self._first = torch.arange(self.K, device=dev)[None] == 0  # (1, K): the world an OLP group reports
         self._reckoned = torch.zeros(self.G, 3, device=dev)  # (G, 3): open_loop_share's sums
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
