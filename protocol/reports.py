@@ -72,9 +72,9 @@ class Estimate(WireMessage):
     dead_reckoning: float = 0.0
     """How far ``pose`` is the session's open-loop world's, which follows the robot's commands from
     the start estimate alone: 0, the population's, to 1, dead reckoning. Always 1 for a session of
-    method OLP, and 0 for the others unless their ``optimizer.open_loop_ratio`` or
-    ``open_loop_excess`` (while dead reckoning explains the sensing as well as the worlds do) or
-    ``by_evidence`` (as far as the last update fell short of full strength) is on."""
+    method OLP, and 0 for the others unless their ``optimizer.open_loop_ratio`` (while dead
+    reckoning explains the sensing as well as the worlds do) or ``by_evidence`` (as far as the last
+    update fell short of full strength) is on."""
     latency_ms: float
     """From the frame's arrival at the service to this estimate [ms]."""
     notice: str | None = None

@@ -250,12 +250,12 @@ def test_settings_are_overridden_by_their_dotted_names_and_no_other_spelling(tra
 
 def test_each_estimate_says_how_far_its_pose_is_dead_reckoning(traj):
     """OLP is dead reckoning; a population reports none of it by default, and its open-loop world's
-    pose under ``optimizer.open_loop_excess`` while no world explains the robot better (here every
+    pose under ``optimizer.open_loop_ratio`` while no world explains the robot better (here every
     world's costs, before the hand closes, are alike)."""
     manager = _manager(groups=3)
-    settings = {"OLP": {}, "REPS": {}, "excess": {"optimizer.open_loop_excess": 10.0}}
+    settings = {"OLP": {}, "REPS": {}, "ratio": {"optimizer.open_loop_ratio": 10.0}}
     infos = {
-        name: manager.open(_request(traj, method="REPS" if name == "excess" else name, overrides=overrides))
+        name: manager.open(_request(traj, method="REPS" if name == "ratio" else name, overrides=overrides))
         for name, overrides in settings.items()
     }
     names = {info.session: name for name, info in infos.items()}
@@ -267,7 +267,7 @@ def test_each_estimate_says_how_far_its_pose_is_dead_reckoning(traj):
         for pool in pools.values():
             for est in manager.step(pool):
                 said[names[est.session]].append(est.dead_reckoning)
-    assert said == {"OLP": [1.0] * 3, "REPS": [0.0] * 3, "excess": [1.0] * 3}, said
+    assert said == {"OLP": [1.0] * 3, "REPS": [0.0] * 3, "ratio": [1.0] * 3}, said
 
 
 def test_a_peer_sharing_the_population_cannot_poison_it(traj):

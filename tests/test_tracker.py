@@ -601,18 +601,15 @@ def test_a_robot_whose_declared_noise_explains_every_difference_is_tracked_open_
 
 
 def test_a_group_reports_its_open_loop_world_while_dead_reckoning_explains_the_robot_as_well(hand, recording):
-    """``optimizer.open_loop_ratio`` and ``open_loop_excess``: world 0 runs open loop from the start
-    estimate, never restarted (here REPS at full strength every 5 frames), and the group reports it
-    while its summed window cost stays within the ratio of the lowest-cost world's, or its excess
-    over it within the multiple of the population's mean world's. Within a lenient ratio the report
-    is what OLP reports from the same start while the other worlds resample, but for a few frames as
-    the fingers close, where dead reckoning's contact comes late and costs it hundreds of times the
-    best world's; a lenient excess, against worlds whose contacts come late as well, all the way.
-    Within a ratio of 1 (dead reckoning as good as the best world), or a tenth of the mean world's
-    excess, the grasp's forces soon say otherwise."""
+    """``optimizer.open_loop_ratio``: world 0 runs open loop from the start estimate, never restarted
+    (here REPS at full strength every 5 frames), and the group reports it while its summed window
+    cost stays within the ratio of the lowest-cost world's. Within a lenient ratio the report is what
+    OLP reports from the same start while the other worlds resample, but for a few frames as the
+    fingers close, where dead reckoning's contact comes late and costs it hundreds of times the best
+    world's. Within a ratio of 1 (dead reckoning as good as the best world) the grasp's forces soon
+    say otherwise."""
     runs, worlds, reckoning = {}, {}, {}
     cases = {"lenient": {"open_loop_ratio": 10.0}, "strict": {"open_loop_ratio": 1.0}, "olp": {}}
-    cases |= {"excess-lenient": {"open_loop_excess": 10.0}, "excess-strict": {"open_loop_excess": 0.1}}
     for name, setting in cases.items():
         optimizer = OptimizerConfig(method="OLP" if name == "olp" else "REPS", **setting)
         tr = _tracker(hand, worlds=12, optimizer=optimizer, seed=5, update_every=5)
@@ -620,16 +617,13 @@ def test_a_group_reports_its_open_loop_world_while_dead_reckoning_explains_the_r
         said = [tr.step(_frame(recording, f)) for f in range(recording.frames)]
         runs[name], reckoning[name] = np.array([e.pose for e in said]), np.array([e.reckoning for e in said])
         worlds[name] = tr.pop.obs.object_pose.clone()
-    # Each says how far its pose is dead reckoning: OLP's always, the strict ones' seldom.
-    assert reckoning["olp"].min() == 1.0 and reckoning["excess-lenient"].min() == 1.0, reckoning
-    assert reckoning["strict"].mean() < 0.5 and reckoning["excess-strict"].mean() < 0.5, reckoning
+    # Each says how far its pose is dead reckoning: OLP's always, the lenient one's mostly, the strict one's seldom.
+    assert reckoning["olp"].min() == 1.0 and reckoning["lenient"].mean() > 0.9, reckoning
+    assert reckoning["strict"].mean() < 0.5, reckoning
     # OLP's is another population's: equal to rounding.
     apart = {name: (np.abs(runs[name] - runs["olp"])[..., :3].max((1, 2)) > 1e-3).mean() for name in runs}
-    assert apart["lenient"] < 0.1 and apart["excess-lenient"] < 0.01, apart
-    assert apart["strict"] > 0.5 and apart["excess-strict"] > 0.5, apart
+    assert apart["lenient"] < 0.1 and apart["strict"] > 0.5, apart
     assert (worlds["lenient"][:, 0] - worlds["olp"][:, 0])[:, :3].abs().max() < 1e-3, "world 0 is dead reckoning"
     assert (worlds["lenient"][:, 1:] - worlds["olp"][:, 1:])[..., :3].abs().max() > 1e-2, "the others resample"
     with pytest.raises(ValueError, match=r"optimizer\.open_loop_ratio: expected 0 \(off\) or 1 to 10, got 0\.5"):
         OptimizerConfig(open_loop_ratio=0.5)
-    with pytest.raises(ValueError, match=r"open_loop_ratio \(1\.2\) and optimizer\.open_loop_excess \(1\.5\): set one"):
-        OptimizerConfig(open_loop_ratio=1.2, open_loop_excess=1.5)

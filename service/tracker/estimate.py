@@ -113,20 +113,16 @@ def open_loop_share(
 ) -> torch.Tensor | None:
     """How far each group reports its open-loop world, (G, 1): 1 while the ``anchor`` (1, K) world's
     window cost summed over the frames is within ``config.open_loop_ratio`` of the lowest-cost
-    world's, or exceeds it by at most ``config.open_loop_excess`` times what the population's mean
-    held world exceeds it by; or within ``config.min_spread`` of it (before the hand touches the
-    object every cost is about 0); else 0. None where both are 0. ``sums`` (G, 3), the anchor's, the
-    lowest and the mean since the group was seeded, gain this frame's ``window`` (G, K) in place.
-    Sums, not one frame's costs, which differ by noise."""
-    ratio, excess = config.open_loop_ratio, config.open_loop_excess
-    if ratio <= 0 and excess <= 0:
+    world's, or within ``config.min_spread`` of it (before the hand touches the object every cost is
+    about 0); else 0. None while the ratio is 0. ``sums`` (G, 2), the anchor's and the lowest since
+    the group was seeded, gain this frame's ``window`` (G, K) in place. Sums, not one frame's
+    costs, which differ by noise."""
+    ratio = config.open_loop_ratio
+    if ratio <= 0:
         return None
-    held = (window < HELD_COST) & ~anchor
-    mean = torch.where(held, window, 0.0).sum(-1) / held.sum(-1).clamp_min(1)  # a NaN world's 0 * NaN is NaN
-    sums.add_(torch.stack([(window * anchor).sum(-1), window.amin(-1), mean], -1))
-    lowest = sums[:, 1:2]
-    within = ratio * lowest if ratio > 0 else lowest + excess * (sums[:, 2:] - lowest)
-    return (sums[:, :1] <= torch.maximum(within, lowest + config.min_spread)).float()
+    sums.add_(torch.stack([(window * anchor).sum(-1), window.amin(-1)], -1))
+    lowest = sums[:, 1:]
+    return (sums[:, :1] <= torch.maximum(ratio * lowest, lowest + config.min_spread)).float()
 
 
 def unresolved_variance(cost: np.ndarray, seeded: np.ndarray, worlds: int, config: EstimateConfig) -> np.ndarray:

@@ -197,9 +197,8 @@ class GroupEstimates:
     (``optimizer.by_evidence`` off)."""
     reckoning: np.ndarray | None = None
     """How far each group's pose is its open-loop world's, (G,): 0, the population's, to 1, dead
-    reckoning (always for an OLP group; ``optimizer.open_loop_ratio`` or ``open_loop_excess`` while
-    dead reckoning explains the robot as well, or ``by_evidence`` as far as the last update fell
-    short of full strength)."""
+    reckoning (always for an OLP group; ``optimizer.open_loop_ratio`` while dead reckoning explains
+    the robot as well, or ``by_evidence`` as far as the last update fell short of full strength)."""
     residual: np.ndarray | None = None
     """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
     (G, 3): joints (RMS per joint) [rad or m], each fingertip force's magnitude [N], each touch

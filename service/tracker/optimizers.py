@@ -89,13 +89,6 @@ class OptimizerConfig:
     does not. Once dead reckoning falls behind, the group reports the population. A factor, not
     equality: the lowest of K costs is below one world's by selection alone. 0: off."""
 
-    open_loop_excess: float = 0.0
-    """As ``open_loop_ratio``, but report the open-loop world while its summed window cost exceeds
-    the lowest-cost world's by at most this multiple of what the population's mean world exceeds it
-    by. Excesses, not ratios: what no world explains (a model's mismatch with the robot, the same in
-    every world) cancels, where a ratio takes it for agreement and reports a drifting world. 1: no
-    worse than the population's typical world. 0: off."""
-
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
     physics parameters explain (:func:`.evidence.pose_evidence`, an F ratio, over this); elsewhere only the
@@ -114,13 +107,6 @@ class OptimizerConfig:
             raise ValueError(f"optimizer.min_pose_evidence: expected >= 0, got {self.min_pose_evidence}")
         if self.open_loop_ratio != 0 and not 1.0 <= self.open_loop_ratio <= 10.0:
             raise ValueError(f"optimizer.open_loop_ratio: expected 0 (off) or 1 to 10, got {self.open_loop_ratio}")
-        if self.open_loop_excess != 0 and not 0.1 <= self.open_loop_excess <= 10.0:
-            raise ValueError(f"optimizer.open_loop_excess: expected 0 (off) or 0.1 to 10, got {self.open_loop_excess}")
-        if self.open_loop_ratio and self.open_loop_excess:
-            raise ValueError(
-                f"optimizer.open_loop_ratio ({self.open_loop_ratio}) and optimizer.open_loop_excess"
-                f" ({self.open_loop_excess}): set one"
-            )
         if self.min_separation < 0:
             raise ValueError(f"optimizer.min_separation: expected >= 0, got {self.min_separation}")
         if self.reps_epsilon <= 0 or self.wrs_lambda <= 0:
@@ -233,10 +219,9 @@ def duplicates(index: torch.Tensor) -> torch.Tensor:
 
 def open_loop_worlds(config: OptimizerConfig, worlds: int, device: torch.device) -> torch.Tensor:
     """Which world of each group is kept as its open-loop world (``config.open_loop_world``), (1, K)
-    bool: world 0 under ``by_evidence``, ``open_loop_ratio`` or ``open_loop_excess`` where a group has
-    more than one; none otherwise."""
-    reckons = config.open_loop_ratio > 0 or config.open_loop_excess > 0
-    anchored = ((config.by_evidence and config.open_loop_world) or reckons) and worlds > 1
+    bool: world 0 under ``by_evidence`` or ``open_loop_ratio`` where a group has more than one; none
+    otherwise."""
+    anchored = ((config.by_evidence and config.open_loop_world) or config.open_loop_ratio > 0) and worlds > 1
     return (torch.arange(worlds, device=device) == 0)[None] & anchored
 
 

@@ -115,7 +115,7 @@ class Tracker:
         self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
         """Each group's open-loop world, (1, K) bool (:func:`.optimizers.open_loop_worlds`)."""
         self._first = torch.arange(self.K, device=dev)[None] == 0  # (1, K): the world an OLP group reports
-        self._reckoned = torch.zeros(self.G, 3, device=dev)  # (G, 3): open_loop_share's sums
+        self._reckoned = torch.zeros(self.G, 2, device=dev)  # (G, 2): open_loop_share's sums
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
         """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
         self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
