@@ -163,10 +163,14 @@ class SensorNoise:
     force_noise: float = 0.0
     """Each fingertip force's magnitude [N]."""
     touch_noise: float = 0.0
-    """Each touch zone's normal force [N]."""
+    """Each touch zone's normal force [N]. The worlds' touch zones are compared with the robot's
+    up to it: a difference within the noise ranks no world above another."""
+    touch_deadband: float = 0.0
+    """The normal force [N] under which a touch zone reads 0. The worlds' zones read as the robot's
+    do: a world that presses a zone lightly is not told apart from one that does not touch it."""
 
     def __post_init__(self) -> None:
-        for name in ("joint_noise", "force_noise", "touch_noise"):
+        for name in ("joint_noise", "force_noise", "touch_noise", "touch_deadband"):
             value = getattr(self, name)
             if not 0.0 <= value < 1e3:
                 raise ValueError(f"robot '{getattr(self, 'name', '')}' {name}: expected >= 0, got {value}")

@@ -330,9 +330,9 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
     with pytest.raises(ValueError, match=r"unknown keys \['finger_kp'\] for kind 'hand'"):
         load_robot(bad_cfg)
     noisy = tmp_path / "noisy.toml"
-    noisy.write_text('kind = "hand"\njoint_noise = 0.005\ntouch_noise = 0.1\n')
+    noisy.write_text('kind = "hand"\njoint_noise = 0.005\ntouch_noise = 0.1\ntouch_deadband = 0.2\n')
     spec = load_robot(noisy)
-    assert (spec.joint_noise, spec.touch_noise, spec.force_noise) == (0.005, 0.1, 0.0)
+    assert (spec.joint_noise, spec.touch_noise, spec.force_noise, spec.touch_deadband) == (0.005, 0.1, 0.0, 0.2)
     noisy.write_text('kind = "hand"\nforce_noise = -0.1\n')
     with pytest.raises(ValueError, match=r"robot 'allegro' force_noise: expected >= 0, got -0.1"):
         load_robot(noisy)

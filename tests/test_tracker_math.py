@@ -88,6 +88,14 @@ def test_each_cost_term_against_hand_computed_values():
     real.touch[0, 1] = 1.0
     t = cost_terms(sim, real, contact_threshold=0.2)[0, 0]
     assert t[10:].tolist() == pytest.approx([1.0, 3.0], abs=1e-5)
+    # The robot's touch deadband (0.1 N) and noise (0.25 N): a zone the sim presses 0.08 N and the
+    # robot reads 0 (both below contact) costs 0.08 raw and nothing under the deadband; zone 0's 3 N
+    # error counts 2.5 beyond twice the noise.
+    sim.touch[0, 0, 1] = 0.08
+    assert cost_terms(sim, real, 0.2)[0, 0, 11] == pytest.approx(3.0, abs=1e-5)
+    real.touch[0, 1] = 0.0
+    assert cost_terms(sim, real, 0.2)[0, 0, 10:].tolist() == pytest.approx([0.0, 3.08], abs=1e-5)
+    assert cost_terms(sim, real, 0.2, touch=(0.1, 0.25))[0, 0, 10:].tolist() == pytest.approx([0.0, 2.5], abs=1e-5)
 
 
 def test_the_one_world_still_holding_the_object_costs_least():

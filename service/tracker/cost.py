@@ -119,8 +119,12 @@ def _angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(a, b, dim=-1), dim=-1), (a * b).sum(-1))
 
 
-def cost_terms(sim: Observation, real: RealObservation, contact_threshold: float) -> torch.Tensor:
-    """The unweighted terms of eq. (3) and the touch zones' for every world, (G, K, 12)."""
+def cost_terms(
+    sim: Observation, real: RealObservation, contact_threshold: float, touch: tuple[float, float] = (0.0, 0.0)
+) -> torch.Tensor:
+    """The unweighted terms of eq. (3) and the touch zones' for every world, (G, K, 12). ``touch``:
+    the robot's touch deadband and noise's standard deviation [N]: each world's zones read 0 under
+    the deadband, as the robot's do, and a zone's force error counts only beyond twice the noise."""
     r = lambda t: t[:, None]  # noqa: E731 - real (G, ...) against sim (G, K, ...)
     joints = torch.linalg.vector_norm(sim.q - r(real.q), dim=-1)
     position = torch.linalg.vector_norm(sim.sensor_pos - r(real.sensor_pos), dim=-1).sum(-1)
@@ -149,11 +153,17 @@ def cost_terms(sim: Observation, real: RealObservation, contact_threshold: float
     spin = (1.0 - gamma).sum(-1) * spin_on
     sense = (both_spin * (sim.spin_sense - r(real.spin_sense)).abs()).sum(-1) * spin_on
     # Touch zones: each a pad that reports its normal force, compared as the fingertips' magnitudes are.
-    zone_sim, zone_real = sim.touch > contact_threshold, r(real.touch) > contact_threshold
+    # Under the robot's deadband a zone reads 0: compared raw, a world pressing a zone lightly would
+    # score worse than one that does not touch it, and selection would move the object away from it.
+    deadband, noise = touch
+    pressed = torch.where(sim.touch < deadband, 0.0, sim.touch) if deadband > 0 else sim.touch
+    zone_sim, zone_real = pressed > contact_threshold, r(real.touch) > contact_threshold
     zeta = (zone_sim == zone_real).float()
     zones_on = r(real.has_touch)
     zones = (1.0 - zeta).sum(-1) * zones_on
-    zone_force = (zeta * (sim.touch - r(real.touch)).abs()).sum(-1) * zones_on
+    # A difference the sensor's noise makes (within two standard deviations) ranks no world above
+    # another: selecting on it walks the population off where the physics holds the object.
+    zone_force = (zeta * ((pressed - r(real.touch)).abs() - 2.0 * noise).clamp_min(0.0)).sum(-1) * zones_on
     terms = [joints, position, rotation, contact, magnitude, direction, slip, slip_dir, spin, sense, zones, zone_force]
     return torch.stack(terms, dim=-1)
 
@@ -173,6 +183,8 @@ class Cost:
     so that a captured frame graph advances it on every replay."""
     enabled: torch.Tensor | None = None
     """Terms switched on per group, (G, 12) bool (ablations run as groups); default config.enabled."""
+    touch: tuple[float, float] = (0.0, 0.0)
+    """The robot's touch deadband and noise's standard deviation [N] (``touch_deadband``, ``touch_noise``)."""
     last_terms: torch.Tensor | None = field(init=False, default=None)
     """The unweighted terms of the latest frame, (G, K, 12)."""
 
@@ -193,7 +205,7 @@ class Cost:
 
     def __call__(self, sim: Observation, real: RealObservation) -> torch.Tensor:
         """Weighted cost of every world, (G, K); updates the running term magnitudes when they weigh."""
-        terms = cost_terms(sim, real, self.config.contact_threshold)
+        terms = cost_terms(sim, real, self.config.contact_threshold, self.touch)
         self.last_terms = terms
         if self._fixed is None:  # fixed weights need no running means: nothing more per frame
             self.frames += 1

@@ -174,14 +174,24 @@ def declared_scatter(cost: Cost, robot: SensorNoise, sensors: int, zones: int) -
     """The per-frame scatter of a world's ``cost`` that ``robot``'s declared sensor noise can make,
     (G,): each term's weight times how far that noise moves what it reads, squared, summed over the
     joints, the ``sensors`` fingertips' force magnitudes and contact flags, and the ``zones`` touch
-    zones' forces and contact flags. A bound, not a model: where noise moves a reading by sigma, no
-    world's term moves by more, and a flag flips at most once."""
+    zones' forces. A bound, not a model: where noise moves a reading by sigma, no world's term moves
+    by more, and a flag flips at most once; a touch zone's force term, which counts only errors
+    beyond twice the noise, moves by what the noise adds beyond that."""
     w, threshold = cost.weights(), cost.config.contact_threshold
     flips = lambda sigma: min(1.0, sigma / threshold)  # noqa: E731 - a flag's share of frames flipped, at most
     joints = (w[:, 0] * robot.joint_noise).square()
     forces = (w[:, 4] * robot.force_noise).square() + (w[:, 3] * flips(robot.force_noise)).square()
-    touch = (w[:, 11] * robot.touch_noise).square() + (w[:, 10] * flips(robot.touch_noise)).square()
+    # A zone's force error counts only beyond twice the noise (:func:`.cost.cost_terms`): noise moves
+    # it by what it adds beyond that, E[(|n| - 2 sigma)+^2] = 0.0115 sigma^2 for Gaussian noise. Its
+    # contact flag flips only where a zone is pressed within the noise of the contact threshold (an
+    # untouched zone reads 0 under the deadband): a share no declared figure bounds, and bounding it
+    # by sigma / threshold on every zone would call any two worlds alike.
+    touch = (w[:, 11] * robot.touch_noise).square() * _BEYOND_TWO_SIGMA
     return joints + sensors * forces + zones * touch
+
+
+_BEYOND_TWO_SIGMA = 0.0115
+"""E[(|n| - 2 sigma)+^2] / sigma^2 for Gaussian noise n: 2 ((1 + 4) Q(2) - 2 phi(2)), Q the normal's upper tail."""
 
 
 class Residuals:

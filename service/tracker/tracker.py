@@ -92,7 +92,7 @@ class Tracker:
         if terms is not None and np.shape(terms) != (self.G, TERMS):
             raise ValueError(f"tracker terms: expected shape ({self.G}, {TERMS}), got {np.shape(terms)}")
         enabled = None if terms is None else torch.as_tensor(np.asarray(terms, dtype=bool), device=dev)
-        self.cost = Cost(cfg.cost, self.G, dev, enabled=enabled)
+        self.cost = Cost(cfg.cost, self.G, dev, enabled, (pop.robot_spec.touch_deadband, pop.robot_spec.touch_noise))
         self.fk = SensorFK(pop.robot_spec, self.G, pop.device)
         self._allocate_io()
         self.windows = CostWindow(self.G, self.K, dev)
