@@ -163,8 +163,8 @@ class SensorNoise:
     force_noise: float = 0.0
     """Each fingertip force's magnitude [N]."""
     touch_noise: float = 0.0
-    """Each touch zone's normal force [N]. The worlds' touch zones are compared with the robot's
-    up to it: a difference within the noise ranks no world above another."""
+    """Each touch zone's normal force [N]. A zone's force difference between a world and the robot
+    within twice this ranks no world above another."""
     touch_deadband: float = 0.0
     """The normal force [N] under which a touch zone reads 0. The worlds' zones read as the robot's
     do: a world that presses a zone lightly is not told apart from one that does not touch it."""

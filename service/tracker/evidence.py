@@ -170,6 +170,10 @@ def pose_sources(
     return torch.where(posed, index, own), posed, chance
 
 
+_BEYOND_TWO_SIGMA = 0.0115
+"""E[(|n| - 2 sigma)+^2] / sigma^2 for Gaussian noise n: 2 ((1 + 4) Q(2) - 2 phi(2)), Q the normal's upper tail."""
+
+
 def declared_scatter(cost: Cost, robot: SensorNoise, sensors: int, zones: int) -> torch.Tensor:
     """The per-frame scatter of a world's ``cost`` that ``robot``'s declared sensor noise can make,
     (G,): each term's weight times how far that noise moves what it reads, squared, summed over the
@@ -188,10 +192,6 @@ def declared_scatter(cost: Cost, robot: SensorNoise, sensors: int, zones: int) -
     # by sigma / threshold on every zone would call any two worlds alike.
     touch = (w[:, 11] * robot.touch_noise).square() * _BEYOND_TWO_SIGMA
     return joints + sensors * forces + zones * touch
-
-
-_BEYOND_TWO_SIGMA = 0.0115
-"""E[(|n| - 2 sigma)+^2] / sigma^2 for Gaussian noise n: 2 ((1 + 4) Q(2) - 2 phi(2)), Q the normal's upper tail."""
 
 
 class Residuals:
