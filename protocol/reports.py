@@ -165,7 +165,7 @@ class SessionStatus(WireMessage):
     (RMS per joint) [rad or m], ``force`` (each fingertip force's magnitude) [N], ``touch`` (each
     touch zone's force) [N], for what the robot sends. It holds the sensors' noise and the model's
     mismatch: at most the noise to declare in the robot config (``joint_noise``, ``force_noise``,
-    ``touch_noise``)."""
+    ``touch_noise``). Once ``touch_noise`` is declared, ``touch`` is what lies beyond twice it."""
     joints_off: dict[str, float] = Field(default_factory=dict)
     """The model check: joints whose simulated motion runs from the measured one by more than the
     service's ``model_check`` over the last seconds, by name: their RMS difference [rad or m]. The

@@ -204,7 +204,8 @@ class Residuals:
     def __init__(self, groups: int, joints: int, sensors: int, zones: int, device: torch.device) -> None:
         self.mean = torch.zeros(groups, 3, device=device)
         """(G, 3): joints (RMS per joint) [rad or m], each fingertip force's magnitude [N], each touch
-        zone's force [N]; 0 where the robot sends none (:attr:`.layout.GroupEstimates.residual`)."""
+        zone's force beyond twice the declared noise [N]; 0 where the robot sends none
+        (:attr:`.layout.GroupEstimates.residual`)."""
         self.frames = torch.zeros(groups, 1, device=device)
         """Frames each group's mean has seen, (G, 1)."""
         self._per = torch.tensor([max(joints, 1) ** 0.5, max(sensors, 1), max(zones, 1)], device=device)

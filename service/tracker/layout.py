@@ -202,8 +202,9 @@ class GroupEstimates:
     residual: np.ndarray | None = None
     """What each group's lowest-cost world leaves unexplained, a running mean over about a second,
     (G, 3): joints (RMS per joint) [rad or m], each fingertip force's magnitude [N], each touch
-    zone's force [N]. It holds the sensors' noise and the model's mismatch: an upper bound on the
-    noise a robot config declares (``joint_noise``, ``force_noise``, ``touch_noise``)."""
+    zone's force beyond twice the declared ``touch_noise`` [N]. It holds the sensors' noise and the
+    model's mismatch: an upper bound on the noise a robot config declares (``joint_noise``,
+    ``force_noise``, ``touch_noise``)."""
     reseeded: np.ndarray | None = None
     """Whether each group was re-seeded after this frame, (G,) bool (never an open-loop group)."""
 
