@@ -18,6 +18,7 @@ __all__ = [
     "RobotSpec",
     "SensorNoise",
     "TouchZone",
+    "TrackerDefaults",
     "joint_coord_dof",
     "load_robot",
     "zone_layout",
@@ -176,8 +177,19 @@ class SensorNoise:
                 raise ValueError(f"robot '{getattr(self, 'name', '')}' {name}: expected >= 0, got {value}")
 
 
+@dataclass(frozen=True, kw_only=True)
+class TrackerDefaults:
+    """The tracker settings a robot's sessions start from, where its sensing calls for other than the
+    defaults (a palm felt through two coarse zones, say): the config's ``[tracker]`` table, by the
+    settings' dotted names (:mod:`inhand_tracker.service.tracker.settings`). A session's overrides
+    and ``bench accuracy --set`` change them; the service checks the names when it loads the robot."""
+
+    tracker: tuple[tuple[str, bool | int | float | str], ...] = ()
+    """(dotted name, value) pairs, e.g. ``("optimizer.open_loop_ratio", 1.5)``."""
+
+
 @dataclass(frozen=True)
-class HandSpec(ContactModel, SensorNoise):
+class HandSpec(ContactModel, SensorNoise, TrackerDefaults):
     """The procedural Allegro-like hand on a 6-DoF position-controlled wrist.
 
     The wrist stands in for the arm: one joint of six axes, sliding along world x, y, z, then
@@ -211,7 +223,7 @@ class HandSpec(ContactModel, SensorNoise):
 
 
 @dataclass(frozen=True)
-class FileRobotSpec(ContactModel, SensorNoise):
+class FileRobotSpec(ContactModel, SensorNoise, TrackerDefaults):
     """A user's robot from a local URDF or MJCF file.
 
     ``joints`` names the actuated joints in control order; ``sensor_links`` the links that carry
@@ -313,6 +325,7 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
     if not isinstance(servos, dict) or sorted(set(servos) - set(SERVO_ARRAYS)):
         raise ValueError(f"robot config '{path}' servos: expected a table of {list(SERVO_ARRAYS)}, got {servos!r}")
     table["servos"] = tuple((k, tuple(float(x) for x in v)) for k, v in servos.items())
+    table["tracker"] = _dotted(path, table.pop("tracker", {}))
     try:
         zones = tuple(TouchZone(**{k: tuple(v) if isinstance(v, list) else v for k, v in z.items()})
                       for z in table.pop("touch_zones", ()))  # fmt: skip
@@ -323,6 +336,23 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
         return cls(**table)
     except TypeError as exc:
         raise ValueError(f"robot config '{path}': {exc}") from exc
+
+
+def _dotted(path: Path, table: object, prefix: str = "") -> tuple[tuple[str, bool | int | float | str], ...]:
+    """A ``[tracker]`` table's values by dotted name: ``[tracker.optimizer] open_loop_ratio = 1.5``
+    is ``("optimizer.open_loop_ratio", 1.5)``."""
+    if not isinstance(table, dict):
+        raise ValueError(f"robot config '{path}' tracker: expected a table of settings, got {table!r}")
+    out: list[tuple[str, bool | int | float | str]] = []
+    for key, value in table.items():
+        name = f"{prefix}.{key}" if prefix else key
+        if isinstance(value, dict):
+            out += _dotted(path, value, name)
+        elif isinstance(value, bool | int | float | str):
+            out.append((name, value))
+        else:
+            raise ValueError(f"robot config '{path}' tracker.{name}: expected a number, flag or name, got {value!r}")
+    return tuple(out)
 
 
 def joint_coord_dof(builder: newton.ModelBuilder, joints: list[int]) -> tuple[np.ndarray, np.ndarray]:

@@ -93,6 +93,11 @@ def test_settings_split_into_the_tracker_and_its_physics():
     # A run's results name the changed weights as --set does.
     config = parse_settings(["cost.joints=25", "optimizer.min_separation=4"])[0]
     assert changed(config) == {"cost.joints": 25.0, "optimizer.min_separation": 4.0}
+    # The robot's own settings (its config's [tracker] table) are where --set starts from.
+    robot = {"optimizer.open_loop_ratio": 1.5, "update_every": 5}
+    assert changed(parse_settings([], robot)[0]) == robot
+    config = parse_settings(["optimizer.open_loop_ratio=0"], robot)[0]
+    assert (config.optimizer.open_loop_ratio, config.update_every) == (0.0, 5)
 
 
 def test_bench_speed_times_the_tracker_against_the_physics():

@@ -248,6 +248,19 @@ def test_settings_are_overridden_by_their_dotted_names_and_no_other_spelling(tra
         manager.open(_request(traj, overrides={"population.impratio": 3}))  # the service's physics, not a session's
 
 
+def test_a_robots_config_gives_its_sessions_their_settings_which_overrides_change(traj, tmp_path):
+    config, base = tmp_path / "allegro.toml", f'extends = "{ROOT / "configs/robots/allegro.toml"}"\n'
+    config.write_text(base + "[tracker.optimizer]\nopen_loop_ratio = 2.0\n")
+    robot = load_robot(config)
+    manager = SessionManager(ServiceConfig(groups=2, device="cpu", rate_hz=0), {robot.name: robot}, load_catalog())
+    said = [manager.open(_request(traj, method="REPS", overrides=o)) for o in ({}, {"optimizer.open_loop_ratio": 0})]
+    ratios = [manager.sessions[info.session].pool.tracker.config.optimizer.open_loop_ratio for info in said]
+    assert ratios == [2.0, 0.0]
+    config.write_text(base + "[tracker]\nopen_loop_ratoi = 2.0\n")
+    with pytest.raises(ValueError, match=r"robot 'allegro' tracker: no setting 'open_loop_ratoi'"):
+        SessionManager(ServiceConfig(device="cpu", rate_hz=0), {robot.name: load_robot(config)}, load_catalog())
+
+
 def test_each_estimate_says_how_far_its_pose_is_dead_reckoning(traj):
     """OLP is dead reckoning; a population reports none of it by default, and its open-loop world's
     pose under ``optimizer.open_loop_ratio`` while no world explains the robot better (here every

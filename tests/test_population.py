@@ -333,6 +333,16 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
     noisy.write_text('kind = "hand"\njoint_noise = 0.005\ntouch_noise = 0.1\ntouch_deadband = 0.2\n')
     spec = load_robot(noisy)
     assert (spec.joint_noise, spec.touch_noise, spec.force_noise, spec.touch_deadband) == (0.005, 0.1, 0.0, 0.2)
+    # A [tracker] table: the settings the robot's sessions start from, by dotted name.
+    tuned = tmp_path / "tuned.toml"
+    tuned.write_text('kind = "hand"\n[tracker]\nupdate_every = 5\n[tracker.optimizer]\nopen_loop_ratio = 1.5\n')
+    assert load_robot(tuned).tracker == (("update_every", 5), ("optimizer.open_loop_ratio", 1.5))
+    overlay = tmp_path / "overlay.toml"  # an overlay's table replaces its base's
+    overlay.write_text('extends = "tuned.toml"\n[tracker.optimizer]\nopen_loop_ratio = 0.0\n')
+    assert load_robot(overlay).tracker == (("optimizer.open_loop_ratio", 0.0),)
+    tuned.write_text('kind = "hand"\n[tracker]\nupdate_every = [5]\n')
+    with pytest.raises(ValueError, match=r"tracker\.update_every: expected a number, flag or name, got \[5\]"):
+        load_robot(tuned)
     noisy.write_text('kind = "hand"\nforce_noise = -0.1\n')
     with pytest.raises(ValueError, match=r"robot 'allegro' force_noise: expected >= 0, got -0.1"):
         load_robot(noisy)

@@ -185,13 +185,19 @@ def bench_accuracy(
     gpu_stack()
     from inhand_tracker.service.bench import K_ABLATION, AccuracyRun, parse_settings, run_suite, write_report
     from inhand_tracker.service.bench.run import ABLATIONS
+    from inhand_tracker.service.bench.suites import robot_spec
     from inhand_tracker.service.paths import CACHE_DIR
+    from inhand_tracker.service.tracker.settings import robot_defaults
 
+    chosen_suite, mine, servos = _what_to_track(suite, short, files, robot_overlay)
     try:
-        config, population = parse_settings(set_ or [])
+        robot = robot_defaults(robot_spec(chosen_suite.robot))
+    except ValueError as exc:
+        raise fail(f"bench accuracy: {exc}") from None
+    try:
+        config, population = parse_settings(set_ or [], robot)
     except ValueError as exc:
         raise fail(f"--set: {exc}") from None
-    chosen_suite, mine, servos = _what_to_track(suite, short, files, robot_overlay)
     out = out or Path(f"bench-results/accuracy-{chosen_suite.name}")
     command = command_line(ctx)
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps}.items() if v}

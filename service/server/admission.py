@@ -13,7 +13,7 @@ import numpy as np
 
 from inhand_tracker.protocol import AUTO, DEFAULT_WORLDS, Error, ErrorCode, OpenSession, check_version
 from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig
-from inhand_tracker.service.tracker.settings import registry, tracker_config
+from inhand_tracker.service.tracker.settings import registry, robot_defaults, tracker_config
 from inhand_tracker.sim_backend import ObjectSpec, RobotSpec
 from inhand_tracker.sim_backend.kinematics import Kinematics
 
@@ -78,6 +78,8 @@ class Gate:
     ):
         self.config, self.robots, self.objects, self.frame_times = config, robots, objects, frame_times
         self.pools, self.building, self.device = pools, building, device
+        self.defaults = {name: robot_defaults(spec) for name, spec in robots.items()}
+        """Each robot's tracker settings (its config's ``[tracker]`` table), checked once on load."""
         self.kinematics: dict[str, Kinematics] = {}
         """Each robot's own model (its joint layout), built once per robot."""
         self._opened: deque[float] = deque()
@@ -337,12 +339,12 @@ class Gate:
             got = np.shape(request.q0)[0]
             raise ServiceError(ErrorCode.BAD_REQUEST, f"q0: expected {d} joint positions, got {got}")
 
-    @staticmethod
-    def _tracker_config(request: OpenSession) -> TrackerConfig:
-        """The session's tracker settings, refused with the field and the numbers before anything is built."""
+    def _tracker_config(self, request: OpenSession) -> TrackerConfig:
+        """The session's tracker settings: its robot's, changed by its overrides; refused with the
+        field and the numbers before anything is built."""
         try:
             base = TrackerConfig(optimizer=OptimizerConfig(method=request.method))
-            return tracker_config(request.overrides, base)
+            return tracker_config(self.defaults[request.robot] | request.overrides, base)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ServiceError(ErrorCode.BAD_REQUEST, f"overrides: {exc}") from None
 

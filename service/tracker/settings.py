@@ -12,13 +12,13 @@ import functools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields, replace
 
-from inhand_tracker.sim_backend import PopulationConfig
+from inhand_tracker.sim_backend import PopulationConfig, RobotSpec
 
 from .config import TRACKER_GROUPS, TrackerConfig
 from .cost import TERM_NAMES, WEIGHTS, CostConfig
 from .optimizers import OptimizerConfig
 
-__all__ = ["SETTING_KINDS", "Setting", "changed", "parse", "registry", "split", "tracker_config"]
+__all__ = ["SETTING_KINDS", "Setting", "changed", "parse", "registry", "robot_defaults", "split", "tracker_config"]
 
 SETTING_KINDS = (bool, int, float, str)
 """What a setting may be: a flag, a number or a name (a friction cone, an integrator)."""
@@ -143,6 +143,17 @@ def tracker_config(values: Mapping[str, object], base: TrackerConfig | None = No
         nested["cost"] = cost
     groups = {g: replace(getattr(config, g), **v) for g, v in nested.items()}
     return replace(config, **groups, **top)
+
+
+def robot_defaults(robot: RobotSpec) -> dict[str, object]:
+    """The tracker settings ``robot``'s config gives its sessions (its ``[tracker]`` table) by dotted
+    name, checked as a session's overrides are: a ValueError names the robot and the setting."""
+    values = dict(robot.tracker)
+    try:
+        tracker_config(values)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"robot '{robot.name}' tracker: {exc}") from None
+    return values
 
 
 def changed(config: TrackerConfig, physics: Mapping[str, object] | None = None) -> dict[str, object]:
