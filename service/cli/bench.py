@@ -183,21 +183,12 @@ def bench_accuracy(
 ) -> None:
     """Tracking accuracy (ADD) on synthetic ground truth, as the paper's IV-A."""
     gpu_stack()
-    from inhand_tracker.service.bench import K_ABLATION, AccuracyRun, parse_settings, run_suite, write_report
+    from inhand_tracker.service.bench import K_ABLATION, AccuracyRun, run_suite, write_report
     from inhand_tracker.service.bench.run import ABLATIONS
-    from inhand_tracker.service.bench.suites import robot_spec
     from inhand_tracker.service.paths import CACHE_DIR
-    from inhand_tracker.service.tracker.settings import robot_defaults
 
     chosen_suite, mine, servos = _what_to_track(suite, short, files, robot_overlay)
-    try:
-        robot = robot_defaults(robot_spec(chosen_suite.robot))
-    except ValueError as exc:
-        raise fail(f"bench accuracy: {exc}") from None
-    try:
-        config, population = parse_settings(set_ or [], robot)
-    except ValueError as exc:
-        raise fail(f"--set: {exc}") from None
+    config, population = _settings(set_ or [], chosen_suite.robot)
     out = out or Path(f"bench-results/accuracy-{chosen_suite.name}")
     command = command_line(ctx)
     chosen = {k: v for k, v in {"worlds": worlds, "substeps": substeps}.items() if v}
@@ -276,6 +267,22 @@ def _vision_sigma(text: str) -> tuple[float, float]:
     except ValueError:
         raise fail(f"bench accuracy: vision-sigma: expected POSITION,ROTATION, got {text!r}") from None
     return sigma_t, sigma_r
+
+
+def _settings(items: list[str], robot: str) -> tuple:
+    """The tracker's settings and physics: ``robot``'s own changed by ``--set``, or exit 2 naming what is wrong."""
+    from inhand_tracker.service.bench import parse_settings
+    from inhand_tracker.service.bench.suites import robot_spec
+    from inhand_tracker.service.tracker.settings import robot_defaults
+
+    try:
+        defaults = robot_defaults(robot_spec(robot))
+    except ValueError as exc:
+        raise fail(f"bench accuracy: {exc}") from None
+    try:
+        return parse_settings(items, defaults)
+    except ValueError as exc:
+        raise fail(f"--set: {exc}") from None
 
 
 def _what_to_track(suite: str, short: bool, files: str | None, overlay: Path | None) -> tuple:
