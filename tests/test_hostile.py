@@ -563,7 +563,7 @@ def test_a_flooding_peer_does_not_starve_another_session(traj):
                 n += 1
                 time.sleep(max(0.0, began + n / 300 - time.monotonic()))
             status = flood.status()
-            print(json.dumps({{"stale": status.stale, "frames": status.frames}}), flush=True)
+            print(json.dumps({{"stale": status.stale, "frames": status.frames, "sent": n}}), flush=True)
     """)
     flood = None
     try:
@@ -581,7 +581,8 @@ def test_a_flooding_peer_does_not_starve_another_session(traj):
             status = json.loads(flood.stdout.readline())
             assert alone >= 0.8 * rate * seconds, alone
             assert beside >= 0.8 * alone, (alone, beside)
-            assert status["stale"] > 0 and status["frames"] < 10 * rate * seconds, status
+            # Past what the service steps: frames were dropped as stale, and only the rest stepped.
+            assert status["stale"] > 0 and status["frames"] + status["stale"] <= status["sent"], status
     finally:
         if flood is not None:
             flood.kill()
