@@ -35,7 +35,7 @@ from inhand_tracker.protocol import (
 )
 from inhand_tracker.protocol.identity import ServiceKey, signed
 from inhand_tracker.service.paths import resolve
-from inhand_tracker.service.tracker import METHODS
+from inhand_tracker.service.tracker import METHODS, changed
 from inhand_tracker.sim_backend import load_catalog, load_robot, resolve_device
 
 from .admission import Admission, ServiceError
@@ -64,7 +64,6 @@ class TrackerNode:
     """The long-running tracking service of one process."""
 
     def __init__(self, config: ServiceConfig):
-        self.config = config
         self.keys = Keys(config.name)
         robots = {spec.name: spec for spec in (load_robot(resolve(path)) for path in config.robots)}
         catalog = load_catalog(resolve(config.objects))
@@ -409,9 +408,10 @@ class TrackerNode:
             priority=zenoh.Priority.REAL_TIME,
         )
         self.outputs.open(info, request)
-        log.info(
-            "session %s opened: robot '%s', object '%s', %d worlds, %s%s",
-            info.session, info.robot, info.object, info.worlds, info.method, f" ({info.notice})" if info.notice else "",
+        log.info(  # the settings beyond the defaults: its robot config's and its overrides
+            "session %s opened: robot '%s', object '%s', %d worlds, %s%s%s", info.session, info.robot, info.object,
+            info.worlds, info.method, f", settings {c}" if (c := changed(admission.tracker_config)) else "",
+            f" ({info.notice})" if info.notice else "",
         )  # fmt: skip
         return info
 
