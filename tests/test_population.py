@@ -351,6 +351,16 @@ def test_bad_inputs_raise_value_errors_naming_the_field(hand, tmp_path):
                    PopulationConfig(worlds=1, device="cpu"))  # fmt: skip
 
 
+def test_every_shipped_robot_config_loads_with_settings_the_service_accepts():
+    from inhand_tracker.service.tracker.settings import robot_defaults
+
+    tables = {path.stem: robot_defaults(load_robot(path)) for path in sorted((CONFIGS / "robots").glob("*.toml"))}
+    assert len(tables) >= 6, tables
+    # The palm felt through two halves follows dead reckoning; its skin overlay, which extends it, does not.
+    assert tables["allegro_palm"] == {"optimizer.open_loop_ratio": 1.5, "optimizer.min_pose_evidence": 10.0}
+    assert tables["allegro_palm_grid"] == {} and tables["shadow_touch"] == {}, tables
+
+
 DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
 
 
