@@ -61,16 +61,16 @@ def files_suite(trajectories: Sequence[Trajectory]) -> Suite:
     return Suite("files", objects, (), 1, seconds=round(seconds, 1), robot=trajectories[0].robot)
 
 
-def parse_settings(items: Sequence[str], robot: Mapping[str, object] | None = None) -> tuple[TrackerConfig, dict]:
+def parse_settings(items: Sequence[str], defaults: Mapping[str, object] | None = None) -> tuple[TrackerConfig, dict]:
     """A TrackerConfig and the population's physics overrides (by PopulationConfig's field names)
     from ``--set`` NAME=VALUE strings, by the settings' dotted names (:mod:`..tracker.settings`):
     ``exploration.jitter_bandwidth=0.5``, ``optimizer.min_separation=4``, ``cost.zone_force=0``,
-    ``population.impratio=30``; they change the ``robot``'s own (its config's ``[tracker]`` table,
-    :func:`..tracker.settings.robot_defaults`), as a session's overrides do. The layout's and the
+    ``population.impratio=30``; they change the robot's own ``defaults`` (its config's ``[tracker]``
+    table, :func:`..tracker.settings.robot_defaults`), as a session's overrides do. The layout's and the
     suite's own (seed, substeps) have their flags. A bad name or value is a ValueError naming it."""
     allowed = [n for n in settings.registry() if n not in ("seed", "population.substeps")]
     tracker, physics = settings.split(settings.parse(items, allowed))
-    return settings.tracker_config(dict(robot or {}) | tracker), physics
+    return settings.tracker_config(dict(defaults or {}) | tracker), physics
 
 
 def run_suite(run: AccuracyRun, checkpoint: Callable[[dict], None] | None = None) -> dict:
