@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from inhand_tracker.service.bench.demos import Demo
 from inhand_tracker.service.bench.mujoco_truth import record_mujoco
 from inhand_tracker.service.bench.recorder import record
-from inhand_tracker.service.bench.scene_truth import MANIPULATE_BLOCK, SceneFile, load_scene
+from inhand_tracker.service.bench.scene_truth import MANIPULATE_BLOCK, MANIPULATE_BLOCK_TIPS, SceneFile, load_scene
 from inhand_tracker.service.bench.shadow_motions import SHADOW_MOTION_KINDS, make_shadow_motion
 from inhand_tracker.service.bench.suites import robot_spec
 from inhand_tracker.service.cli import app
@@ -113,6 +113,26 @@ def test_the_manipulate_suite_in_short_form_tracks_the_block_on_the_palm(tmp_pat
     assert sorted(p.name for p in (tmp_path / "cache").glob("*.traj")) == [
         f"manipulate-short-block_{k}_0.traj" for k in sorted(SHADOW_MOTION_KINDS[:2])
     ]
+
+
+def test_a_hand_with_fingertip_sensors_feels_the_scenes_contacts_on_its_fingertips():
+    """The same scene felt as a Shadow hand with force sensors in its fingertips (the
+    manipulate-fingertips suite): the truth reads the contact forces on the config's sensor links,
+    and the tracker's worlds feel the fingers' pushes on the same fingertips."""
+    spec = robot_spec("shadow_hand")
+    kin, obj = Kinematics(spec), catalog_object("block")
+    demo = make_shadow_motion(kin, obj, "roll", seconds=8.0)
+    scene = load_scene(MANIPULATE_BLOCK_TIPS, kin.layout, obj.mass)
+    assert [scene.model.body(int(b)).name for b in scene.sensor_bodies] == list(spec.sensor_links)
+    truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
+    assert truth.touch.shape == (demo.frames, 1, 0) and truth.force.shape == (demo.frames, 1, 5, 3)
+    ours = record(Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu")), demo,
+                  np.array([obj.mass]), np.array([obj.friction]))  # fmt: skip
+    pushing = lambda rec: np.linalg.norm(rec.force[:, 0], axis=-1) > 0.1  # noqa: E731 - (F, 5)
+    assert pushing(truth).any(0).sum() >= 2, "the roll's fingers push the block"
+    both = (pushing(truth) & pushing(ours)).sum() / pushing(truth).sum()
+    assert both > 0.5, both
+    assert not load_scene(MANIPULATE_BLOCK, kin.layout, obj.mass).sensor_bodies.size, "the touch scene's hand has none"
 
 
 def test_touch_noise_has_a_deadband_and_a_field_the_robot_lacks_stays_absent():

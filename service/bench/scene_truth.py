@@ -11,7 +11,7 @@ site name.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -23,7 +23,15 @@ from inhand_tracker.sim_backend.robot_specs import RobotLayout
 
 from .mujoco_truth import MujocoScene
 
-__all__ = ["ALLEGRO_PALM_BLOCK", "ALLEGRO_PALM_GRID_BLOCK", "MANIPULATE_BLOCK", "SceneFile", "load_scene"]
+__all__ = [
+    "ALLEGRO_PALM_BLOCK",
+    "ALLEGRO_PALM_BLOCK_TIPS",
+    "ALLEGRO_PALM_GRID_BLOCK",
+    "MANIPULATE_BLOCK",
+    "MANIPULATE_BLOCK_TIPS",
+    "SceneFile",
+    "load_scene",
+]
 
 
 @dataclass(frozen=True)
@@ -37,6 +45,9 @@ class SceneFile:
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Where the tracker's world origin lies in the scene's world [m] (the robot config's ``base``
     moves the same mount there)."""
+    fingertip_forces: bool = False
+    """The robot feels the forces on its fingertips (its config's ``sensor_links``), as the contact
+    forces on the scene's links of those names; else it feels only the scene's touch sensors."""
 
 
 MANIPULATE_BLOCK = SceneFile(
@@ -46,9 +57,16 @@ MANIPULATE_BLOCK = SceneFile(
 the 5 cm block, its 2 ms step and solver, and 92 touch sensors over palm and phalanges. (The
 package's egg and pen scenes are left alone: an independent check.)"""
 
+MANIPULATE_BLOCK_TIPS = replace(MANIPULATE_BLOCK, fingertip_forces=True)
+"""The same scene felt by a hand with force sensors in its fingertips and none on its palm or
+phalanges: what a Shadow hand with fingertip sensors feels of a block on its palm."""
+
 ALLEGRO_PALM_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_scene.xml"), "object")
 """The Allegro Hand palm up with the 5 cm block on its palm, MuJoCo's own contact model and a 2 ms
 step, and a touch sensor on each of the hand's 14 touch sites (``configs/robots/allegro_palm.toml``)."""
+
+ALLEGRO_PALM_BLOCK_TIPS = replace(ALLEGRO_PALM_BLOCK, fingertip_forces=True)
+"""The same scene felt by the hand's fingertip force sensors alone (``configs/robots/allegro_palm_tips.toml``)."""
 
 ALLEGRO_PALM_GRID_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_grid_scene.xml"), "object")
 """The same scene with a touch sensor on each taxel of a 4 x 4 grid over the palm
@@ -66,7 +84,8 @@ def _scale_servos(model: mujoco.MjModel, joints: list[int], by: float) -> None:
 
 def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo_scale: float = 1.0) -> MujocoScene:
     """``scene`` in MuJoCo C, with the tracker's robot ``layout`` found in it by name: its joints,
-    the joint each actuator drives, and the touch sensor on each touch zone's site. A ValueError
+    the joint each actuator drives, the touch sensor on each touch zone's site, and the link of
+    each fingertip force sensor. A ValueError
     names what the scene lacks. ``servo_scale`` scales the robot's position servos (gain, force
     range) and its joints' damping: servos other than the scene's authors wrote."""
     path = Path(python_package_path(scene.path))
@@ -99,6 +118,7 @@ def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo
     if missing:
         raise ValueError(f"scene '{path.name}': no touch sensor on the sites {missing}")
     body = find(mujoco.mjtObj.mjOBJ_BODY, scene.object_body, "body")
+    tips = [find(mujoco.mjtObj.mjOBJ_BODY, n, "link") for n in layout.sensor_names] if scene.fingertip_forces else []
     return MujocoScene(
         model=model,
         xml=path,
@@ -106,8 +126,8 @@ def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo
         actuator_joint=np.array(actuator_joint),
         object_body=body,
         object_qpos=int(model.jnt_qposadr[model.body_jntadr[body]]),
-        sensor_bodies=np.zeros(0, np.int64),  # the scene's robot has no fingertip force sensors
-        sensor_offsets=np.zeros((0, 7)),
+        sensor_bodies=np.array(tips, np.int64),
+        sensor_offsets=np.asarray(layout.sensor_offsets, np.float64).reshape(-1, 7)[: len(tips)],
         nominal_mass=nominal_mass,
         touch_sensors=np.array([touch_of_site[s] for s in sites], np.int64),
         origin=np.asarray(scene.origin, np.float64),

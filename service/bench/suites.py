@@ -12,7 +12,14 @@ from inhand_tracker.sim_backend import HandSpec, Kinematics, PopulationConfig, R
 from .allegro_motions import ALLEGRO_MOTION_KINDS
 from .demos import DEMO_KINDS
 from .motions import MOTION_KINDS
-from .scene_truth import ALLEGRO_PALM_BLOCK, ALLEGRO_PALM_GRID_BLOCK, MANIPULATE_BLOCK, SceneFile
+from .scene_truth import (
+    ALLEGRO_PALM_BLOCK,
+    ALLEGRO_PALM_BLOCK_TIPS,
+    ALLEGRO_PALM_GRID_BLOCK,
+    MANIPULATE_BLOCK,
+    MANIPULATE_BLOCK_TIPS,
+    SceneFile,
+)
 from .shadow_motions import SHADOW_MOTION_KINDS
 
 __all__ = [
@@ -156,6 +163,17 @@ SUITES: dict[str, Suite] = {
         scene=MANIPULATE_BLOCK,
         robot="shadow_touch",
     ),
+    "manipulate-fingertips": Suite(
+        "manipulate-fingertips",
+        ("block",),
+        SHADOW_MOTION_KINDS,
+        1,
+        seconds=15.0,
+        sensors=_REAL_SENSORS,
+        engine="scene",
+        scene=MANIPULATE_BLOCK_TIPS,
+        robot="shadow_hand",
+    ),
     "allegro-palm": Suite(
         "allegro-palm",
         ("block",),
@@ -177,6 +195,17 @@ SUITES: dict[str, Suite] = {
         engine="scene",
         scene=ALLEGRO_PALM_GRID_BLOCK,
         robot="allegro_palm_grid",
+    ),
+    "allegro-palm-fingertips": Suite(
+        "allegro-palm-fingertips",
+        ("block",),
+        ALLEGRO_MOTION_KINDS,
+        1,
+        seconds=15.0,
+        sensors=_REAL_SENSORS,
+        engine="scene",
+        scene=ALLEGRO_PALM_BLOCK_TIPS,
+        robot="allegro_palm_tips",
     ),
     "allegro-palm-weak": Suite(
         "allegro-palm-weak",

@@ -140,7 +140,10 @@ def bench_load(
     typer.echo(json.dumps(as_dicts(results), indent=2) if json_ else format_table(results))
 
 
-SUITE_HELP = "smoke, paper, reality-gap, cross-engine (+ -shadow), manipulate, allegro-palm (+ -grid, -weak) or loss"
+SUITE_HELP = (
+    "smoke, paper, reality-gap, cross-engine (+ -shadow), manipulate (+ -fingertips),"
+    " allegro-palm (+ -grid, -weak, -fingertips) or loss"
+)
 
 
 @bench.command("accuracy")
