@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from inhand_tracker.service.bench.allegro_motions import ALLEGRO_MOTION_KINDS, make_allegro_motion
 from inhand_tracker.service.bench.mujoco_truth import record_mujoco
-from inhand_tracker.service.bench.scene_truth import ALLEGRO_PALM_BLOCK, load_scene
+from inhand_tracker.service.bench.scene_truth import ALLEGRO_PALM_BLOCK, ALLEGRO_PALM_BLOCK_TIPS, load_scene
 from inhand_tracker.service.bench.suites import SUITES, robot_spec
 from inhand_tracker.service.cli import app
 from inhand_tracker.sim_backend import Kinematics, catalog_object
@@ -44,6 +44,17 @@ def test_the_scene_drives_every_joint_and_senses_every_zone(scene, hand):
     assert m.nu == 16 and sorted(scene.actuator_joint.tolist()) == list(range(16))
     assert len(scene.touch_sensors) == 14
     assert m.opt.cone == 0 and m.opt.impratio == pytest.approx(1.0)  # MuJoCo's own contact model
+
+
+def test_the_fingertip_config_feels_the_scene_through_its_fingertip_links_alone():
+    """allegro_palm_tips: the same hand without its touch array; the scene's truth reads the contact
+    forces on the config's fingertip links, and no touch sensor."""
+    tips = Kinematics(robot_spec("allegro_palm_tips")).layout
+    assert tips.zone_names == () and tips.sensor_names == ("ff_distal", "mf_distal", "rf_distal", "th_distal")
+    scene = load_scene(ALLEGRO_PALM_BLOCK_TIPS, tips, catalog_object("block").mass)
+    assert [scene.model.body(int(b)).name for b in scene.sensor_bodies] == list(tips.sensor_names)
+    assert len(scene.touch_sensors) == 0 and scene.sensor_offsets.shape == (4, 7)
+    assert SUITES["allegro-palm-fingertips"].robot == "allegro_palm_tips"
 
 
 def test_a_weak_servos_truth_scales_the_scene_s_servos_and_the_robot_s(scene, hand):

@@ -84,10 +84,10 @@ def _scale_servos(model: mujoco.MjModel, joints: list[int], by: float) -> None:
 
 def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo_scale: float = 1.0) -> MujocoScene:
     """``scene`` in MuJoCo C, with the tracker's robot ``layout`` found in it by name: its joints,
-    the joint each actuator drives, the touch sensor on each touch zone's site, and the link of
-    each fingertip force sensor. A ValueError
-    names what the scene lacks. ``servo_scale`` scales the robot's position servos (gain, force
-    range) and its joints' damping: servos other than the scene's authors wrote."""
+    the joint each actuator drives, the touch sensor on each touch zone's site, and (where the
+    scene says the robot feels them) the link of each fingertip force sensor. A ValueError names
+    what the scene lacks. ``servo_scale`` scales the robot's position servos (gain, force range)
+    and its joints' damping: servos other than the scene's authors wrote."""
     path = Path(python_package_path(scene.path))
     model = mujoco.MjModel.from_xml_path(str(path))
 
@@ -118,7 +118,11 @@ def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo
     if missing:
         raise ValueError(f"scene '{path.name}': no touch sensor on the sites {missing}")
     body = find(mujoco.mjtObj.mjOBJ_BODY, scene.object_body, "body")
-    tips = [find(mujoco.mjtObj.mjOBJ_BODY, n, "link") for n in layout.sensor_names] if scene.fingertip_forces else []
+    if scene.fingertip_forces:
+        tips = np.array([find(mujoco.mjtObj.mjOBJ_BODY, n, "link") for n in layout.sensor_names], np.int64)
+        offsets = np.asarray(layout.sensor_offsets, np.float64).reshape(-1, 7)
+    else:  # a robot that reads the scene's touch sensors feels no fingertip forces
+        tips, offsets = np.zeros(0, np.int64), np.zeros((0, 7))
     return MujocoScene(
         model=model,
         xml=path,
@@ -126,8 +130,8 @@ def load_scene(scene: SceneFile, layout: RobotLayout, nominal_mass: float, servo
         actuator_joint=np.array(actuator_joint),
         object_body=body,
         object_qpos=int(model.jnt_qposadr[model.body_jntadr[body]]),
-        sensor_bodies=np.array(tips, np.int64),
-        sensor_offsets=np.asarray(layout.sensor_offsets, np.float64).reshape(-1, 7)[: len(tips)],
+        sensor_bodies=tips,
+        sensor_offsets=offsets,
         nominal_mass=nominal_mass,
         touch_sensors=np.array([touch_of_site[s] for s in sites], np.int64),
         origin=np.asarray(scene.origin, np.float64),
