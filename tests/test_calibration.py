@@ -181,3 +181,58 @@ def test_the_report_names_the_joints_a_fit_leaves_far_off():
     report = calibration_report(fit)
     assert "more than 15 mrad (mm) off, net of the noise, keep the config's servos: right 40." in report, report
     assert "left 3" not in report
+
+
+def test_check_settings_pairs_every_setting_with_one_world_and_writes_the_table_it_chose(tmp_path):
+    """A lab with motion capture picks its robot's tracker settings from a few grasps: each setting
+    tracks them from the same noisy starts as one open-loop world; the overlay it writes carries
+    the chosen table, which the robot's config then gives its sessions."""
+    from inhand_tracker.service.bench import OWN_SETTINGS
+    from inhand_tracker.service.paths import DATA_DIR
+    from inhand_tracker.service.tracker.settings import robot_defaults
+
+    config = tmp_path / "my_allegro.toml"
+    config.write_text(f'extends = "{(CONFIG_DIR / "robots" / "allegro.toml").as_posix()}"\n')
+    traj = str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
+    args = ["check-settings", traj, "--robot", str(config), "--worlds", "8", "--starts", "2", "--device", "cpu"]
+    result = CliRunner().invoke(app, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "my_allegro.tracker.json").read_text())
+    assert summary["robot"] == "allegro" and summary["pairs"] == 2 and summary["method"] == "PBO"
+    settings = summary["settings"]
+    assert list(settings) == [OWN_SETTINGS, "palm"] and settings[OWN_SETTINGS]["table"] == {}
+    assert settings["palm"]["table"] == {"optimizer.open_loop_ratio": 1.5, "optimizer.min_pose_evidence": 10.0}
+    for s in settings.values():  # each paired with the one world of the same starts
+        assert s["mean_mm"] == pytest.approx(summary["one_world_mm"] + s["vs_one_world_mm"], abs=1e-6)
+        assert s["within_limit"] == (s["mean_mm"] <= summary["limit_mm"])
+    chosen = summary["chosen"]
+    assert settings[chosen]["within_limit"] or not any(s["within_limit"] for s in settings.values())
+    overlay = tmp_path / "my_allegro.tracker.toml"
+    assert overlay.exists() == (chosen != OWN_SETTINGS)
+    if overlay.exists():
+        robot = load_robot(overlay)
+        assert robot.name == "allegro" and robot_defaults(robot) == settings[chosen]["table"]
+    # A recording of another robot is refused, naming both.
+    gripper = tmp_path / "gripper.toml"
+    gripper.write_text(f'extends = "{GRIPPER.as_posix()}"\n')
+    other = CliRunner().invoke(app, ["check-settings", traj, "--robot", str(gripper), "--device", "cpu"])
+    assert other.exit_code == 2 and "of robot 'allegro', the config's is 'example_gripper'" in other.output
+
+
+def test_check_settings_keeps_the_robots_own_unless_a_candidate_is_surely_better():
+    """The choice: the lowest mean within one world's limit, but the robot's own settings stay
+    where a candidate is not lower by more than the pairs' standard error; where none is within,
+    the lowest."""
+    from inhand_tracker.service.bench import OWN_SETTINGS, SettingsCheck
+
+    one = np.full(6, 4e-3)
+    check = lambda own, palm: SettingsCheck(  # noqa: E731
+        "allegro", "PBO", 40, "cpu", ["t"] * 6, one, {OWN_SETTINGS: np.asarray(own), "palm": np.asarray(palm)},
+        {OWN_SETTINGS: {}, "palm": {"optimizer.open_loop_ratio": 1.5}},
+    )  # fmt: skip
+    noisy = 1e-4 * np.array([1.0, -1.0, 2.0, -2.0, 1.5, -1.5])
+    assert check(one + 1e-4 + noisy, one + 9e-5).chosen() == OWN_SETTINGS  # within, the candidate no surer
+    assert check(one - 1e-3, one).chosen() == OWN_SETTINGS  # the robot's own is best
+    assert check(one + 3e-3, one + 1e-5).chosen() == "palm"  # the robot's own beyond the limit
+    assert check(one + 1e-4, one - 1e-3 + noisy * 0.1).chosen() == "palm"  # within, but the candidate surely better
+    assert check(one + 3e-3, one + 2e-3).chosen() == "palm"  # none within: the lowest

@@ -1,5 +1,6 @@
 """The benchmarks: accuracy suites (ground truth from scripted demos, ADD per track), the speed of
-the whole tracker against its physics, the physics alone, and their reports.
+the whole tracker against its physics, the physics alone, and their reports; and the tracker
+settings a robot's own recordings with truth call for (``check-settings``).
 
 Nothing outside this package imports it but the command line."""
 
@@ -8,6 +9,7 @@ from .demos import DEMO_KINDS, Demo, make_demo
 from .recorder import Recording, record, sensitivity
 from .report import write_report
 from .run import AccuracyRun
+from .settings_check import CANDIDATES, OWN_SETTINGS, SettingsCheck, check_settings, settings_report, write_settings
 from .sim import SimBenchResult, bench_sim
 from .speed import SpeedResult, bench_speed
 from .suites import EXPLORATION, K_ABLATION, NOISE_LEVELS, SUITES, PhysicsGap, SensorNoise, Suite
@@ -15,16 +17,19 @@ from .tracks import TrackResult, TrackSetting, run_tracks
 from .truth import ground_truth
 
 __all__ = [
+    "CANDIDATES",
     "DEMO_KINDS",
     "EXPLORATION",
     "K_ABLATION",
     "NOISE_LEVELS",
+    "OWN_SETTINGS",
     "SUITES",
     "AccuracyRun",
     "Demo",
     "PhysicsGap",
     "Recording",
     "SensorNoise",
+    "SettingsCheck",
     "SimBenchResult",
     "SpeedResult",
     "Suite",
@@ -32,6 +37,7 @@ __all__ = [
     "TrackSetting",
     "bench_sim",
     "bench_speed",
+    "check_settings",
     "ground_truth",
     "make_demo",
     "parse_settings",
@@ -39,5 +45,7 @@ __all__ = [
     "run_suite",
     "run_tracks",
     "sensitivity",
+    "settings_report",
     "write_report",
+    "write_settings",
 ]

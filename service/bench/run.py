@@ -8,7 +8,7 @@ from pathlib import Path
 from inhand_tracker.protocol import DEFAULT_WORLDS, Trajectory
 from inhand_tracker.service.paths import CACHE_DIR
 from inhand_tracker.service.tracker import METHODS, TrackerConfig
-from inhand_tracker.sim_backend import PopulationConfig
+from inhand_tracker.sim_backend import PopulationConfig, RobotSpec
 
 from .suites import K_ABLATION, NOISE_LEVELS, Suite
 
@@ -63,6 +63,9 @@ class AccuracyRun:
     servos: tuple[tuple[str, tuple[float, ...]], ...] = ()
     """The tracker's robot servos in place of its config's, as a calibration's overlay sets them
     (:attr:`sim_backend.FileRobotSpec.servos`); the truth keeps its own."""
+    robot: RobotSpec | None = None
+    """The tracker's robot in place of the config its trajectories name: a config of the user's own
+    (``check-settings``); None: ``configs/robots``' config of that name."""
     frames_to: Path | None = None
     """Where :func:`.tracks.save_frames` writes every track's per-frame estimate against the truth."""
 

@@ -221,7 +221,7 @@ def run_tracks(
     track a group of it. The noisy initial pose of a (trajectory, noise) pair is the same for
     every method, so methods are compared on equal footing; each repeat draws its own."""
     obj = catalog_object(trajectories[0].object)
-    spec = robot_spec(trajectories[0].robot)
+    spec = run.robot or robot_spec(trajectories[0].robot)
     spec = replace(spec, servos=run.servos) if run.servos else spec
     rec = Recording.stack(trajectories)
     gen = torch.Generator().manual_seed(run.suite.seed)

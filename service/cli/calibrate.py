@@ -107,3 +107,43 @@ def check_model(
     except ValueError as exc:
         raise fail(f"check-model: {exc}") from None
     typer.echo(json.dumps(result.summary(), indent=2) if json_ else model_check_report(result))
+
+
+@app.command("check-settings")
+def check_settings(
+    ctx: typer.Context,
+    recordings: Annotated[list[Path], typer.Argument(help="recordings with truth (motion capture): .traj")],
+    robot: Annotated[Path, typer.Option(help="the robot's config (TOML)")],
+    worlds: Annotated[int, typer.Option(help="K, worlds per recording, as the service will run it")] = 40,
+    starts: Annotated[int, typer.Option(help="noisy starts per recording, each paired with one world's")] = 3,
+    noise: Annotated[str, typer.Option(help="the start's error: low, med or high (the benchmarks' levels)")] = "med",
+    out: Annotated[Path | None, typer.Option(help="the overlay (default: NAME.tracker.toml beside it)")] = None,
+    device: Device = "auto",
+    json_: Json = False,
+) -> None:
+    """Track the recordings with the robot's tracker settings and with the candidate tables (the palm
+    settings), each paired with one open-loop world from the same starts, and write an overlay of
+    the config with the table that is never worse than that world and tracks best, and a report."""
+    _files_exist("check-settings", robot, recordings, device)
+    from inhand_tracker.protocol.recording import load_trajectory
+    from inhand_tracker.service.bench import check_settings as check
+    from inhand_tracker.service.bench import settings_report, write_settings
+    from inhand_tracker.service.bench.suites import NOISE_LEVELS
+    from inhand_tracker.sim_backend import load_robot
+
+    if noise not in NOISE_LEVELS:
+        raise fail(f"check-settings --noise: expected one of {sorted(NOISE_LEVELS)}, got '{noise}'")
+    if worlds < 2 or starts < 1:
+        raise fail(f"check-settings: expected --worlds >= 2 and --starts >= 1, got {worlds} and {starts}")
+    try:
+        spec = load_robot(robot)
+        trajs = [load_trajectory(r) for r in recordings]
+        with contextlib.redirect_stdout(sys.stderr):
+            result = check(spec, trajs, worlds=worlds, starts=starts, noise=noise, device=device)
+    except ValueError as exc:
+        raise fail(f"check-settings: {exc}") from None
+    target = out or robot.with_name(f"{robot.stem}.tracker.toml")
+    overlay = write_settings(result, robot, target, command_line(ctx))
+    typer.echo(json.dumps(result.summary(), indent=2) if json_ else settings_report(result))
+    said = f"overlay: {overlay}" if overlay else "the robot's settings are chosen: its config stays as it is"
+    typer.echo(f"{said}\nreport: {target.with_suffix('.md')}", err=json_)
