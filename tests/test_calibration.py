@@ -195,13 +195,16 @@ def test_check_settings_pairs_every_setting_with_one_world_and_writes_the_table_
     config.write_text(f'extends = "{(CONFIG_DIR / "robots" / "allegro.toml").as_posix()}"\n')
     traj = str(DATA_DIR / "smoke-foam_brick_pick_place_0.traj")
     args = ["check-settings", traj, "--robot", str(config), "--worlds", "8", "--starts", "2", "--device", "cpu"]
-    result = CliRunner().invoke(app, [*args, "--json"])
+    bad = CliRunner().invoke(app, [*args, "--set", "optimizer.open_loop_ratio=0.5"])
+    assert bad.exit_code == 2 and "optimizer.open_loop_ratio: expected 0 (off) or 1 to 10, got 0.5" in bad.output
+    result = CliRunner().invoke(app, [*args, "--set", "optimizer.min_separation=4", "--json"])
     assert result.exit_code == 0, result.output
     summary = json.loads((tmp_path / "my_allegro.tracker.json").read_text())
     assert summary["robot"] == "allegro" and summary["pairs"] == 2 and summary["method"] == "PBO"
     settings = summary["settings"]
-    assert list(settings) == [OWN_SETTINGS, "palm"] and settings[OWN_SETTINGS]["table"] == {}
+    assert list(settings) == [OWN_SETTINGS, "palm", "given"] and settings[OWN_SETTINGS]["table"] == {}
     assert settings["palm"]["table"] == {"optimizer.open_loop_ratio": 1.5, "optimizer.min_pose_evidence": 10.0}
+    assert settings["given"]["table"] == {"optimizer.min_separation": 4.0}
     for s in settings.values():  # each paired with the one world of the same starts
         assert s["mean_mm"] == pytest.approx(summary["one_world_mm"] + s["vs_one_world_mm"], abs=1e-6)
         assert s["within_limit"] == (s["mean_mm"] <= summary["limit_mm"])

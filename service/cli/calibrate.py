@@ -117,18 +117,26 @@ def check_settings(
     worlds: Annotated[int, typer.Option(help="K, worlds per recording, as the service will run it")] = 40,
     starts: Annotated[int, typer.Option(help="noisy starts per recording, each paired with one world's")] = 3,
     noise: Annotated[str, typer.Option(help="the start's error: low, med or high (the benchmarks' levels)")] = "med",
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set", metavar="NAME=VALUE", help="a table of your own to try as well, e.g. optimizer.by_evidence=true"
+        ),
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="the overlay (default: NAME.tracker.toml beside it)")] = None,
     device: Device = "auto",
     json_: Json = False,
 ) -> None:
     """Track the recordings with the robot's tracker settings and with the candidate tables (the palm
-    settings), each paired with one open-loop world from the same starts, and write an overlay of
-    the config with the table that is never worse than that world and tracks best, and a report."""
+    settings, and the one ``--set`` gives), each paired with one open-loop world from the same
+    starts, and write an overlay of the config with the table that is never worse than that world
+    and tracks best, and a report."""
     _files_exist("check-settings", robot, recordings, device)
     from inhand_tracker.protocol.recording import load_trajectory
+    from inhand_tracker.service.bench import CANDIDATES, settings_report, write_settings
     from inhand_tracker.service.bench import check_settings as check
-    from inhand_tracker.service.bench import settings_report, write_settings
     from inhand_tracker.service.bench.suites import NOISE_LEVELS
+    from inhand_tracker.service.tracker import settings
     from inhand_tracker.sim_backend import load_robot
 
     if noise not in NOISE_LEVELS:
@@ -136,10 +144,15 @@ def check_settings(
     if worlds < 2 or starts < 1:
         raise fail(f"check-settings: expected --worlds >= 2 and --starts >= 1, got {worlds} and {starts}")
     try:
+        given = settings.parse(set_ or [], [n for n in settings.registry() if not n.startswith("population.")])
+    except ValueError as exc:
+        raise fail(f"check-settings --set: {exc}") from None
+    candidates = CANDIDATES | ({"given": given} if given else {})
+    try:
         spec = load_robot(robot)
         trajs = [load_trajectory(r) for r in recordings]
         with contextlib.redirect_stdout(sys.stderr):
-            result = check(spec, trajs, worlds=worlds, starts=starts, noise=noise, device=device)
+            result = check(spec, trajs, worlds, starts, noise, device, candidates)
     except ValueError as exc:
         raise fail(f"check-settings: {exc}") from None
     target = out or robot.with_name(f"{robot.stem}.tracker.toml")
