@@ -40,6 +40,14 @@ fingertips that rarely touch it)."""
 OWN_SETTINGS = "robot's settings"
 """The name of the robot's own settings (its config's ``[tracker]`` table, or the defaults)."""
 
+_Z95 = 1.645
+"""The standard normal's one-sided 95 % quantile."""
+
+
+def _paired(d: np.ndarray) -> tuple[float, float]:
+    """The mean of paired differences ``d`` (N,) and its standard error (0 for one pair)."""
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else 0.0
+
 
 @dataclass
 class SettingsCheck:
@@ -59,27 +67,36 @@ class SettingsCheck:
     tables: dict[str, dict[str, bool | int | float | str]] = field(default_factory=dict)
     """Each setting's whole ``[tracker]`` table by dotted name: the robot's with the candidate's."""
 
-    def limit(self) -> float:
-        """The most a setting's mean ADD may be: one world's plus max(0.2 mm, 5 %) [m]."""
-        base = float(self.one_world.mean())
-        return base + max(0.2e-3, 0.05 * base)
+    def allowance(self) -> float:
+        """How much worse than one world a setting may be: max(0.2 mm, 5 % of its mean ADD) [m]."""
+        return max(0.2e-3, 0.05 * float(self.one_world.mean()))
 
     def paired(self, name: str) -> tuple[float, float]:
-        """The mean difference from one world over the pairs and its standard error [m]."""
-        d = self.runs[name] - self.one_world
-        return float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
+        """The mean difference of setting ``name`` from one world over the pairs and its standard
+        error [m] (0 from a single pair, which has no spread to tell)."""
+        return _paired(self.runs[name] - self.one_world)
+
+    def upper(self, name: str) -> float:
+        """The one-sided 95 % bound of :meth:`paired`'s difference, mean + 1.645 standard errors [m]."""
+        mean, se = self.paired(name)
+        return mean + _Z95 * se
+
+    def within(self, name: str) -> bool:
+        """Whether setting ``name`` is surely no worse than one world by more than :meth:`allowance`:
+        its :meth:`upper` bound within it, not its mean alone, which a few lucky starts can bring under."""
+        return self.upper(name) <= self.allowance()
 
     def chosen(self) -> str:
-        """The setting to run: the lowest mean ADD among those within :meth:`limit`; the robot's
-        own where it is within and no candidate is lower by more than the pairs' standard error."""
-        within = [n for n, a in self.runs.items() if a.mean() <= self.limit()]
+        """The setting to run: the lowest mean ADD among those :meth:`within`, but the robot's own
+        where it is within and that one is not surely better (its paired gain over one standard error);
+        where none is, the one with the lowest :meth:`upper` bound."""
+        within = [n for n in self.runs if self.within(n)]
         if not within:
-            return min(self.runs, key=lambda n: self.runs[n].mean())
+            return min(self.runs, key=self.upper)
         best = min(within, key=lambda n: self.runs[n].mean())
-        own = self.runs.get(OWN_SETTINGS)
-        if OWN_SETTINGS in within and best != OWN_SETTINGS and own is not None:
-            gain = own - self.runs[best]
-            if gain.mean() <= gain.std(ddof=1) / np.sqrt(gain.size) if gain.size > 1 else True:
+        if OWN_SETTINGS in within and best != OWN_SETTINGS:
+            gain, se = _paired(self.runs[OWN_SETTINGS] - self.runs[best])
+            if gain <= se:
                 return OWN_SETTINGS
         return best
 
@@ -91,13 +108,14 @@ class SettingsCheck:
             "device": self.device,
             "pairs": len(self.tracks),
             "one_world_mm": 1e3 * float(self.one_world.mean()),
-            "limit_mm": 1e3 * self.limit(),
+            "allowance_mm": 1e3 * self.allowance(),
             "settings": {
                 name: {
                     "mean_mm": 1e3 * float(a.mean()),
                     "vs_one_world_mm": 1e3 * self.paired(name)[0],
                     "standard_error_mm": 1e3 * self.paired(name)[1],
-                    "within_limit": bool(a.mean() <= self.limit()),
+                    "upper_mm": 1e3 * self.upper(name),
+                    "within_limit": self.within(name),
                     "table": self.tables[name],
                 }
                 for name, a in self.runs.items()
@@ -161,21 +179,23 @@ def check_settings(
 
 
 def settings_report(check: SettingsCheck) -> str:
-    """A markdown table: each setting's mean ADD, its paired difference from one open-loop world,
-    whether it is within the limit, and the setting chosen."""
+    """A markdown table: each setting's mean ADD, its paired difference from one open-loop world
+    with the difference's standard error and 95 % bound, whether it is surely within the allowance,
+    and the setting chosen."""
     s = check.summary()
     lines = [
         f"Robot '{check.robot}', {check.method} with {check.worlds} worlds, {s['pairs']} (recording, start) pairs"
-        f" ({check.device}): one open-loop world {s['one_world_mm']:.2f} mm, limit {s['limit_mm']:.2f} mm.",
+        f" ({check.device}): one open-loop world {s['one_world_mm']:.2f} mm; a setting may be worse by"
+        f" {s['allowance_mm']:.2f} mm at its 95 % bound.",
         "",
-        "| settings | mean ADD mm | vs one world mm | within limit | table |",
-        "|---|---|---|---|---|",
+        "| settings | mean ADD mm | vs one world mm | 95 % bound mm | within | table |",
+        "|---|---|---|---|---|---|",
     ]
     for name, r in s["settings"].items():
         table = ", ".join(f"{k}={v}" for k, v in r["table"].items()) or "defaults"
         lines.append(
             f"| {name} | {r['mean_mm']:.2f} | {r['vs_one_world_mm']:+.2f} ± {r['standard_error_mm']:.2f} |"
-            f" {'yes' if r['within_limit'] else 'no'} | {table} |"
+            f" {r['upper_mm']:+.2f} | {'yes' if r['within_limit'] else 'no'} | {table} |"
         )
     lines += ["", f"Chosen: {s['chosen']}."]
     return "\n".join(lines)
