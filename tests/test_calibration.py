@@ -235,7 +235,7 @@ def test_check_settings_keeps_the_robots_own_unless_a_candidate_is_surely_better
         {OWN_SETTINGS: {}, "palm": {"optimizer.open_loop_ratio": 1.5}},
     )  # fmt: skip
     spread = 1e-4 * np.array([1.0, -1.0, 2.0, -2.0, 1.5, -1.5])
-    assert check(one + 1e-4 + spread, one + 9e-5).chosen() == OWN_SETTINGS  # within, the candidate no surer
+    assert check(one + 5e-5 + spread, one + 4e-5).chosen() == OWN_SETTINGS  # within, the candidate no surer
     assert check(one - 1e-3, one).chosen() == OWN_SETTINGS  # the robot's own is best
     assert check(one + 3e-3, one + 1e-5).chosen() == "palm"  # the robot's own beyond the allowance
     assert check(one + 1e-4, one - 1e-3 + spread * 0.1).chosen() == "palm"  # the candidate surely better
