@@ -101,6 +101,8 @@ class SettingsCheck:
         return best
 
     def summary(self) -> dict:
+        """Everything the report says, JSON-ready, in mm: per setting its mean, its paired difference
+        from one world, the difference's standard error and bound, whether it is within, its table."""
         return {
             "robot": self.robot,
             "method": self.method,
@@ -138,7 +140,6 @@ def check_settings(
     ``candidates`` over them, ``starts`` noisy starts per recording (``noise``, a bench level), and
     with one open-loop world from the same starts. The population runs the method its settings
     name. A ValueError names a recording without truth or of another robot."""
-
     for t in trajectories:
         if t.truth is None:
             raise ValueError(f"recording '{t.name}' carries no ground truth (the object's true pose per frame)")
