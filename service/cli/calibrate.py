@@ -129,8 +129,8 @@ def check_settings(
 ) -> None:
     """Track the recordings with the robot's tracker settings and with the candidate tables (the palm
     settings, and the one ``--set`` gives), each paired with one open-loop world from the same
-    starts, and write an overlay of the config with the table that is never worse than that world
-    and tracks best, and a report."""
+    starts, and write an overlay of the config with the table that tracks best of those surely no
+    worse than that world, and a report."""
     _files_exist("check-settings", robot, recordings, device)
     from inhand_tracker.protocol.recording import load_trajectory
     from inhand_tracker.service.bench import CANDIDATES, settings_report, write_settings
