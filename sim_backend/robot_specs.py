@@ -184,8 +184,10 @@ class TrackerDefaults:
     settings' dotted names (:mod:`inhand_tracker.service.tracker.settings`). A session's overrides
     and ``bench accuracy --set`` change them; the service checks the names when it loads the robot."""
 
-    tracker: tuple[tuple[str, bool | int | float | str], ...] = ()
-    """(dotted name, value) pairs, e.g. ``("optimizer.open_loop_ratio", 1.5)``."""
+    tracker: tuple[tuple[str, bool | int | float | str], ...] | None = None
+    """(dotted name, value) pairs, e.g. ``("optimizer.open_loop_ratio", 1.5)``; () for an empty table
+    (the defaults, chosen), None where the config gives none (the defaults, not checked against the
+    robot: the service says so once for a robot that carries objects on its palm)."""
 
 
 @dataclass(frozen=True)
@@ -325,7 +327,8 @@ def load_robot(path: str | os.PathLike) -> RobotSpec:
     if not isinstance(servos, dict) or sorted(set(servos) - set(SERVO_ARRAYS)):
         raise ValueError(f"robot config '{path}' servos: expected a table of {list(SERVO_ARRAYS)}, got {servos!r}")
     table["servos"] = tuple((k, tuple(float(x) for x in v)) for k, v in servos.items())
-    table["tracker"] = _dotted(path, table.pop("tracker", {}))
+    given = table.pop("tracker", None)
+    table["tracker"] = None if given is None else _dotted(path, given)
     try:
         zones = tuple(TouchZone(**{k: tuple(v) if isinstance(v, list) else v for k, v in z.items()})
                       for z in table.pop("touch_zones", ()))  # fmt: skip

@@ -13,7 +13,7 @@ import numpy as np
 
 from inhand_tracker.protocol import AUTO, DEFAULT_WORLDS, Error, ErrorCode, OpenSession, check_version
 from inhand_tracker.service.tracker import METHODS, OptimizerConfig, TrackerConfig
-from inhand_tracker.service.tracker.settings import registry, robot_defaults, tracker_config
+from inhand_tracker.service.tracker.settings import registry, robot_defaults, tracker_config, unchecked_palms
 from inhand_tracker.sim_backend import ObjectSpec, RobotSpec
 from inhand_tracker.sim_backend.kinematics import Kinematics
 
@@ -80,6 +80,13 @@ class Gate:
         self.pools, self.building, self.device = pools, building, device
         self.defaults = {name: robot_defaults(spec) for name, spec in robots.items()}
         """Each robot's tracker settings (its config's ``[tracker]`` table), checked once on load."""
+        for name in unchecked_palms(robots):
+            log.info(
+                f"robot '{name}' carries objects on its palm and its config gives no [tracker] table: its sessions"
+                " run the tracker's defaults, which on some palm-up hands track worse than one open-loop world;"
+                " `inhand-tracker check-settings` measures on a few grasps with motion capture which settings it"
+                " needs (`tracker = {}` in the config says the defaults were chosen)"
+            )
         self.kinematics: dict[str, Kinematics] = {}
         """Each robot's own model (its joint layout), built once per robot."""
         self._opened: deque[float] = deque()

@@ -18,7 +18,17 @@ from .config import TRACKER_GROUPS, TrackerConfig
 from .cost import TERM_NAMES, WEIGHTS, CostConfig
 from .optimizers import OptimizerConfig
 
-__all__ = ["SETTING_KINDS", "Setting", "changed", "parse", "registry", "robot_defaults", "split", "tracker_config"]
+__all__ = [
+    "SETTING_KINDS",
+    "Setting",
+    "changed",
+    "parse",
+    "registry",
+    "robot_defaults",
+    "split",
+    "tracker_config",
+    "unchecked_palms",
+]
 
 SETTING_KINDS = (bool, int, float, str)
 """What a setting may be: a flag, a number or a name (a friction cone, an integrator)."""
@@ -148,12 +158,21 @@ def tracker_config(values: Mapping[str, object], base: TrackerConfig | None = No
 def robot_defaults(robot: RobotSpec) -> dict[str, object]:
     """The tracker settings ``robot``'s config gives its sessions (its ``[tracker]`` table) by dotted
     name, checked as a session's overrides are: a ValueError names the robot and the setting."""
-    values = dict(robot.tracker)
+    values = dict(robot.tracker or ())
     try:
         tracker_config(values)
     except (ValueError, TypeError) as exc:
         raise ValueError(f"robot '{robot.name}' tracker: {exc}") from None
     return values
+
+
+def unchecked_palms(robots: Mapping[str, RobotSpec]) -> list[str]:
+    """The names of ``robots`` that carry objects on their palm and whose config gives no
+    ``[tracker]`` table: their sessions run the defaults, which on some palm-up hands (an object felt
+    through its weight or through fingertips that rarely touch it) track worse than one open-loop
+    world, and only the robot's own truth (``check-settings``) says which settings it needs."""
+    # The procedural hand declares no palm to carry on: only a robot file's config does.
+    return [n for n, spec in robots.items() if getattr(spec, "carries_on_palm", False) and spec.tracker is None]
 
 
 def changed(config: TrackerConfig, physics: Mapping[str, object] | None = None) -> dict[str, object]:
