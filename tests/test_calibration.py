@@ -213,6 +213,7 @@ def test_check_settings_pairs_every_setting_with_one_world_and_writes_the_table_
     assert settings[chosen]["within_limit"] or not any(s["within_limit"] for s in settings.values())
     overlay = tmp_path / "my_allegro.tracker.toml"
     assert overlay.exists() == (chosen != OWN_SETTINGS)
+    assert ("add `tracker = {}` to it" in result.output) == (chosen == OWN_SETTINGS)  # its config gives no table
     if overlay.exists():
         robot = load_robot(overlay)
         assert robot.name == "allegro" and robot_defaults(robot) == settings[chosen]["table"]

@@ -159,4 +159,6 @@ def check_settings(
     overlay = write_settings(result, robot, target, command_line(ctx))
     typer.echo(json.dumps(result.summary(), indent=2) if json_ else settings_report(result))
     said = f"overlay: {overlay}" if overlay else "the robot's settings are chosen: its config stays as it is"
+    if overlay is None and spec.tracker is None:
+        said += " (add `tracker = {}` to it to record the defaults as chosen)"
     typer.echo(f"{said}\nreport: {target.with_suffix('.md')}", err=json_)
