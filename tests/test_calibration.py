@@ -222,6 +222,13 @@ def test_check_settings_pairs_every_setting_with_one_world_and_writes_the_table_
     gripper.write_text(f'extends = "{GRIPPER.as_posix()}"\n')
     other = CliRunner().invoke(app, ["check-settings", traj, "--robot", str(gripper), "--device", "cpu"])
     assert other.exit_code == 2 and "of robot 'allegro', the config's is 'example_gripper'" in other.output
+    from inhand_tracker.protocol import Trajectory
+
+    blind = Trajectory.load(traj)  # a recording without the object's truth: nothing to pair against
+    blind.truth = None
+    blind.save(tmp_path / "blind.traj")
+    untrue = CliRunner().invoke(app, ["check-settings", str(tmp_path / "blind.traj"), "--robot", str(config)])
+    assert untrue.exit_code == 2 and "blind.traj' carries no ground truth" in untrue.output
 
 
 def test_check_settings_keeps_the_robots_own_unless_a_candidate_is_surely_better():

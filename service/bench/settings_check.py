@@ -100,6 +100,18 @@ class SettingsCheck:
                 return OWN_SETTINGS
         return best
 
+    def _setting(self, name: str) -> dict:
+        """One setting's line of :meth:`summary`."""
+        mean, se = self.paired(name)
+        return {
+            "mean_mm": 1e3 * float(self.runs[name].mean()),
+            "vs_one_world_mm": 1e3 * mean,
+            "standard_error_mm": 1e3 * se,
+            "upper_mm": 1e3 * self.upper(name),
+            "within_limit": self.within(name),
+            "table": self.tables[name],
+        }
+
     def summary(self) -> dict:
         """Everything the report says, JSON-ready, in mm: per setting its mean, its paired difference
         from one world, the difference's standard error and bound, whether it is within, its table."""
@@ -111,17 +123,7 @@ class SettingsCheck:
             "pairs": len(self.tracks),
             "one_world_mm": 1e3 * float(self.one_world.mean()),
             "allowance_mm": 1e3 * self.allowance(),
-            "settings": {
-                name: {
-                    "mean_mm": 1e3 * float(a.mean()),
-                    "vs_one_world_mm": 1e3 * self.paired(name)[0],
-                    "standard_error_mm": 1e3 * self.paired(name)[1],
-                    "upper_mm": 1e3 * self.upper(name),
-                    "within_limit": self.within(name),
-                    "table": self.tables[name],
-                }
-                for name, a in self.runs.items()
-            },
+            "settings": {name: self._setting(name) for name in self.runs},
             "chosen": self.chosen(),
         }
 
@@ -136,13 +138,11 @@ def check_settings(
     candidates: Mapping[str, Mapping[str, bool | int | float | str]] = CANDIDATES,
     quiet: bool = False,
 ) -> SettingsCheck:
-    """Track ``trajectories`` (each with its truth) with ``spec``'s settings and with each of
-    ``candidates`` over them, ``starts`` noisy starts per recording (``noise``, a bench level), and
-    with one open-loop world from the same starts. The population runs the method its settings
-    name. A ValueError names a recording without truth or of another robot."""
+    """Track ``trajectories`` (each with its truth, as :func:`.accuracy.load_files` reads them) with
+    ``spec``'s settings and with each of ``candidates`` over them, ``starts`` noisy starts per
+    recording (``noise``, a bench level), and with one open-loop world from the same starts. The
+    population runs the method its settings name. A ValueError names a recording of another robot."""
     for t in trajectories:
-        if t.truth is None:
-            raise ValueError(f"recording '{t.name}' carries no ground truth (the object's true pose per frame)")
         if t.robot != spec.name:
             raise ValueError(f"recording '{t.name}' is of robot '{t.robot}', the config's is '{spec.name}'")
     own = robot_defaults(spec)

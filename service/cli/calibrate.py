@@ -132,9 +132,9 @@ def check_settings(
     starts, and write an overlay of the config with the table that tracks best of those surely no
     worse than that world, and a report."""
     _files_exist("check-settings", robot, recordings, device)
-    from inhand_tracker.protocol.recording import load_trajectory
     from inhand_tracker.service.bench import CANDIDATES, settings_report, write_settings
     from inhand_tracker.service.bench import check_settings as check
+    from inhand_tracker.service.bench.accuracy import load_files
     from inhand_tracker.service.bench.suites import NOISE_LEVELS
     from inhand_tracker.service.tracker import settings
     from inhand_tracker.sim_backend import load_robot
@@ -150,7 +150,7 @@ def check_settings(
     candidates = CANDIDATES | ({"given": given} if given else {})
     try:
         spec = load_robot(robot)
-        trajs = [load_trajectory(r) for r in recordings]
+        trajs = load_files(recordings)
         with contextlib.redirect_stdout(sys.stderr):
             result = check(spec, trajs, worlds, starts, noise, device, candidates)
     except ValueError as exc:
