@@ -14,7 +14,14 @@ from typer.testing import CliRunner
 from inhand_tracker.service.bench.demos import Demo
 from inhand_tracker.service.bench.mujoco_truth import record_mujoco
 from inhand_tracker.service.bench.recorder import record
-from inhand_tracker.service.bench.scene_truth import MANIPULATE_BLOCK, MANIPULATE_BLOCK_TIPS, SceneFile, load_scene
+from inhand_tracker.service.bench.scene_truth import (
+    MANIPULATE_BLOCK,
+    MANIPULATE_BLOCK_TIPS,
+    MANIPULATE_EGG_TIPS,
+    MANIPULATE_PEN_TIPS,
+    SceneFile,
+    load_scene,
+)
 from inhand_tracker.service.bench.shadow_motions import SHADOW_MOTION_KINDS, make_shadow_motion
 from inhand_tracker.service.bench.suites import robot_spec
 from inhand_tracker.service.cli import app
@@ -133,6 +140,28 @@ def test_a_hand_with_fingertip_sensors_feels_the_scenes_contacts_on_its_fingerti
     both = (pushing(truth) & pushing(ours)).sum() / pushing(truth).sum()
     assert both > 0.5, both
     assert not load_scene(MANIPULATE_BLOCK, kin.layout, obj.mass).sensor_bodies.size, "the touch scene's hand has none"
+
+
+@pytest.mark.parametrize(("scene_file", "name"), [(MANIPULATE_EGG_TIPS, "egg"), (MANIPULATE_PEN_TIPS, "pen")])
+def test_the_packages_egg_and_pen_lie_on_the_palm_as_the_catalogs_do(scene_file: SceneFile, name: str):
+    """The package's egg and pen scenes hold the catalog's egg and pen (shape and mass), laid on the
+    open palm on their sides; cradled, they stay in the hand, and one world of the tracker's physics
+    started where the truth starts settles where it does."""
+    spec = robot_spec("shadow_hand")
+    kin, obj = Kinematics(spec), catalog_object(name)
+    scene = load_scene(scene_file, kin.layout, obj.mass)
+    m = scene.model
+    assert m.body_mass[scene.object_body] == pytest.approx(obj.mass, rel=0.01)
+    assert m.geom_aabb[m.geom("object").id, 3:] == pytest.approx(obj.mesh.extents / 2, abs=1e-4)  # its box
+    demo = make_shadow_motion(kin, obj, "cradle", seconds=8.0)
+    truth = record_mujoco(scene, demo, mass=obj.mass, friction=obj.friction)
+    ours = record(Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu")), demo,
+                  np.array([obj.mass]), np.array([obj.friction]))  # fmt: skip
+    assert truth.held([demo], margin=-0.03)[0]
+    lying = truth.object_pose[18, 0, 2] - (0.147 + np.min(obj.mesh.extents) / 2)
+    assert abs(lying) < 0.03, "on its side on the palm, not stood on end"
+    settled = np.linalg.norm(truth.object_pose[15:20, 0, :3] - ours.object_pose[15:20, 0, :3], axis=-1)
+    assert settled.max() < 0.003, settled
 
 
 def test_touch_noise_has_a_deadband_and_a_field_the_robot_lacks_stays_absent():

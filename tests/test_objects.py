@@ -13,9 +13,15 @@ import trimesh
 from inhand_tracker.sim_backend import CATALOG, HandSpec, Population, PopulationConfig, load_catalog, load_mesh_object
 
 
-def test_catalog_has_the_papers_three_objects_and_the_block_with_their_physics():
-    assert set(CATALOG) == {"spam_can", "foam_brick", "toy_banana", "block"}
+def test_catalog_has_the_papers_three_objects_and_the_gym_scenes_three_with_their_physics():
+    assert set(CATALOG) == {"spam_can", "foam_brick", "toy_banana", "block", "egg", "pen"}
     assert CATALOG["block"].box_half_extents == pytest.approx((0.025, 0.025, 0.025))  # a `box` entry
+    # The scenes' egg and pen at their density of 1000 kg/m^3: the masses the scenes give them.
+    egg, pen = CATALOG["egg"], CATALOG["pen"]
+    assert egg.mesh.extents == pytest.approx([0.06, 0.06, 0.08]) and not egg.capsules  # its hull collides
+    assert egg.mass == pytest.approx(1000 * 4 / 3 * np.pi * 0.03 * 0.03 * 0.04, rel=0.01)
+    assert pen.capsules == ((0.0, 0.0, -0.1, 0.0, 0.0, 0.1, 0.008),)
+    assert pen.mass == pytest.approx(1000 * pen.mesh.volume, rel=0.01)
     for obj in CATALOG.values():
         lo, hi = obj.mass_range
         assert 0 < lo <= obj.mass <= hi
@@ -46,10 +52,26 @@ def test_config_overrides_physics_and_adds_mesh_objects(tmp_path):
     assert pop.obs.object_pose[0, 0, 2].item() == pytest.approx(0.03, abs=0.002)
 
 
+@pytest.mark.parametrize(("name", "rests_at"), [("egg", 0.03), ("pen", 0.008)])
+def test_an_ellipsoid_and_a_capsule_come_to_rest_on_the_table_as_their_shapes_do(name, rests_at):
+    """Stood on end and let go, the egg falls over and the pen topples: each lies on its side,
+    its centre its short semi-axis or its radius above the table."""
+    pop = Population(HandSpec(), CATALOG[name], PopulationConfig(worlds=1, device="cpu"))
+    tilted = np.array([0.2, 0.0, 0.15, np.sin(0.3), 0.0, 0.0, np.cos(0.3)])  # 0.6 rad off upright
+    pop.reset_state(tilted)
+    for _ in range(90):
+        pop.step()
+    assert pop.obs.object_pose[0, 0, 2].item() == pytest.approx(rests_at, abs=0.003)
+
+
 def test_bad_config_names_the_file_and_entry(tmp_path):
     cfg = tmp_path / "objects.toml"
     cfg.write_text("[teapot]\nmass = 0.3\n")
-    with pytest.raises(ValueError, match="'teapot' is not a catalog shape and has no 'box' or 'mesh'"):
+    no_shape = "'teapot' is not a catalog shape and has no 'box', 'ellipsoid', 'capsule' or 'mesh'"
+    with pytest.raises(ValueError, match=no_shape):
+        load_catalog(cfg)
+    cfg.write_text("[rod]\ncapsule = [0.01, 0.1, 0.2]\nmass = 0.05\nmass_range = [0.02, 0.1]\n")
+    with pytest.raises(ValueError, match=r"'rod' capsule: expected 2 sizes > 0 \[m\], got \[0.01, 0.1, 0.2\]"):
         load_catalog(cfg)
     cfg.write_text("[foam_brick]\nmass = 2.0\n")
     with pytest.raises(ValueError, match=r"object 'foam_brick' mass: need 0 < 0.015 <= 2.0 <= 0.05 kg"):

@@ -29,6 +29,10 @@ __all__ = [
     "ALLEGRO_PALM_GRID_BLOCK",
     "MANIPULATE_BLOCK",
     "MANIPULATE_BLOCK_TIPS",
+    "MANIPULATE_EGG",
+    "MANIPULATE_EGG_TIPS",
+    "MANIPULATE_PEN",
+    "MANIPULATE_PEN_TIPS",
     "SceneFile",
     "load_scene",
 ]
@@ -54,12 +58,25 @@ MANIPULATE_BLOCK = SceneFile(
     "python://gymnasium_robotics/envs/assets/hand/manipulate_block_touch_sensors.xml", "object", (1.0, 1.0, 0.0)
 )
 """Gymnasium-Robotics' HandManipulateBlockTouchSensors scene: the Shadow hand palm up on its mount,
-the 5 cm block, its 2 ms step and solver, and 92 touch sensors over palm and phalanges. (The
-package's egg and pen scenes are left alone: an independent check.)"""
+the 5 cm block, its 2 ms step and solver, and 92 touch sensors over palm and phalanges."""
 
 MANIPULATE_BLOCK_TIPS = replace(MANIPULATE_BLOCK, fingertip_forces=True)
 """The same scene felt by a hand with force sensors in its fingertips and none on its palm or
 phalanges: what a Shadow hand with fingertip sensors feels of a block on its palm."""
+
+MANIPULATE_EGG = replace(MANIPULATE_BLOCK, path=MANIPULATE_BLOCK.path.replace("block", "egg"))
+"""The package's egg scene (HandManipulateEggTouchSensors): the same hand and sensors, a 6 x 8 cm
+ellipsoid that rolls."""
+
+MANIPULATE_EGG_TIPS = replace(MANIPULATE_EGG, fingertip_forces=True)
+"""The egg felt through the fingertips' force sensors alone."""
+
+MANIPULATE_PEN = replace(MANIPULATE_BLOCK, path=MANIPULATE_BLOCK.path.replace("block", "pen"))
+"""The package's pen scene (HandManipulatePenTouchSensors): a 21.6 cm capsule 1.6 cm thick, lying
+across palm and fingers."""
+
+MANIPULATE_PEN_TIPS = replace(MANIPULATE_PEN, fingertip_forces=True)
+"""The pen felt through the fingertips' force sensors alone."""
 
 ALLEGRO_PALM_BLOCK = SceneFile(str(CONFIG_DIR / "robots" / "allegro_palm_scene.xml"), "object")
 """The Allegro Hand palm up with the 5 cm block on its palm, MuJoCo's own contact model and a 2 ms

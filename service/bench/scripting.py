@@ -21,11 +21,21 @@ def minimum_jerk(t: np.ndarray) -> np.ndarray:
 def palm_rest_pose(obj: ObjectSpec, offset: np.ndarray, centre: np.ndarray, drop: float) -> np.ndarray:
     """The object ``drop`` [m] above the palm's ``centre`` (its face, where the object lies [m]),
     its longest horizontal side along the hand (world y), shifted by ``offset`` (x, y) [m] and
-    turned by a small yaw ``offset[2]`` [rad], (7,)."""
+    turned by a small yaw ``offset[2]`` [rad], (7,). An object longest along its own z axis (a pen,
+    an egg) is laid on its side first, that axis along the hand."""
     extent = obj.mesh.bounds[1] - obj.mesh.bounds[0]
-    yaw = (np.pi / 2 if extent[0] > extent[1] else 0.0) + offset[2]
-    quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-    z = centre[2] - obj.mesh.bounds[0, 2] + drop
+    if extent[2] > extent[:2].max():
+        # A quarter turn about x: body z along world y, body y down; the yaw then turns it in place.
+        yaw = offset[2]
+        c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+        cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+        quat = np.array([cy * s, sy * s, sy * c, cy * c])  # (0, 0, sy, cy) * (s, 0, 0, c), x y z w
+        bottom = obj.mesh.bounds[0, 1]
+    else:
+        yaw = (np.pi / 2 if extent[0] > extent[1] else 0.0) + offset[2]
+        quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+        bottom = obj.mesh.bounds[0, 2]
+    z = centre[2] - bottom + drop
     return np.array([centre[0] + offset[0], centre[1] + offset[1], z, *quat])
 
 

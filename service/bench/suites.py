@@ -18,6 +18,10 @@ from .scene_truth import (
     ALLEGRO_PALM_GRID_BLOCK,
     MANIPULATE_BLOCK,
     MANIPULATE_BLOCK_TIPS,
+    MANIPULATE_EGG,
+    MANIPULATE_EGG_TIPS,
+    MANIPULATE_PEN,
+    MANIPULATE_PEN_TIPS,
     SceneFile,
 )
 from .shadow_motions import SHADOW_MOTION_KINDS
@@ -174,6 +178,26 @@ SUITES: dict[str, Suite] = {
         scene=MANIPULATE_BLOCK_TIPS,
         robot="shadow_hand",
     ),
+    **{
+        f"manipulate-{obj}{tips}": Suite(
+            f"manipulate-{obj}{tips}",
+            (obj,),
+            # The egg rolls out of the cupping hand whatever its physics: no track to follow.
+            tuple(k for k in SHADOW_MOTION_KINDS if not (obj == "egg" and k == "cup")),
+            1,
+            seconds=15.0,
+            sensors=_REAL_SENSORS,
+            engine="scene",
+            scene=scene,
+            robot="shadow_hand" if tips else "shadow_touch",
+        )
+        for obj, tips, scene in (
+            ("egg", "", MANIPULATE_EGG),
+            ("egg", "-fingertips", MANIPULATE_EGG_TIPS),
+            ("pen", "", MANIPULATE_PEN),
+            ("pen", "-fingertips", MANIPULATE_PEN_TIPS),
+        )
+    },
     "allegro-palm": Suite(
         "allegro-palm",
         ("block",),

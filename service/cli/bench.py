@@ -141,8 +141,8 @@ def bench_load(
 
 
 SUITE_HELP = (
-    "smoke, paper, reality-gap, cross-engine (+ -shadow), manipulate (+ -fingertips),"
-    " allegro-palm (+ -grid, -weak, -fingertips) or loss"
+    "smoke, paper, reality-gap, cross-engine (+ -shadow), manipulate (+ -fingertips), manipulate-egg and"
+    " manipulate-pen (+ -fingertips), allegro-palm (+ -grid, -weak, -fingertips) or loss"
 )
 
 
