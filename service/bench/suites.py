@@ -123,6 +123,20 @@ _REAL_SENSORS = SensorNoise(
 _SHADOW_OBJECTS = ("spam_can", "foam_brick")
 """What the Shadow Hand's suites carry on the palm (the banana rolls off an open palm)."""
 
+_EGG_KINDS = tuple(k for k in SHADOW_MOTION_KINDS if k != "cup")
+"""The palm motions the egg stays on the hand through (it rolls out of a cupping hand whatever its physics)."""
+
+
+def _on_scene(
+    name: str, scene: SceneFile, robot: str, kinds: tuple[str, ...], obj: str = "block", gap: PhysicsGap = PhysicsGap()
+) -> Suite:
+    """A suite on a scene file someone else wrote: one ``obj`` in ``scene`` (the truth, in MuJoCo C
+    as its authors ship it), the ``robot`` config with a real robot's sensor noise, 15 s tracks."""
+    return Suite(
+        name, (obj,), kinds, 1, seconds=15.0, gap=gap, sensors=_REAL_SENSORS, engine="scene", scene=scene, robot=robot
+    )
+
+
 SUITES: dict[str, Suite] = {
     "smoke": Suite("smoke", ("foam_brick",), ("pick_place",), 2, seconds=10.0, pace=0.7),
     "paper": Suite("paper", ("spam_can", "foam_brick", "toy_banana"), DEMO_KINDS, 2, seconds=60.0),
@@ -156,92 +170,27 @@ SUITES: dict[str, Suite] = {
         sensors=_REAL_SENSORS,
         robot="shadow_hand",
     ),
-    "manipulate": Suite(
-        "manipulate",
-        ("block",),
-        SHADOW_MOTION_KINDS,
-        1,
-        seconds=15.0,
-        sensors=_REAL_SENSORS,
-        engine="scene",
-        scene=MANIPULATE_BLOCK,
-        robot="shadow_touch",
+    "manipulate": _on_scene("manipulate", MANIPULATE_BLOCK, "shadow_touch", SHADOW_MOTION_KINDS),
+    "manipulate-fingertips": _on_scene(
+        "manipulate-fingertips", MANIPULATE_BLOCK_TIPS, "shadow_hand", SHADOW_MOTION_KINDS
     ),
-    "manipulate-fingertips": Suite(
-        "manipulate-fingertips",
-        ("block",),
-        SHADOW_MOTION_KINDS,
-        1,
-        seconds=15.0,
-        sensors=_REAL_SENSORS,
-        engine="scene",
-        scene=MANIPULATE_BLOCK_TIPS,
-        robot="shadow_hand",
+    "manipulate-egg": _on_scene("manipulate-egg", MANIPULATE_EGG, "shadow_touch", _EGG_KINDS, "egg"),
+    "manipulate-egg-fingertips": _on_scene(
+        "manipulate-egg-fingertips", MANIPULATE_EGG_TIPS, "shadow_hand", _EGG_KINDS, "egg"
     ),
-    **{
-        f"manipulate-{obj}{tips}": Suite(
-            f"manipulate-{obj}{tips}",
-            (obj,),
-            # The egg rolls out of the cupping hand whatever its physics: no track to follow.
-            tuple(k for k in SHADOW_MOTION_KINDS if not (obj == "egg" and k == "cup")),
-            1,
-            seconds=15.0,
-            sensors=_REAL_SENSORS,
-            engine="scene",
-            scene=scene,
-            robot="shadow_hand" if tips else "shadow_touch",
-        )
-        for obj, tips, scene in (
-            ("egg", "", MANIPULATE_EGG),
-            ("egg", "-fingertips", MANIPULATE_EGG_TIPS),
-            ("pen", "", MANIPULATE_PEN),
-            ("pen", "-fingertips", MANIPULATE_PEN_TIPS),
-        )
-    },
-    "allegro-palm": Suite(
-        "allegro-palm",
-        ("block",),
-        ALLEGRO_MOTION_KINDS,
-        1,
-        seconds=15.0,
-        sensors=_REAL_SENSORS,
-        engine="scene",
-        scene=ALLEGRO_PALM_BLOCK,
-        robot="allegro_palm",
+    "manipulate-pen": _on_scene("manipulate-pen", MANIPULATE_PEN, "shadow_touch", SHADOW_MOTION_KINDS, "pen"),
+    "manipulate-pen-fingertips": _on_scene(
+        "manipulate-pen-fingertips", MANIPULATE_PEN_TIPS, "shadow_hand", SHADOW_MOTION_KINDS, "pen"
     ),
-    "allegro-palm-grid": Suite(
-        "allegro-palm-grid",
-        ("block",),
-        ALLEGRO_MOTION_KINDS,
-        1,
-        seconds=15.0,
-        sensors=_REAL_SENSORS,
-        engine="scene",
-        scene=ALLEGRO_PALM_GRID_BLOCK,
-        robot="allegro_palm_grid",
+    "allegro-palm": _on_scene("allegro-palm", ALLEGRO_PALM_BLOCK, "allegro_palm", ALLEGRO_MOTION_KINDS),
+    "allegro-palm-grid": _on_scene(
+        "allegro-palm-grid", ALLEGRO_PALM_GRID_BLOCK, "allegro_palm_grid", ALLEGRO_MOTION_KINDS
     ),
-    "allegro-palm-fingertips": Suite(
-        "allegro-palm-fingertips",
-        ("block",),
-        ALLEGRO_MOTION_KINDS,
-        1,
-        seconds=15.0,
-        sensors=_REAL_SENSORS,
-        engine="scene",
-        scene=ALLEGRO_PALM_BLOCK_TIPS,
-        robot="allegro_palm_tips",
+    "allegro-palm-fingertips": _on_scene(
+        "allegro-palm-fingertips", ALLEGRO_PALM_BLOCK_TIPS, "allegro_palm_tips", ALLEGRO_MOTION_KINDS
     ),
-    "allegro-palm-weak": Suite(
-        "allegro-palm-weak",
-        ("block",),
-        ALLEGRO_MOTION_KINDS,
-        1,
-        seconds=15.0,
-        gap=PhysicsGap(servo_scale=0.5),
-        sensors=_REAL_SENSORS,
-        engine="scene",
-        scene=ALLEGRO_PALM_BLOCK,
-        robot="allegro_palm",
+    "allegro-palm-weak": _on_scene(
+        "allegro-palm-weak", ALLEGRO_PALM_BLOCK, "allegro_palm", ALLEGRO_MOTION_KINDS, gap=PhysicsGap(servo_scale=0.5)
     ),
     "cross-engine-shadow": Suite(
         "cross-engine-shadow",

@@ -90,7 +90,9 @@ def _quadratic(x: torch.Tensor) -> torch.Tensor:
     """Each column of ``x`` (G, K, N) and its square, standardised per group, (G, K, 2N)."""
     x = torch.cat([x, x.square()], dim=-1)
     x = x - x.mean(1, keepdim=True)
-    return x / x.std(1, keepdim=True).clamp_min(1e-9)
+    # The population's spread (no Bessel correction): the F ratio does not depend on the columns'
+    # scale, and a group of one world gives zeros, not a NaN.
+    return x / x.std(1, keepdim=True, correction=0).clamp_min(1e-9)
 
 
 def _residual(design: torch.Tensor, y: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
