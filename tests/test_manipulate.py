@@ -22,7 +22,7 @@ from inhand_tracker.service.bench.scene_truth import (
     SceneFile,
     load_scene,
 )
-from inhand_tracker.service.bench.shadow_motions import SHADOW_MOTION_KINDS, make_shadow_motion
+from inhand_tracker.service.bench.shadow_motions import PALM_CENTRE, SHADOW_MOTION_KINDS, make_shadow_motion
 from inhand_tracker.service.bench.suites import robot_spec
 from inhand_tracker.service.cli import app
 from inhand_tracker.sim_backend import Kinematics, Population, PopulationConfig, add_sensor_noise, catalog_object
@@ -158,7 +158,7 @@ def test_the_packages_egg_and_pen_lie_on_the_palm_as_the_catalogs_do(scene_file:
     ours = record(Population(spec, obj, PopulationConfig(groups=1, worlds=1, device="cpu")), demo,
                   np.array([obj.mass]), np.array([obj.friction]))  # fmt: skip
     assert truth.held([demo], margin=-0.03)[0]
-    lying = truth.object_pose[18, 0, 2] - (0.147 + np.min(obj.mesh.extents) / 2)
+    lying = truth.object_pose[18, 0, 2] - (PALM_CENTRE[2] + np.min(obj.mesh.extents) / 2)
     assert abs(lying) < 0.03, "on its side on the palm, not stood on end"
     settled = np.linalg.norm(truth.object_pose[15:20, 0, :3] - ours.object_pose[15:20, 0, :3], axis=-1)
     assert settled.max() < 0.003, settled
