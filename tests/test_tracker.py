@@ -627,3 +627,24 @@ def test_a_group_reports_its_open_loop_world_while_dead_reckoning_explains_the_r
     assert (worlds["lenient"][:, 1:] - worlds["olp"][:, 1:])[..., :3].abs().max() > 1e-2, "the others resample"
     with pytest.raises(ValueError, match=r"optimizer\.open_loop_ratio: expected 0 \(off\) or 1 to 10, got 0\.5"):
         OptimizerConfig(open_loop_ratio=0.5)
+
+
+def test_until_the_robot_feels_the_object_a_group_keeps_its_worlds_and_reports_its_open_loop_world(hand, recording):
+    """Under ``optimizer.until_felt`` a group whose robot has felt nothing since it was seeded is
+    not updated and reports its open-loop world, what OLP reports from the same start; from the
+    first frame a fingertip force crosses the contact threshold it is updated as without the setting."""
+    threshold = CostConfig().contact_threshold
+    felt = np.linalg.norm(recording.force, axis=-1).max(-1) > threshold  # (F, G)
+    first = int(np.argmax(felt.all(-1)))
+    assert 5 < first < recording.frames - 10, "the grasp is felt after some updates and before the end"
+
+    def run(rec, method: str, until_felt: bool) -> np.ndarray:
+        tr = _tracker(hand, 12, optimizer=OptimizerConfig(method=method, until_felt=until_felt), seed=5, update_every=5)
+        tr.start(_noisy_start(rec), rec.initial_q)
+        return np.array([tr.step(_frame(rec, f)).pose[:, :3] for f in range(rec.frames)])
+
+    olp, held, free = run(recording, "OLP", False), run(recording, "REPS", True), run(recording, "REPS", False)
+    # OLP's world from the same start: another population's, so equal to rounding.
+    assert np.abs(held[:first] - olp[:first]).max() < 1e-3
+    assert np.abs(free[:first] - olp[:first]).max() > 1e-3, "without the setting the population is reported"
+    assert np.abs(held[first + 10 :] - olp[first + 10 :]).max() > 1e-3, "once felt, the population is"

@@ -109,20 +109,24 @@ def pose_statistics(
 
 
 def open_loop_share(
-    sums: torch.Tensor, window: torch.Tensor, anchor: torch.Tensor, config: OptimizerConfig
+    sums: torch.Tensor, window: torch.Tensor, anchor: torch.Tensor, feels: torch.Tensor, config: OptimizerConfig
 ) -> torch.Tensor | None:
     """How far each group reports its open-loop world, (G, 1): 1 while the ``anchor`` (1, K) world's
     window cost summed over the frames is within ``config.open_loop_ratio`` of the lowest-cost
     world's, or within ``config.min_spread`` of it (before the hand touches the object every cost is
-    about 0); else 0. None while the ratio is 0. ``sums`` (G, 2), the anchor's and the lowest since
-    the group was seeded, gain this frame's ``window`` (G, K) in place. Sums, not one frame's
-    costs, which differ by noise."""
-    ratio = config.open_loop_ratio
-    if ratio <= 0:
-        return None
-    sums.add_(torch.stack([(window * anchor).sum(-1), window.amin(-1)], -1))
-    lowest = sums[:, 1:]
-    return (sums[:, :1] <= torch.maximum(ratio * lowest, lowest + config.min_spread)).float()
+    about 0); under ``config.until_felt``, 1 until the robot first ``feels`` (G,) bool the object;
+    else 0. None while neither is on. ``sums`` (G, 3), the anchor's and the lowest since the group
+    was seeded and whether it has felt the object since, gain this frame's ``window`` (G, K) in
+    place. Sums, not one frame's costs, which differ by noise."""
+    ratio, share = config.open_loop_ratio, None
+    if ratio > 0:
+        sums[:, :2].add_(torch.stack([(window * anchor).sum(-1), window.amin(-1)], -1))
+        lowest = sums[:, 1:2]
+        share = (sums[:, :1] <= torch.maximum(ratio * lowest, lowest + config.min_spread)).float()
+    if config.until_felt:
+        sums[:, 2:].copy_(torch.maximum(sums[:, 2:], feels[:, None].float()))
+        share = 1.0 - sums[:, 2:] if share is None else torch.maximum(share, 1.0 - sums[:, 2:])
+    return share
 
 
 def unresolved_variance(cost: np.ndarray, seeded: np.ndarray, worlds: int, config: EstimateConfig) -> np.ndarray:

@@ -89,6 +89,13 @@ class OptimizerConfig:
     does not. Once dead reckoning falls behind, the group reports the population. A factor, not
     equality: the lowest of K costs is below one world's by selection alone. 0: off."""
 
+    until_felt: bool = False
+    """Until the robot first feels the object after a group is seeded (a fingertip force or touch
+    zone over ``cost.contact_threshold``), keep the group's worlds (no update) and report its
+    open-loop world (world 0, kept as under ``open_loop_ratio``): a robot whose sensors touch
+    nothing knows the object's pose only through its joints, and on a palm those rank the worlds by
+    chance. Off: the group updates from its first window."""
+
     min_pose_evidence: float = 0.0
     """Resample a group's object poses only where they explain its window costs beyond what its
     physics parameters explain (:func:`.evidence.pose_evidence`, an F ratio, over this); elsewhere only the
@@ -219,9 +226,10 @@ def duplicates(index: torch.Tensor) -> torch.Tensor:
 
 def open_loop_worlds(config: OptimizerConfig, worlds: int, device: torch.device) -> torch.Tensor:
     """Which world of each group is kept as its open-loop world (``config.open_loop_world``), (1, K)
-    bool: world 0 under ``by_evidence`` or ``open_loop_ratio`` where a group has more than one; none
-    otherwise."""
-    anchored = ((config.by_evidence and config.open_loop_world) or config.open_loop_ratio > 0) and worlds > 1
+    bool: world 0 under ``by_evidence``, ``open_loop_ratio`` or ``until_felt`` where a group has more
+    than one; none otherwise."""
+    reports_it = config.open_loop_ratio > 0 or config.until_felt
+    anchored = ((config.by_evidence and config.open_loop_world) or reports_it) and worlds > 1
     return (torch.arange(worlds, device=device) == 0)[None] & anchored
 
 
@@ -233,6 +241,7 @@ def update(
     rows: dict[str, torch.Tensor] | None = None,
     separated: torch.Tensor | None = None,
     strength: torch.Tensor | None = None,
+    hold: torch.Tensor | None = None,
 ) -> Update:
     """One optimizer update of every group from the window costs ``cost`` (G, K).
 
@@ -240,7 +249,8 @@ def update(
     keeps its worlds as they are, like one whose costs spread less than ``config.min_spread``,
     but for those that lost their object, and is named in :attr:`Update.held_back`. ``strength``
     (G, 1) in [0, 1] (:func:`.evidence.evidence_strength`) weakens each group's selection; at 0 the group is
-    held back as well. None: every group at full strength.
+    held back as well. None: every group at full strength. Under ``config.until_felt``, ``hold`` (G,)
+    bool holds groups back whatever their costs.
 
     ``methods`` (G,) gives each group its own method (a benchmark suite runs all methods as groups
     of one population); default ``config.method`` for all. The loop is over methods, not worlds.
@@ -252,6 +262,8 @@ def update(
         held_back = informative & (separated <= config.min_separation)
     if strength is not None:
         held_back = held_back | (informative & (strength[:, 0] <= 0))
+    if hold is not None and config.until_felt:
+        held_back = held_back | (informative & hold)
     informative = informative & ~held_back
     if methods is None or len(set(methods)) == 1:
         method = config.method if methods is None else methods[0]

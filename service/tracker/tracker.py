@@ -115,7 +115,7 @@ class Tracker:
         self._anchor = open_loop_worlds(cfg.optimizer, self.K, dev)
         """Each group's open-loop world, (1, K) bool (:func:`.optimizers.open_loop_worlds`)."""
         self._first = torch.arange(self.K, device=dev)[None] == 0  # (1, K): the world an OLP group reports
-        self._reckoned = torch.zeros(self.G, 2, device=dev)  # (G, 2): open_loop_share's sums
+        self._reckoned = torch.zeros(self.G, 3, device=dev)  # (G, 3): open_loop_share's sums and felt
         self._evidence = torch.tensor([[0.0, 1.0]], device=dev).repeat(self.G, 1)
         """Each group's last update's separation F ratio and strength on the poses, (G, 2)."""
         self.residuals = Residuals(self.G, self.D, self.L, pop.Z, dev)
@@ -318,25 +318,25 @@ class Tracker:
         pop.step()
         self.fk.update(self.real.q)
         cost = self.cost(pop.obs, self.real)
-        lost = self._lost()
+        lost, feels = self._lost()
         # A world that lost its object is worst, and one that went NaN worse still: when every
         # world has lost the object, the argmin must not pick a NaN pose.
         cost = torch.nan_to_num(cost, nan=1e9).masked_fill_(lost, 1e9)
         cost.masked_fill_(pop.obs.health == HEALTH_NAN, 2e9)
         self.windows.add(cost)
         self.joints.update(pop.obs.q, self.real.q)
-        self._packed[:, : ESTIMATE.width].copy_(self._summary(self.scored(), lost))
+        self._packed[:, : ESTIMATE.width].copy_(self._summary(self.scored(), lost, feels))
         self._packed[:, ESTIMATE.width :].copy_(self.joints.rms())
 
-    def _lost(self) -> torch.Tensor:
-        """Which worlds lost their object, (G, K) bool. An object away from the hand is lost only while the
-        real hand feels it, or cannot say (no force or touch sensing; a palm that carries objects and has no
-        touch zones): once the real fingers touch nothing it may lie on the table, put down or dropped,
-        and counting it lost there re-seeded every frame after a drop, as soon as the hand moved on."""
+    def _lost(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Which worlds lost their object, (G, K) bool, and whether the robot feels it, (G,) bool. Away from the
+        hand it is lost only while the real hand feels it, or cannot say (no force or touch sensing; a palm that
+        carries objects and has no touch zones): once the real fingers touch nothing it may lie on the table,
+        put down or dropped, and counting it lost there re-seeded every frame after a drop."""
         health, real, threshold = self.pop.obs.health, self.real, self.config.cost.contact_threshold
         feels = (torch.linalg.vector_norm(real.force, dim=-1) > threshold).any(-1) | (real.touch > threshold).any(-1)
         holds = feels | ((real.has_touch < 0.5) & ((real.has_force < 0.5) | self.pop.layout.carries_on_palm))  # (G,)
-        return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None])
+        return (health != HEALTH_OK) & ((health != HEALTH_AWAY) | holds[:, None]), feels
 
     def weights(self) -> torch.Tensor:
         """Each world's share of the estimate now, (G, K), from the window's cost (uniform after an update)."""
@@ -356,14 +356,14 @@ class Tracker:
         spread = torch.nan_to_num(top - bottom, nan=0.0, posinf=0.0, neginf=0.0)
         return window + self.windows.evidence * spread.clamp_min(self.config.optimizer.min_spread)
 
-    def _summary(self, window: torch.Tensor, lost: torch.Tensor) -> torch.Tensor:
-        """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host
-        copy; ``lost`` (G, K) says which worlds lost their object."""
+    def _summary(self, window: torch.Tensor, lost: torch.Tensor, feels: torch.Tensor) -> torch.Tensor:
+        """Everything the estimate needs, packed by :data:`.layout.ESTIMATE` for one device->host copy;
+        ``lost`` (G, K): the worlds that lost their object; ``feels`` (G,): the robot feels it."""
         pop, olp, cfg = self.pop, self.olp[:, None], self.config
         # An OLP group reports its first world: on a GPU its identical worlds can drift apart by float
         # atomics, and their mean would be an ensemble, not the one dead-reckoned world OLP stands for.
         anchor, sharp = torch.where(olp, self._first, self._anchor), self._sharpness.masked_fill(olp, 0.0)
-        reckon = open_loop_share(self._reckoned, window, self._anchor, cfg.optimizer)
+        reckon = open_loop_share(self._reckoned, window, self._anchor, feels, cfg.optimizer)
         best, poses = pose_statistics(pop.obs.object_pose, window, self._origin, cfg.estimate, sharp, anchor, reckon)
         at_best = lambda t: t.gather(1, best[:, None])[:, 0]  # noqa: E731
         self.residuals.add(self.cost.last_terms, best)
@@ -385,8 +385,7 @@ class Tracker:
         )
 
     def _update_ops(self) -> None:
-        """The captured update: the optimizer's resample and perturbation, as strong as the window's
-        evidence for it; the window starts again."""
+        """The captured update: the optimizer's resample and perturbation, as strong as the window's evidence for it."""
         cfg = self.config
         # Worlds apart from noise: the window's mean scatter against its means.
         separated = self.windows.separation(declared_scatter(self.cost, self.pop.robot_spec, self.L, self.pop.Z))
@@ -396,7 +395,8 @@ class Tracker:
         if cfg.optimizer.by_evidence:  # parameter noise, wrench and roughening as strong as the selection
             strength = evidence_strength(separated, self.windows.noise_bound(), cfg.optimizer.reps_epsilon)
             scale = scale * strength
-        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength)
+        unfelt = self._reckoned[:, 2] < 0.5  # the robot has not felt the object since the group was seeded
+        upd = update(cost, cfg.optimizer, self.gen, self.methods, self._rows, separated, strength, unfelt)
         explores = upd.explore.any(-1) & ~self.olp & (self._exploration > 0)
         opens = self.contacts.gate(self.windows.means()[2][:, 0], explores) if self.contacts.enabled else None
         servo_opens = self.servos.gate(self.joints.rms(), explores) if self.servos.enabled else None
