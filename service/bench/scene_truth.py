@@ -64,14 +64,18 @@ MANIPULATE_BLOCK_TIPS = replace(MANIPULATE_BLOCK, fingertip_forces=True)
 """The same scene felt by a hand with force sensors in its fingertips and none on its palm or
 phalanges: what a Shadow hand with fingertip sensors feels of a block on its palm."""
 
-MANIPULATE_EGG = replace(MANIPULATE_BLOCK, path=MANIPULATE_BLOCK.path.replace("block", "egg"))
+MANIPULATE_EGG = replace(
+    MANIPULATE_BLOCK, path="python://gymnasium_robotics/envs/assets/hand/manipulate_egg_touch_sensors.xml"
+)
 """The package's egg scene (HandManipulateEggTouchSensors): the same hand and sensors, a 6 x 8 cm
 ellipsoid that rolls."""
 
 MANIPULATE_EGG_TIPS = replace(MANIPULATE_EGG, fingertip_forces=True)
 """The egg felt through the fingertips' force sensors alone."""
 
-MANIPULATE_PEN = replace(MANIPULATE_BLOCK, path=MANIPULATE_BLOCK.path.replace("block", "pen"))
+MANIPULATE_PEN = replace(
+    MANIPULATE_BLOCK, path="python://gymnasium_robotics/envs/assets/hand/manipulate_pen_touch_sensors.xml"
+)
 """The package's pen scene (HandManipulatePenTouchSensors): a 21.6 cm capsule 1.6 cm thick, lying
 across palm and fingers."""
 

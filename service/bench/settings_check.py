@@ -202,11 +202,10 @@ def settings_report(check: SettingsCheck) -> str:
     return "\n".join(lines)
 
 
-def write_settings(check: SettingsCheck, config: Path, out: Path | None = None, command: str = "") -> Path | None:
-    """Write the overlay of ``config`` with the chosen setting's ``[tracker]`` table (default
-    ``NAME.tracker.toml`` beside it), and the report beside it as ``.md`` and ``.json``; returns the
-    overlay's path, or None where the robot's own settings are chosen (its config stays as it is)."""
-    out = out or config.with_name(f"{config.stem}.tracker.toml")
+def write_settings(check: SettingsCheck, config: Path, out: Path, command: str = "") -> Path | None:
+    """Write the overlay of ``config`` with the chosen setting's ``[tracker]`` table to ``out``, and
+    the report beside it as ``.md`` and ``.json``; returns the overlay's path, or None where the
+    robot's own settings are chosen (its config stays as it is, and ``out`` is not written)."""
     chosen = check.chosen()
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".md").write_text(settings_report(check) + "\n")

@@ -125,7 +125,8 @@ def open_loop_share(
         share = (sums[:, :1] <= torch.maximum(ratio * lowest, lowest + config.min_spread)).float()
     if config.until_felt:
         sums[:, 2:].copy_(torch.maximum(sums[:, 2:], feels[:, None].float()))
-        share = 1.0 - sums[:, 2:] if share is None else torch.maximum(share, 1.0 - sums[:, 2:])
+        unfelt = 1.0 - sums[:, 2:]
+        share = unfelt if share is None else torch.maximum(share, unfelt)
     return share
 
 
