@@ -3,7 +3,9 @@ over real Zenoh."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -16,10 +18,26 @@ from inhand_tracker.client import TrackerClient, TrackerError
 ROOT = Path(__file__).resolve().parents[1]
 
 
+_GIVEN: set[int] = set()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback port nothing listens on, below the kernel's ephemeral range: a port the kernel
+    picks for ``bind(0)`` comes from that range, where it can be handed to another test's outgoing
+    connection before the service listens on it ("the address is taken")."""
+    low = 32768
+    with contextlib.suppress(OSError, ValueError):
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    for _ in range(200):
+        port = rng.randrange(max(1024, low - 12000), low)
+        if port in _GIVEN:
+            continue
+        with socket.socket() as s, contextlib.suppress(OSError):
+            s.bind(("127.0.0.1", port))
+            _GIVEN.add(port)
+            return port
+    raise RuntimeError(f"no free loopback port below {low}")
 
 
 class ServiceProcess:

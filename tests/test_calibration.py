@@ -202,7 +202,9 @@ def test_check_settings_pairs_every_setting_with_one_world_and_writes_the_table_
     summary = json.loads((tmp_path / "my_allegro.tracker.json").read_text())
     assert summary["robot"] == "allegro" and summary["pairs"] == 2 and summary["method"] == "PBO"
     settings = summary["settings"]
-    assert list(settings) == [OWN_SETTINGS, "palm", "given"] and settings[OWN_SETTINGS]["table"] == {}
+    # The defaults update from the first window: that candidate is the robot's own and is not run twice.
+    assert list(settings) == [OWN_SETTINGS, "palm", "until felt", "given"] and settings[OWN_SETTINGS]["table"] == {}
+    assert settings["until felt"]["table"] == {"optimizer.until_felt": True}
     assert settings["palm"]["table"] == {"optimizer.open_loop_ratio": 1.5, "optimizer.min_pose_evidence": 10.0}
     assert settings["given"]["table"] == {"optimizer.min_separation": 4.0}
     for s in settings.values():  # each paired with the one world of the same starts

@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import time
 from pathlib import Path
 
 import pytest
+from service_process import free_port
 
 from inhand_tracker.client import TrackerClient
 from inhand_tracker.protocol import Trajectory
@@ -39,9 +39,7 @@ def test_the_image_serves_a_client_on_the_host_and_stops_on_sigterm(tmp_path, ca
     with capsys.disabled():  # shown in CI's log whatever pytest captures
         print("\n" + "; ".join(figures))
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     cache = tmp_path / "warp-cache"  # the host's compiled kernels, so the container need not compile them again
     host_cache = Path.home() / ".cache/warp"
     if host_cache.exists():

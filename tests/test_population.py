@@ -365,8 +365,9 @@ def test_every_shipped_robot_config_loads_with_settings_the_service_accepts():
 
 def test_the_service_names_a_palm_carrying_robot_whose_config_chose_no_settings(tmp_path, caplog):
     """A robot that carries objects on its palm and whose config gives no [tracker] table runs the
-    defaults unchecked: the service says so once, naming `check-settings`; an empty table is a choice
-    and stays quiet, and every shipped palm-carrying config has made one."""
+    defaults held open loop until it feels the object, unchecked: the service says so once, naming
+    `check-settings`; an empty table is a choice (the defaults) and stays quiet, and every shipped
+    palm-carrying config has made one."""
     from inhand_tracker.service.server.admission import Gate
     from inhand_tracker.service.server.budget import FrameTimes
     from inhand_tracker.service.server.config import ServiceConfig
@@ -381,13 +382,15 @@ def test_the_service_names_a_palm_carrying_robot_whose_config_chose_no_settings(
     (tmp_path / "shadow_hand.xml").symlink_to(CONFIGS / "robots" / "shadow_hand.xml")
     (tmp_path / "bare.toml").write_text(bare)
     unchecked = load_robot(tmp_path / "bare.toml")
-    assert unchecked.tracker is None and robot_defaults(unchecked) == {}
+    assert unchecked.tracker is None and robot_defaults(unchecked) == {"optimizer.until_felt": True}
+    assert robot_defaults(load_robot(mine)) == {}
     robots = {"shadow_hand": unchecked, "allegro_palm": shipped["allegro_palm"], "gripper": shipped["example_gripper"]}
     assert unchecked_palms(robots) == ["shadow_hand"]
     with caplog.at_level("INFO", logger="inhand_tracker.service.server.admission"):
         Gate(ServiceConfig(), robots, {}, FrameTimes({}), {}, {}, "cpu")
     said = [r.getMessage() for r in caplog.records if "check-settings" in r.getMessage()]
     assert len(said) == 1 and "robot 'shadow_hand' carries objects on its palm" in said[0], said
+    assert "until_felt" in said[0], said
 
 
 DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]

@@ -31,11 +31,15 @@ __all__ = ["CANDIDATES", "OWN_SETTINGS", "SettingsCheck", "check_settings", "set
 
 CANDIDATES: dict[str, dict[str, bool | int | float | str]] = {
     "palm": {"optimizer.open_loop_ratio": 1.5, "optimizer.min_pose_evidence": 10.0},
+    "until felt": {"optimizer.until_felt": True},
+    "from the first window": {"optimizer.until_felt": False},
 }
-"""Tables tried beside the robot's own settings. ``palm``: report the open-loop world while it
-explains the robot as well as the population's best, and resample the object poses only where they
-explain the costs beyond the physics (an object lying on a palm, felt through its weight or through
-fingertips that rarely touch it)."""
+"""Tables tried beside the robot's own settings (one that leaves them as they are is not run twice).
+``palm``: report the open-loop world while it explains the robot as well as the population's best,
+and resample the object poses only where they explain the costs beyond the physics (an object lying
+on a palm, felt through its weight or through fingertips that rarely touch it). ``until felt``: hold
+the worlds and report the open-loop world until the robot first feels the object; ``from the first
+window``: update from the start (the defaults, where a palm-carrying robot's config has no table)."""
 
 OWN_SETTINGS = "robot's settings"
 """The name of the robot's own settings (its config's ``[tracker]`` table, or the defaults)."""
@@ -147,6 +151,7 @@ def check_settings(
             raise ValueError(f"recording '{t.name}' is of robot '{t.robot}', the config's is '{spec.name}'")
     own = robot_defaults(spec)
     tables = {OWN_SETTINGS: own} | {name: own | dict(table) for name, table in candidates.items()}
+    tables = {n: t for n, t in tables.items() if n == OWN_SETTINGS or tracker_config(t) != tracker_config(own)}
     method = tracker_config(own).optimizer.method
     by_object: dict[str, list[Trajectory]] = {}
     for t in trajectories:

@@ -128,11 +128,12 @@ def check_settings(
     json_: Json = False,
 ) -> None:
     """Track the recordings with the robot's tracker settings and with the candidate tables (the palm
-    settings, and the one ``--set`` gives), each paired with one open-loop world from the same
+    settings, holding the worlds until the robot feels the object or updating from the first window,
+    and the one ``--set`` gives), each paired with one open-loop world from the same
     starts, and write an overlay of the config with the table that tracks best of those surely no
     worse than that world, and a report."""
     _files_exist("check-settings", robot, recordings, device)
-    from inhand_tracker.service.bench import CANDIDATES, settings_report, write_settings
+    from inhand_tracker.service.bench import CANDIDATES, OWN_SETTINGS, settings_report, write_settings
     from inhand_tracker.service.bench import check_settings as check
     from inhand_tracker.service.bench.accuracy import load_files
     from inhand_tracker.service.bench.suites import NOISE_LEVELS
@@ -160,5 +161,6 @@ def check_settings(
     typer.echo(json.dumps(result.summary(), indent=2) if json_ else settings_report(result))
     said = f"overlay: {overlay}" if overlay else "the robot's settings are chosen: its config stays as it is"
     if overlay is None and spec.tracker is None:
-        said += " (add `tracker = {}` to it to record the defaults as chosen)"
+        table = ", ".join(f"{k} = {json.dumps(v)}" for k, v in result.tables[OWN_SETTINGS].items())
+        said += f" (add `tracker = {{{f' {table} ' if table else ''}}}` to it to record these settings as chosen)"
     typer.echo(f"{said}\nreport: {target.with_suffix('.md')}", err=json_)

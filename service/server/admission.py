@@ -83,7 +83,8 @@ class Gate:
         for name in unchecked_palms(robots):
             log.info(
                 f"robot '{name}' carries objects on its palm and its config gives no [tracker] table: its sessions"
-                " run the tracker's defaults, which on some palm-up hands track worse than one open-loop world;"
+                " run the tracker's defaults held open loop until the robot first feels the object"
+                " (optimizer.until_felt), which on some palm-up hands still track worse than one open-loop world;"
                 " `inhand-tracker check-settings` measures on a few grasps with motion capture which settings it"
                 " needs (`tracker = {}` in the config says the defaults were chosen)"
             )

@@ -20,6 +20,7 @@ from .optimizers import OptimizerConfig
 
 __all__ = [
     "SETTING_KINDS",
+    "UNCHECKED_PALM",
     "Setting",
     "changed",
     "parse",
@@ -155,10 +156,20 @@ def tracker_config(values: Mapping[str, object], base: TrackerConfig | None = No
     return replace(config, **groups, **top)
 
 
+UNCHECKED_PALM: dict[str, bool | int | float | str] = {"optimizer.until_felt": True}
+"""The settings of a robot that carries objects on its palm and whose config gives no ``[tracker]``
+table: its own truth has not said whether its sensing ranks the worlds' poses, and a palm-up hand
+whose fingertips touch the object seldom or never ranks them by chance. Held open loop until the
+robot first feels the object, such a hand tracks as one open-loop world while it does not, and a
+hand that feels it within a second or two keeps the population's gain (docs/tracker-settings.md)."""
+
+
 def robot_defaults(robot: RobotSpec) -> dict[str, object]:
-    """The tracker settings ``robot``'s config gives its sessions (its ``[tracker]`` table) by dotted
-    name, checked as a session's overrides are: a ValueError names the robot and the setting."""
-    values = dict(robot.tracker or ())
+    """The tracker settings ``robot``'s config gives its sessions (its ``[tracker]`` table, or
+    :data:`UNCHECKED_PALM` for a palm-carrying robot without one) by dotted name, checked as a
+    session's overrides are: a ValueError names the robot and the setting."""
+    unchecked = robot.tracker is None and getattr(robot, "carries_on_palm", False)
+    values = dict(UNCHECKED_PALM) if unchecked else dict(robot.tracker or ())
     try:
         tracker_config(values)
     except (ValueError, TypeError) as exc:
@@ -168,9 +179,10 @@ def robot_defaults(robot: RobotSpec) -> dict[str, object]:
 
 def unchecked_palms(robots: Mapping[str, RobotSpec]) -> list[str]:
     """The names of ``robots`` that carry objects on their palm and whose config gives no
-    ``[tracker]`` table: their sessions run the defaults, which on some palm-up hands (an object felt
-    through its weight or through fingertips that rarely touch it) track worse than one open-loop
-    world, and only the robot's own truth (``check-settings``) says which settings it needs."""
+    ``[tracker]`` table: their sessions run :data:`UNCHECKED_PALM`, which on some palm-up hands (an
+    object felt through its weight, or touched by a fingertip only in passing) still tracks worse
+    than one open-loop world, and only the robot's own truth (``check-settings``) says which settings
+    it needs."""
     # The procedural hand declares no palm to carry on: only a robot file's config does.
     return [n for n, spec in robots.items() if getattr(spec, "carries_on_palm", False) and spec.tracker is None]
 
