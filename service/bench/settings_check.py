@@ -42,7 +42,8 @@ the worlds and report the open-loop world until the robot first feels the object
 window``: update from the start (the defaults, where a palm-carrying robot's config has no table)."""
 
 OWN_SETTINGS = "robot's settings"
-"""The name of the robot's own settings (its config's ``[tracker]`` table, or the defaults)."""
+"""The name of the robot's own settings (its config's ``[tracker]`` table, or what a config without
+one runs: :func:`..tracker.settings.robot_defaults`)."""
 
 _Z95 = 1.645
 """The standard normal's one-sided 95 % quantile."""
