@@ -103,16 +103,29 @@ def xy_chart(
     """One marked line per series through its (x, y) points (points alone without ``lines``, where
     the points are separate cases), each point annotated with its label (e.g. K); x on a log scale,
     as frame times and world counts span decades; ``reference`` draws a dashed level (e.g. 1 for a
-    ratio to a baseline)."""
-    fig, ax = plt.subplots(figsize=(6.4, 3.6), layout="constrained")
+    ratio to a baseline). Separate cases that every series labels alike (a suite measured by two
+    methods) are joined by a thin line and named once, beside their rightmost point."""
+    labels = labels or {}
+    cases = list(labels.get(next(iter(series), ""), ()))
+    shared = not lines and len(series) > 1 and all(list(labels.get(n, ())) == cases for n in series)
+    fig, ax = plt.subplots(figsize=(7.2, 5.0) if shared and len(cases) > 8 else (6.4, 3.6), layout="constrained")
     for name, points in series.items():
         xy = np.asarray(points, float).reshape(-1, 2)
-        ax.plot(xy[:, 0], xy[:, 1], marker="o", label=name, linewidth=1.2 if lines else 0)
-        for (x, y), text in zip(xy, (labels or {}).get(name, ()), strict=False):
+        ax.plot(xy[:, 0], xy[:, 1], marker="o", label=name, linewidth=1.2 if lines else 0, zorder=3)
+        for (x, y), text in zip(xy, () if shared else labels.get(name, ()), strict=False):
             ax.annotate(text, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    if shared:
+        xy = np.stack([np.asarray(p, float).reshape(-1, 2) for p in series.values()], 1)  # (cases, series, 2)
+        named = []
+        for case, text in zip(xy, cases, strict=False):
+            ax.plot(case[:, 0], case[:, 1], color="0.7", linewidth=0.8, zorder=2)
+            x, y = case[case[:, 0].argmax()]
+            named.append(ax.annotate(text, (x, y), textcoords="offset points", xytext=(5, -3), fontsize=7))
     ax.set_xscale("log")
-    ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.ScalarFormatter())
+    # Ticks at 1, 2 and 5 of each decade, the others unlabelled: every minor tick labelled overlaps.
+    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0), numticks=30))
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     _label(fig, ax, title, note)
@@ -121,4 +134,23 @@ def xy_chart(
         ax.axhline(reference, color="0.4", linestyle="--", linewidth=0.8)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     ax.grid(alpha=0.3, which="both")
+    if shared:
+        _spread(fig, named)
     return _save(fig, path)
+
+
+def _spread(fig: plt.Figure, texts: list) -> None:
+    """Move overlapping point labels apart: from the top down, each below the labels already placed
+    that it overlaps (a greedy pass in display space). adjustText does this and more; these lines
+    spare the service's image a dependency that only the docs' charts would use."""
+    fig.canvas.draw()  # the constrained layout places the axes: the boxes are final from here
+    renderer, placed = fig.canvas.get_renderer(), []
+    for text in sorted(texts, key=lambda t: -t.get_window_extent(renderer).y1):
+        for _ in range(len(texts)):
+            box = text.get_window_extent(renderer)
+            hit = next((b for b in placed if box.overlaps(b)), None)
+            if hit is None:
+                break
+            dx, dy = text.get_position()  # offset points
+            text.set_position((dx, dy - (box.y1 - hit.y0 + 1.0) * 72.0 / fig.dpi))
+        placed.append(text.get_window_extent(renderer))
