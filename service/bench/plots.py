@@ -139,7 +139,7 @@ def xy_chart(
     return _save(fig, path)
 
 
-def _spread(fig: plt.Figure, texts: list) -> None:
+def _spread(fig: plt.Figure, texts: list[matplotlib.text.Annotation]) -> None:
     """Move overlapping point labels apart: from the top down, each below the labels already placed
     that it overlaps (a greedy pass in display space). adjustText does this and more; these lines
     spare the service's image a dependency that only the docs' charts would use."""
