@@ -151,9 +151,10 @@ def check_settings(
         if t.robot != spec.name:
             raise ValueError(f"recording '{t.name}' is of robot '{t.robot}', the config's is '{spec.name}'")
     own = robot_defaults(spec)
+    base = tracker_config(own)
     tables = {OWN_SETTINGS: own} | {name: own | dict(table) for name, table in candidates.items()}
-    tables = {n: t for n, t in tables.items() if n == OWN_SETTINGS or tracker_config(t) != tracker_config(own)}
-    method = tracker_config(own).optimizer.method
+    tables = {n: t for n, t in tables.items() if n == OWN_SETTINGS or tracker_config(t) != base}
+    method = base.optimizer.method
     by_object: dict[str, list[Trajectory]] = {}
     for t in trajectories:
         by_object.setdefault(t.object, []).append(t)

@@ -164,12 +164,17 @@ robot first feels the object, such a hand tracks as one open-loop world while it
 hand that feels it within a second or two keeps the population's gain (docs/tracker-settings.md)."""
 
 
+def _unchecked_palm(robot: RobotSpec) -> bool:
+    """Whether ``robot`` carries objects on its palm and its config gives no ``[tracker]`` table."""
+    # The procedural hand declares no palm to carry on: only a robot file's config does.
+    return robot.tracker is None and getattr(robot, "carries_on_palm", False)
+
+
 def robot_defaults(robot: RobotSpec) -> dict[str, object]:
     """The tracker settings ``robot``'s config gives its sessions (its ``[tracker]`` table, or
     :data:`UNCHECKED_PALM` for a palm-carrying robot without one) by dotted name, checked as a
     session's overrides are: a ValueError names the robot and the setting."""
-    unchecked = robot.tracker is None and getattr(robot, "carries_on_palm", False)
-    values = dict(UNCHECKED_PALM) if unchecked else dict(robot.tracker or ())
+    values = dict(UNCHECKED_PALM) if _unchecked_palm(robot) else dict(robot.tracker or ())
     try:
         tracker_config(values)
     except (ValueError, TypeError) as exc:
@@ -183,8 +188,7 @@ def unchecked_palms(robots: Mapping[str, RobotSpec]) -> list[str]:
     object felt through its weight, or touched by a fingertip only in passing) still tracks worse
     than one open-loop world, and only the robot's own truth (``check-settings``) says which settings
     it needs."""
-    # The procedural hand declares no palm to carry on: only a robot file's config does.
-    return [n for n, spec in robots.items() if getattr(spec, "carries_on_palm", False) and spec.tracker is None]
+    return [name for name, spec in robots.items() if _unchecked_palm(spec)]
 
 
 def changed(config: TrackerConfig, physics: Mapping[str, object] | None = None) -> dict[str, object]:
