@@ -1,3 +1,6 @@
+import gc
+from collections.abc import Iterator
+
 import pytest
 
 import inhand_tracker.sim_backend  # noqa: F401  (before collection imports newton: it switches Warp's adjoints off)
@@ -9,6 +12,19 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         "--alone", choices=("with", "skip", "only"), default="with",
         help="the tests marked alone (they need an idle core): with the others, skipped, or only them",
     )  # fmt: skip
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_collection(session: pytest.Session) -> Iterator[object]:
+    # Collecting imports the GPU stack: over a million objects that every full collection would walk
+    # again, for every test; they load with the collector paused and are then frozen out of its view
+    # (as the command line's gpu_stack does).
+    gc.disable()
+    try:
+        return (yield)
+    finally:
+        gc.freeze()
+        gc.enable()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
