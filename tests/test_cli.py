@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 
 import pytest
 from typer.testing import CliRunner
@@ -147,6 +149,18 @@ def test_a_simulating_command_without_the_gpu_stack_says_what_to_install(monkeyp
     out = _run("bench", "sim", "--worlds", "2", "--device", "cpu")  # as on the robot side's light install
     assert out.exit_code == 2 and "(missing: newton)" in out.stderr, out.stderr
     assert "pip install '.[service]' in the repository" in out.stderr
+
+
+def test_a_simulating_command_loads_the_stack_out_of_the_collector_s_view():
+    # In a process of its own: the stack is loaded once per process, and here it already is.
+    code = (
+        "import gc; from inhand_tracker.service.cli.common import gpu_stack; gpu_stack();"
+        " print(gc.isenabled(), gc.get_freeze_count())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    enabled, frozen = out.stdout.split()
+    # The collector runs again for what the command makes, and walks none of the stack's objects.
+    assert enabled == "True" and int(frozen) > 500_000, out.stdout
 
 
 def test_an_endpoint_without_its_transport_is_answered_in_one_line_within_a_second(tmp_path):
