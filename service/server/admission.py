@@ -84,7 +84,8 @@ class Gate:
             log.info(
                 f"robot '{name}' carries objects on its palm and its config gives no [tracker] table: its sessions"
                 " run the tracker's defaults held open loop until the robot first feels the object"
-                " (optimizer.until_felt), which on some palm-up hands still track worse than one open-loop world;"
+                " (optimizer.until_felt), which on a palm-up hand that feels it only through a few coarse zones or"
+                " a passing fingertip can track worse than one open-loop world where that world starts close;"
                 " `inhand-tracker check-settings` measures on a few grasps with motion capture which settings it"
                 " needs (`tracker = {}` in the config says the defaults were chosen)"
             )

@@ -185,9 +185,9 @@ def robot_defaults(robot: RobotSpec) -> dict[str, object]:
 def unchecked_palms(robots: Mapping[str, RobotSpec]) -> list[str]:
     """The names of ``robots`` that carry objects on their palm and whose config gives no
     ``[tracker]`` table: their sessions run :data:`UNCHECKED_PALM`, which on some palm-up hands (an
-    object felt through its weight, or touched by a fingertip only in passing) still tracks worse
-    than one open-loop world, and only the robot's own truth (``check-settings``) says which settings
-    it needs."""
+    object felt through its weight, or touched by a fingertip only in passing) can track worse than
+    one open-loop world where that world starts close to the truth, and only the robot's own truth
+    (``check-settings``) says which settings it needs."""
     return [name for name, spec in robots.items() if _unchecked_palm(spec)]
 
 
