@@ -6,6 +6,7 @@ import contextlib
 import gc
 import re
 import shlex
+import sys
 from enum import IntEnum
 from pathlib import Path
 from typing import Annotated
@@ -85,23 +86,32 @@ def gpu_stack() -> None:
     """What every command that simulates needs first; on the robot side's light install, a clear
     word on what to install instead of an import traceback."""
     installed_stack()
+    _load_frozen()
+    from inhand_tracker.service.logs import quiet_warp, watch_kernel_compiles
+
+    quiet_warp()
+    watch_kernel_compiles()
+
+
+def _load_frozen() -> None:
+    """Import the stack once per process, out of the cycle collector's view."""
     # The stack's modules are over a million objects that live as long as the process. The cycle
     # collector, run every few hundred allocations, walks them again and again while they load, and
     # once more at exit: 4.4 of the 7.2 s that importing the service took on a 2-core CPU. They load
     # with it paused and are then frozen out of its view: a full collection while the service runs
-    # then takes 17 ms there, not 0.7 s (twenty frames at 30 Hz).
+    # then takes 17 ms there, not 0.7 s (twenty frames at 30 Hz). Loaded already (a second command
+    # in one process), it is left alone: a freeze then would also keep the garbage made since.
+    if "inhand_tracker.service.tracker" in sys.modules:
+        return
     gc.disable()
     try:
         import inhand_tracker.sim_backend  # first: it switches off Warp's adjoints before newton is imported
 
         # isort: split
         import inhand_tracker.service.tracker  # noqa: F401  (torch, newton, mujoco_warp, trimesh)
-        from inhand_tracker.service.logs import quiet_warp, watch_kernel_compiles
     finally:
         gc.freeze()
         gc.enable()
-    quiet_warp()
-    watch_kernel_compiles()
 
 
 def installed_stack() -> None:
